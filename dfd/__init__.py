@@ -1,0 +1,3 @@
+"""dfd: Deep Feature Deformation weights for triangle meshes (standalone; never imports rigmix)."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,43 @@
+"""Shared fixtures: the real characters in ../shared/data/characters (or $RIGMIX_ASSETS).
+
+With CI=true a missing asset is a failure, not a skip.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+ASSETS = Path(os.environ.get("RIGMIX_ASSETS", ROOT.parent / "shared" / "data" / "characters"))
+
+#: name -> path relative to ASSETS, every shared character.
+CHARACTERS = {
+    "CesiumMan": "CesiumMan/CesiumMan.glb",
+    "RiggedFigure": "RiggedFigure/RiggedFigure.glb",
+    "Knight": "QuaterniusKnight/KnightCharacter.glb",
+    "Fox": "Fox/Fox.glb",
+    "Horse": "QuaterniusHorse/Horse.glb",
+    "Wasp": "QuaterniusWasp/Wasp.glb",
+    "Velociraptor": "QuaterniusVelociraptor/Velociraptor.glb",
+    "SimpleSkin": "SimpleSkin/SimpleSkin.gltf",
+}
+
+
+def asset(name: str) -> Path:
+    """Path of a shared character; fails under CI=true, skips elsewhere, when it is missing."""
+    path = ASSETS / CHARACTERS.get(name, name)
+    if not path.exists():
+        msg = f"missing test asset {path} (set RIGMIX_ASSETS to the characters folder)"
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(msg)
+        pytest.skip(msg)
+    return path
+
+
+@pytest.fixture(params=sorted(CHARACTERS))
+def character_path(request) -> Path:
+    """Each shared character in turn."""
+    return asset(request.param)
