@@ -1,0 +1,201 @@
+"""Clip sampling and resampling (the numpy foundation of section 5, animation completion).
+
+Sampling follows the glTF 2.0 specification, appendix C (animation interpolation):
+
+* ``LINEAR``: linear interpolation; rotations use spherical linear interpolation along the
+  shorter arc.
+* ``STEP``: the value of the last key at or before the time.
+* ``CUBICSPLINE``: cubic Hermite spline with the stored in/out tangents scaled by the key
+  interval; rotation results are normalized.
+
+Times before the first key or after the last are clamped to the first/last key value.
+Everything is vectorized over frames with :func:`numpy.searchsorted`.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from .character import Clip, Track
+from .transforms import quat_normalize, quat_slerp
+
+__all__ = ["sample_track", "sample_clip", "clip_times", "resample_clip"]
+
+logger = logging.getLogger(__name__)
+
+
+def _key_index(times, t):
+    """Segment index ``i`` with ``times[i] <= t < times[i+1]`` and the fraction ``u`` in it.
+
+    Returns ``i`` in ``[0, k-2]`` and ``u`` in ``[0, 1]`` (clamped outside the key range).
+    """
+    k = len(times)
+    i = np.clip(np.searchsorted(times, t, side="right") - 1, 0, k - 2)
+    t0 = times[i]
+    dt = times[i + 1] - t0
+    u = np.clip((t - t0) / np.where(dt > 0, dt, 1.0), 0.0, 1.0)
+    return i, u, dt
+
+
+def sample_track(track: Track, times) -> np.ndarray:
+    """Values of one animation track at the given times.
+
+    Parameters
+    ----------
+    track : rigmix.character.Track
+        ``k`` keys; values ``(k, C)``, or ``(k, 3, C)`` (in-tangent, value, out-tangent) for
+        ``CUBICSPLINE``.
+    times : (F,) float array
+        Query times in seconds, any order.
+
+    Returns
+    -------
+    (F, C) float64 array
+        Sampled values; unit quaternions (xyzw) for rotation tracks.
+    """
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    kt = track.times
+    vals = np.asarray(track.values, dtype=np.float64)
+    cubic = track.interpolation == "CUBICSPLINE"
+    rotation = track.path == "rotation"
+    if cubic:
+        vals = vals.reshape(len(kt), 3, -1)
+        points = vals[:, 1]
+    else:
+        vals = vals.reshape(len(kt), -1)
+        points = vals
+    k, C = points.shape
+    if k == 0:
+        raise ValueError(f"animation: track of joint {track.joint} ({track.path}) has no keys")
+    if k == 1:
+        out = np.broadcast_to(points[0], (len(t), C)).copy()
+        return quat_normalize(out) if rotation else out
+
+    if track.interpolation == "STEP":
+        i = np.clip(np.searchsorted(kt, t, side="right") - 1, 0, k - 1)
+        out = points[i]
+        return quat_normalize(out) if rotation else out
+
+    i, u, dt = _key_index(kt, t)
+    if track.interpolation == "LINEAR":
+        a, b = points[i], points[i + 1]
+        if rotation:
+            return quat_slerp(a, b, u)
+        return a + u[:, None] * (b - a)
+
+    # CUBICSPLINE (glTF 2.0 appendix C): tangents are scaled by the key interval
+    u2, u3 = u * u, u * u * u
+    h00 = 2 * u3 - 3 * u2 + 1
+    h10 = u3 - 2 * u2 + u
+    h01 = -2 * u3 + 3 * u2
+    h11 = u3 - u2
+    p0, p1 = points[i], points[i + 1]
+    m0 = vals[i, 2] * dt[:, None]  # out-tangent of key i
+    m1 = vals[i + 1, 0] * dt[:, None]  # in-tangent of key i+1
+    out = h00[:, None] * p0 + h10[:, None] * m0 + h01[:, None] * p1 + h11[:, None] * m1
+    # clamping: outside the key range the spline is held at the end values
+    out = np.where((t < kt[0])[:, None], points[0], out)
+    out = np.where((t > kt[-1])[:, None], points[-1], out)
+    return quat_normalize(out) if rotation else out
+
+
+def sample_clip(skeleton, clip: Clip, times):
+    """Local joint poses of a clip at the given times.
+
+    Parameters
+    ----------
+    skeleton : rigmix.character.Skeleton
+        J joints; joints and paths without a track keep their rest value.
+    clip : rigmix.character.Clip
+    times : (F,) float array
+        Seconds.
+
+    Returns
+    -------
+    T : (F, J, 3) float64
+        Local translations.
+    R : (F, J, 4) float64
+        Local rotations, unit quaternions xyzw.
+    S : (F, J, 3) float64
+        Local scales.
+    """
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    F, J = len(t), skeleton.num_joints
+    out = {
+        "translation": np.broadcast_to(skeleton.translations, (F, J, 3)).copy(),
+        "rotation": np.broadcast_to(quat_normalize(skeleton.rotations), (F, J, 4)).copy(),
+        "scale": np.broadcast_to(skeleton.scales, (F, J, 3)).copy(),
+    }
+    for track in clip.tracks:
+        if not 0 <= track.joint < J:
+            raise ValueError(
+                f"animation: clip {clip.name!r} has a track on joint {track.joint}, "
+                f"but the skeleton has {J} joints"
+            )
+        out[track.path][:, track.joint] = sample_track(track, t)
+    return out["translation"], out["rotation"], out["scale"]
+
+
+def clip_times(clip: Clip, fps: float = 30.0) -> np.ndarray:
+    """Sample times every ``1/fps`` seconds from ``clip.start`` to ``clip.end``, end included.
+
+    When the duration is not a whole number of frames, the end time is appended, so the last
+    interval is shorter than ``1/fps`` (the clip's final pose is always sampled).
+
+    Returns
+    -------
+    (F,) float64, strictly increasing, ``F >= 1``.
+    """
+    if fps <= 0:
+        raise ValueError(f"animation: fps must be positive, got {fps}")
+    start, end = clip.start, clip.end
+    n = int(np.floor((end - start) * fps + 1e-6))
+    t = start + np.arange(n + 1) / fps
+    if end - t[-1] > 1e-6 / fps:
+        t = np.append(t, end)
+    elif n:
+        t[-1] = end  # on the grid up to rounding: sample the end key exactly
+    return t
+
+
+def _hemisphere_continuous(q):
+    """Flip quaternions ``(F, J, 4)`` so consecutive frames have non-negative dot products."""
+    q = q.copy()
+    if len(q) < 2:
+        return q
+    dots = np.sum(q[1:] * q[:-1], axis=-1)  # (F-1, J)
+    flips = np.cumprod(np.where(dots < 0, -1.0, 1.0), axis=0)
+    q[1:] *= flips[..., None]
+    return q
+
+
+def resample_clip(skeleton, clip: Clip, fps: float = 30.0) -> Clip:
+    """The clip resampled as ``LINEAR`` tracks on every joint at a fixed rate.
+
+    Every joint gets a translation, rotation and scale track with keys at
+    :func:`clip_times` (``1/fps`` apart, end included); rotations are made continuous (no
+    sign flips between consecutive keys).
+
+    Parameters
+    ----------
+    skeleton : rigmix.character.Skeleton
+    clip : rigmix.character.Clip
+    fps : float
+        Frames per second.
+
+    Returns
+    -------
+    rigmix.character.Clip
+        Same name, ``3 * J`` tracks, joint order.
+    """
+    t = clip_times(clip, fps)
+    T, R, S = sample_clip(skeleton, clip, t)
+    R = _hemisphere_continuous(R)
+    tracks = []
+    for j in range(skeleton.num_joints):
+        tracks.append(Track(j, "translation", t, T[:, j], "LINEAR"))
+        tracks.append(Track(j, "rotation", t, R[:, j], "LINEAR"))
+        tracks.append(Track(j, "scale", t, S[:, j], "LINEAR"))
+    return Clip(clip.name, tuple(tracks))

@@ -1,0 +1,261 @@
+"""Linear blend skinning and dual quaternion skinning, vectorized over vertices and frames.
+
+Skinning follows glTF (see :mod:`rigmix.character`): the skinning matrix of joint ``j`` is
+``world[j] @ inverse_bind[j]`` and a skinned vertex is ``sum_k w_k M[joint_k] @ v``. Both
+methods take the skinning matrices as input so that callers can build them once per pose and
+reuse them for every mesh of a character.
+
+Memory: the per-vertex blended transforms are ``(F, n, 3, 4)``; frames are processed in chunks
+so that a long clip on a dense mesh never needs more than about ``_CHUNK_ELEMENTS`` floats of
+temporary storage at once.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from .transforms import matrix_to_quat, quat_multiply, quat_conjugate, trs_to_matrix
+
+__all__ = [
+    "skinning_matrices",
+    "rest_skinning_matrices",
+    "linear_blend_skinning",
+    "dual_quaternion_skinning",
+    "skin_character",
+    "rest_pose",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Upper bound on the number of float64 temporaries per chunk of frames (about 256 MB).
+_CHUNK_ELEMENTS = 1 << 25
+
+
+def skinning_matrices(skeleton, T, R, S):
+    """Skinning matrices ``world @ inverse_bind`` from local joint poses.
+
+    Parameters
+    ----------
+    skeleton : rigmix.character.Skeleton
+        J joints; its anchors are applied to the roots.
+    T : (..., J, 3) float array
+        Local translations.
+    R : (..., J, 4) float array
+        Local rotations, quaternions xyzw.
+    S : (..., J, 3) float array
+        Local scales.
+
+    Returns
+    -------
+    M : (..., J, 4, 4) float64 array
+        Skinning matrices (column vectors), mapping bind-space points to world space.
+    """
+    locals_ = trs_to_matrix(T, R, S)
+    worlds = skeleton.world_matrices(locals_)
+    return worlds @ skeleton.inverse_binds
+
+
+def rest_skinning_matrices(skeleton):
+    """Skinning matrices of the rest pose, ``(J, 4, 4)``.
+
+    Identity for every joint when the inverse bind matrices match the rest pose.
+    """
+    return skinning_matrices(skeleton, skeleton.translations, skeleton.rotations, skeleton.scales)
+
+
+def _check_influences(V, joints, weights, M):
+    V = np.asarray(V, dtype=np.float64).reshape(-1, 3)
+    joints = np.asarray(joints, dtype=np.int64)
+    weights = np.asarray(weights, dtype=np.float64)
+    M = np.asarray(M, dtype=np.float64)
+    n = len(V)
+    joints = joints.reshape(n, -1)
+    weights = weights.reshape(n, -1)
+    if joints.shape != weights.shape:
+        raise ValueError(f"skinning: joints {joints.shape} and weights {weights.shape} differ")
+    if M.shape[-2:] != (4, 4):
+        raise ValueError(f"skinning: matrices must be (..., J, 4, 4), got {M.shape}")
+    if joints.size and (joints.min() < 0 or joints.max() >= M.shape[-3]):
+        raise ValueError(
+            f"skinning: joint index out of range [0, {M.shape[-3]}) "
+            f"(min {joints.min()}, max {joints.max()})"
+        )
+    return V, joints, weights, M
+
+
+def _frame_chunks(num_frames, per_frame):
+    """Slices over flattened frames so that one chunk holds about ``_CHUNK_ELEMENTS`` floats."""
+    step = max(1, _CHUNK_ELEMENTS // max(1, per_frame))
+    for start in range(0, num_frames, step):
+        yield slice(start, min(num_frames, start + step))
+
+
+def linear_blend_skinning(V, joints, weights, M):
+    """Linear blend skinning.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+        Bind-pose vertex positions.
+    joints : (n, K) int array
+        Joint index of each influence slot.
+    weights : (n, K) float array
+        Weight of each slot (rows normally sum to 1; they are used as given).
+    M : (..., J, 4, 4) float array
+        Skinning matrices, e.g. from :func:`skinning_matrices`; leading axes are frames.
+
+    Returns
+    -------
+    U : (..., n, 3) float64 array
+        ``U[..., i, :] = sum_k weights[i, k] * (M[..., joints[i, k]] @ [V[i], 1])[:3]``.
+    """
+    V, joints, weights, M = _check_influences(V, joints, weights, M)
+    lead = M.shape[:-3]
+    Mf = M.reshape((-1,) + M.shape[-3:])[..., :3, :]  # (F, J, 3, 4)
+    n, K = joints.shape
+    out = np.empty((Mf.shape[0], n, 3))
+    for sl in _frame_chunks(Mf.shape[0], n * K * 12):
+        # blend the affine matrices first (one (n, 3, 4) per frame), then apply once
+        A = np.einsum("nk,fnkij->fnij", weights, Mf[sl][:, joints], optimize=True)  # (f, n, 3, 4)
+        out[sl] = np.einsum("fnij,nj->fni", A[..., :3], V) + A[..., 3]
+    return out.reshape(lead + (n, 3))
+
+
+def _polar(A):
+    """Polar decomposition ``A = Q @ P`` of ``(..., 3, 3)`` matrices.
+
+    ``Q`` is a rotation (det +1) and ``P`` is symmetric; a mirroring ``A`` puts the reflection
+    into ``P`` so that ``Q`` stays a proper rotation.
+    """
+    U, s, Vt = np.linalg.svd(A)
+    d = np.sign(np.linalg.det(U @ Vt))
+    d = np.where(d == 0, 1.0, d)
+    U = U.copy()
+    U[..., :, 2] *= d[..., None]
+    s = s.copy()
+    s[..., 2] *= d
+    Q = U @ Vt
+    P = np.swapaxes(Vt, -1, -2) @ (s[..., :, None] * Vt)
+    return Q, P
+
+
+def _matrix_to_dual_quat(M):
+    """Rigid part of ``(..., 4, 4)`` matrices as dual quaternions, plus the non-rigid part.
+
+    Returns
+    -------
+    real : (..., 4) unit quaternion xyzw (rotation Q of ``M[:3, :3] = Q @ P``).
+    dual : (..., 4) quaternion ``0.5 * t * real`` (translation ``t = M[:3, 3]``).
+    P : (..., 3, 3) symmetric matrix (scale/shear applied before the rigid motion).
+    """
+    Q, P = _polar(M[..., :3, :3])
+    real = matrix_to_quat(Q)
+    t = np.concatenate([M[..., :3, 3], np.zeros(M.shape[:-2] + (1,))], axis=-1)
+    dual = 0.5 * quat_multiply(t, real)
+    return real, dual, P
+
+
+def dual_quaternion_skinning(V, joints, weights, M):
+    """Dual quaternion skinning (Kavan, Collins, Zara, O'Sullivan 2008).
+
+    The rotation and translation of each skinning matrix are blended as unit dual quaternions
+    (no candy-wrapper collapse under twist). Scale and shear are handled the common two-phase
+    way: each matrix is split by polar decomposition into ``M = [Q | t] @ P``; the vertex is
+    first deformed by the linear blend of the non-rigid parts ``sum_k w_k P_k`` and then moved
+    by the blended dual quaternion. With unit scale ``P = I`` (plain DQS), and a vertex with a
+    single influence gets exactly ``M @ v`` as with linear blend skinning.
+
+    Antipodality: every influence is flipped into the hemisphere of the vertex's pivot, the
+    influence with the largest weight, before blending.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+        Bind-pose vertex positions.
+    joints : (n, K) int array
+    weights : (n, K) float array
+    M : (..., J, 4, 4) float array
+        Skinning matrices; leading axes are frames.
+
+    Returns
+    -------
+    U : (..., n, 3) float64 array
+        Skinned positions.
+    """
+    V, joints, weights, M = _check_influences(V, joints, weights, M)
+    lead = M.shape[:-3]
+    Mf = M.reshape((-1,) + M.shape[-3:])  # (F, J, 4, 4)
+    real, dual, P = _matrix_to_dual_quat(Mf)  # (F, J, 4), (F, J, 4), (F, J, 3, 3)
+    n, K = joints.shape
+    pivot = joints[np.arange(n), np.argmax(weights, axis=1)] if K else np.zeros(n, np.int64)
+    out = np.empty((Mf.shape[0], n, 3))
+    for sl in _frame_chunks(Mf.shape[0], n * K * 17):
+        r = real[sl][:, joints]  # (f, n, K, 4)
+        d = dual[sl][:, joints]
+        sign = np.where(np.sum(r * real[sl][:, pivot][:, :, None, :], axis=-1) < 0, -1.0, 1.0)
+        w = weights * sign  # (f, n, K)
+        b0 = np.einsum("fnk,fnkc->fnc", w, r)
+        be = np.einsum("fnk,fnkc->fnc", w, d)
+        norm = np.linalg.norm(b0, axis=-1, keepdims=True)
+        norm = np.where(norm > 1e-12, norm, 1.0)
+        b0 = b0 / norm
+        be = be / norm
+        # non-rigid phase: linear blend of the polar scale/shear factors
+        Pb = np.einsum("nk,fnkij->fnij", weights, P[sl][:, joints])
+        v = np.einsum("fnij,nj->fni", Pb, V)
+        # rigid phase: rotate by b0, translate by 2 * vec(be * conj(b0))
+        vq = np.concatenate([v, np.zeros(v.shape[:-1] + (1,))], axis=-1)
+        rot = quat_multiply(quat_multiply(b0, vq), quat_conjugate(b0))[..., :3]
+        trans = 2.0 * quat_multiply(be, quat_conjugate(b0))[..., :3]
+        out[sl] = rot + trans
+    return out.reshape(lead + (n, 3))
+
+
+_METHODS = {"lbs": linear_blend_skinning, "dqs": dual_quaternion_skinning}
+
+
+def skin_character(character, T, R, S, *, method="lbs"):
+    """Skinned positions of every mesh of a character for one pose or a stack of frames.
+
+    Parameters
+    ----------
+    character : rigmix.character.Character
+    T : (..., J, 3) float array
+        Local joint translations (e.g. from :func:`rigmix.animation.sample_clip`).
+    R : (..., J, 4) float array
+        Local joint rotations, xyzw.
+    S : (..., J, 3) float array
+        Local joint scales.
+    method : {"lbs", "dqs"}
+        Linear blend skinning (the reference) or dual quaternion skinning.
+
+    Returns
+    -------
+    list of (..., n_i, 3) float64 arrays
+        One per ``character.meshes``, in world space. An unskinned mesh is returned at its
+        bind positions, broadcast over the leading axes.
+    """
+    if method not in _METHODS:
+        raise ValueError(f"skinning: unknown method {method!r}, expected one of {sorted(_METHODS)}")
+    skin = _METHODS[method]
+    M = skinning_matrices(character.skeleton, T, R, S)
+    lead = M.shape[:-3]
+    out = []
+    for mesh in character.meshes:
+        if mesh.skinned:
+            out.append(skin(mesh.positions, mesh.joints, mesh.weights, M))
+        else:
+            out.append(np.broadcast_to(mesh.positions, lead + mesh.positions.shape).copy())
+    return out
+
+
+def rest_pose(character, *, method="lbs"):
+    """Positions of every mesh skinned at the skeleton's rest pose, ``list of (n_i, 3)``.
+
+    Equal to the raw ``POSITION`` data only when the inverse bind matrices match the rest pose
+    (true for most assets, not for all).
+    """
+    sk = character.skeleton
+    return skin_character(character, sk.translations, sk.rotations, sk.scales, method=method)
