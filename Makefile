@@ -5,7 +5,17 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 OUT    ?= out/demo
 
+VDB_VENV ?= .venv-vdb
+SYSDEPS  := /usr/bin/chromium /usr/lib/python3/dist-packages/pyopenvdb.cpython-311-x86_64-linux-gnu.so
+
 .PHONY: env demo test bench clean
+
+# Debian packages: Chromium (headless preview tests) and python3-openvdb (the optional OpenVDB
+# field backend, tested for parity in CI). Installed with apt when missing; needs root.
+$(SYSDEPS):
+	@if [ "$$(id -u)" != 0 ]; then echo "make: need root to install Debian packages chromium python3-openvdb (or install them and re-run)"; exit 1; fi
+	apt-get update -qq
+	DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium python3-openvdb >/dev/null
 
 # The environment: a virtualenv with the package (editable) and its dev extras, pinned by
 # constraints.txt, plus the npm tools the tests use (Khronos glTF-Validator, three.js, playwright-core).
@@ -16,7 +26,18 @@ $(STAMP): pyproject.toml constraints.txt package.json package-lock.json
 	npm ci --no-audit --no-fund --loglevel=error
 	touch $(STAMP)
 
-env: $(STAMP)
+# A second environment for the OpenVDB backend: Debian's pyopenvdb is built against NumPy 1.x,
+# so it gets its own venv with numpy<2 and a link to the extension module.
+$(VDB_VENV)/.installed: pyproject.toml $(SYSDEPS)
+	test -x $(VDB_VENV)/bin/python || $(PYTHON) -m venv $(VDB_VENV)
+	$(VDB_VENV)/bin/python -m pip install --quiet -c constraints.txt "numpy<2" scipy libigl scikit-image pygltflib pydantic pytest
+	$(VDB_VENV)/bin/python -m pip install --quiet --no-deps -e .
+	ln -sf /usr/lib/python3/dist-packages/pyopenvdb.cpython-311-x86_64-linux-gnu.so \
+	  "$$($(VDB_VENV)/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/"
+	$(VDB_VENV)/bin/python -c "import pyopenvdb, numpy; assert numpy.__version__ < '2'"
+	touch $@
+
+env: $(STAMP) $(SYSDEPS) $(VDB_VENV)/.installed
 
 demo: env
 	$(BIN)/python -m rigmix.demo --out $(OUT)
@@ -28,4 +49,4 @@ bench: env
 	$(BIN)/python -m benchmarks.run
 
 clean:
-	rm -rf $(VENV) node_modules out
+	rm -rf $(VENV) $(VDB_VENV) node_modules out
