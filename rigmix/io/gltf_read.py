@@ -1,0 +1,739 @@
+"""glTF 2.0 / GLB -> :class:`rigmix.character.Character` (the mapping and repair rules are in
+:mod:`rigmix.io.gltf`'s docstring).
+
+The reader is a flat list of passes over a :class:`rigmix.io.accessors.Document`, each fixing
+one mismatch between glTF and the domain model:
+
+1. ``_node_graph``: parents, local and world matrices of every node (cycles rejected).
+2. ``_choose_skin``: the skin with most joints; other skins merged when their joints are a
+   subset (their bind space mapped onto the main one), otherwise UnsupportedError.
+3. ``_skeleton``: joints (plus non-joint nodes between joints) in a stable topological order,
+   unique names, rest TRS, inverse binds, anchors above the roots.
+4. ``_meshes``: primitives -> ``Mesh`` (skinned) or ``Prop`` (rigid/static); weights repaired.
+5. ``_clips``: channels on joints -> ``Track``.
+6. ``_materials``: metallic-roughness materials and base colour textures.
+"""
+
+from __future__ import annotations
+
+import heapq
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ..character import Anchor, Character, Clip, Material, Mesh, Prop, Skeleton, Texture, Track
+from ..errors import InputError, RigmixError, UnsupportedError
+from ..transforms import matrix_to_trs, quat_normalize, trs_to_matrix
+from .accessors import Document, decode_data_uri, load_document
+
+__all__ = ["read_gltf"]
+
+logger = logging.getLogger(__name__)
+
+#: Weight rows whose sum is off by more than this are reported (all rows are renormalized).
+SUM_TOLERANCE = 1e-3
+#: A vertex within this fraction of the bind-pose bounding-box diagonal counts as co-located.
+COLOCATED = 1e-6
+
+
+class _Log:
+    """Collects repair warnings: each is logged and kept for ``Character.warnings``."""
+
+    def __init__(self, name: str):
+        self.name = name
+        self.items: list[str] = []
+
+    def __call__(self, message: str) -> None:
+        text = f"{self.name}: {message}"
+        logger.warning(text)
+        self.items.append(text)
+
+
+def read_gltf(path) -> Character:
+    """Read a glTF 2.0 file (``.glb``, or ``.gltf`` with embedded or external resources).
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    Character
+        Skeleton in topological order, skinned meshes, props, clips, materials; defects that
+        were repaired are listed in ``Character.warnings`` (and logged).
+
+    Raises
+    ------
+    InputError
+        The file cannot be read (truncated, corrupt JSON, out-of-range data...).
+    UnsupportedError
+        Valid glTF that cannot be mapped (several skins over different joint sets).
+    """
+    doc = load_document(path)
+    log = _Log(doc.name)
+    try:
+        return _read(doc, log)
+    except RigmixError:
+        raise
+    except (TypeError, ValueError, KeyError, AttributeError, IndexError) as exc:
+        # A JSON value of the wrong type somewhere we did not check explicitly.
+        raise doc.error(f"malformed glTF ({type(exc).__name__}: {exc})") from None
+
+
+def _read(doc: Document, log: _Log) -> Character:
+    graph = _node_graph(doc)
+    skins = _choose_skin(doc, graph)
+    skeleton, joint_of_node = _skeleton(doc, graph, skins, log)
+    materials = _materials(doc, log)
+    meshes, props = _meshes(doc, graph, skins, skeleton, joint_of_node, len(materials), log)
+    clips = _clips(doc, joint_of_node, skeleton, log)
+    return Character(
+        name=doc.path.stem, skeleton=skeleton, meshes=meshes, clips=clips, materials=materials,
+        props=props, source=str(doc.path), warnings=tuple(log.items),
+    )
+
+
+# --------------------------------------------------------------------------- 1. node graph
+
+
+class _Graph:
+    """Node hierarchy: ``parent`` (N,), ``local`` (N,4,4), ``world`` (N,4,4), ``depth`` (N,)."""
+
+    def __init__(self, parent, local, world, depth, names):
+        self.parent, self.local, self.world, self.depth, self.names = parent, local, world, depth, names
+
+
+def _node_local(doc: Document, i: int, node: dict) -> np.ndarray:
+    if "matrix" in node:
+        m = np.asarray(node["matrix"], dtype=np.float64)
+        if m.shape != (16,) or not np.all(np.isfinite(m)):
+            raise doc.error(f"nodes[{i}].matrix must be 16 finite numbers")
+        return m.reshape(4, 4).T  # column-major in the file
+    t = np.asarray(node.get("translation", [0, 0, 0]), dtype=np.float64)
+    r = np.asarray(node.get("rotation", [0, 0, 0, 1]), dtype=np.float64)
+    s = np.asarray(node.get("scale", [1, 1, 1]), dtype=np.float64)
+    if t.shape != (3,) or r.shape != (4,) or s.shape != (3,) or not all(np.all(np.isfinite(a)) for a in (t, r, s)):
+        raise doc.error(f"nodes[{i}] has a malformed translation, rotation or scale")
+    return trs_to_matrix(t, r, s)
+
+
+def _node_graph(doc: Document) -> _Graph:
+    nodes = doc.items("nodes")
+    N = len(nodes)
+    parent = np.full(N, -1, dtype=np.int64)
+    for i in range(N):
+        node = doc.get("nodes", i)
+        for c in node.get("children", []):
+            if not isinstance(c, int) or not 0 <= c < N or c == i:
+                raise doc.error(f"nodes[{i}] has an invalid child {c!r} (the file has {N} nodes)")
+            if parent[c] >= 0:
+                raise doc.error(f"nodes[{c}] is a child of both nodes[{parent[c]}] and nodes[{i}]")
+            parent[c] = i
+    depth = np.full(N, -1, dtype=np.int64)
+    for i in range(N):
+        chain, k = [], i
+        while k >= 0 and depth[k] < 0:
+            chain.append(k)
+            if len(chain) > N:
+                raise doc.error(f"the node hierarchy has a cycle through nodes[{i}]")
+            k = parent[k]
+        d = depth[k] if k >= 0 else -1
+        for c in reversed(chain):
+            d += 1
+            depth[c] = d
+    local = np.stack([_node_local(doc, i, nodes[i]) for i in range(N)]) if N else np.zeros((0, 4, 4))
+    world = np.empty_like(local)
+    for i in np.argsort(depth, kind="stable"):
+        world[i] = local[i] if parent[i] < 0 else world[parent[i]] @ local[i]
+    names = [n.get("name") if isinstance(n.get("name"), str) and n.get("name") else None for n in nodes]
+    return _Graph(parent, local, world, depth, names)
+
+
+# --------------------------------------------------------------------------- 2. skins
+
+
+class _Skin:
+    """One glTF skin mapped onto the skeleton: ``nodes`` (n,), ``ibm`` (n,4,4), ``bind_map``
+    (4,4) taking its bind space to the main skin's (identity for the main skin)."""
+
+    def __init__(self, index, nodes, ibm):
+        self.index, self.nodes, self.ibm = index, nodes, ibm
+        self.bind_map = np.eye(4)
+        self.to_joint = None  # (n,) skeleton joint index of each skin joint, set by _skeleton
+
+
+def _read_skin(doc: Document, i: int) -> _Skin:
+    skin = doc.get("skins", i)
+    joints = skin.get("joints")
+    N = len(doc.items("nodes"))
+    if not isinstance(joints, list) or not joints:
+        raise doc.error(f"skins[{i}] has no joints")
+    if any(not isinstance(j, int) or not 0 <= j < N for j in joints):
+        raise doc.error(f"skins[{i}] refers to a node that does not exist (the file has {N} nodes)")
+    if len(set(joints)) != len(joints):
+        raise doc.error(f"skins[{i}] lists the same node twice in its joints")
+    if "inverseBindMatrices" in skin:
+        m = doc.accessor(skin["inverseBindMatrices"], f"skins[{i}] inverseBindMatrices")
+        if m.shape[1] != 16 or len(m) < len(joints):
+            raise doc.error(f"skins[{i}] inverseBindMatrices must be {len(joints)} MAT4, got {m.shape}")
+        ibm = m[: len(joints)].reshape(-1, 4, 4).transpose(0, 2, 1).astype(np.float64)
+    else:
+        ibm = np.broadcast_to(np.eye(4), (len(joints), 4, 4)).copy()
+    return _Skin(i, np.asarray(joints, dtype=np.int64), ibm)
+
+
+def _choose_skin(doc: Document, graph: _Graph) -> list[_Skin]:
+    """All skins, the main one (most joints, first on ties) first; the others must be subsets."""
+    skins = [_read_skin(doc, i) for i in range(len(doc.items("skins")))]
+    if not skins:
+        return []
+    main_i = max(range(len(skins)), key=lambda i: (len(skins[i].nodes), -i))
+    main = skins[main_i]
+    pos = {int(n): k for k, n in enumerate(main.nodes)}
+    for s in skins:
+        if s is main:
+            continue
+        if not set(s.nodes.tolist()) <= pos.keys():
+            raise UnsupportedError(
+                f"{doc.name}: skins[{s.index}] uses joints outside skins[{main.index}]: rigmix reads one "
+                "skeleton per file; export the character with a single armature"
+            )
+        # Bind space of s -> bind space of main: inv(ibm_main[j]) @ ibm_s[j], the same for all j.
+        idx = [pos[int(n)] for n in s.nodes]
+        maps = np.linalg.inv(main.ibm[idx]) @ s.ibm
+        scale = max(1.0, float(np.abs(maps[:, :3, 3]).max()))
+        if np.abs(maps - maps[0]).max() > 1e-4 * scale:
+            raise UnsupportedError(
+                f"{doc.name}: skins[{s.index}] binds the joints of skins[{main.index}] in a different "
+                "pose: rigmix reads one bind pose per file; re-export with one skin"
+            )
+        s.bind_map = maps[0]
+    return [main] + [s for s in skins if s is not main]
+
+
+# --------------------------------------------------------------------------- 3. skeleton
+
+
+def _unique(names: list[str]) -> tuple[list[str], list[tuple[str, str]]]:
+    """Make names unique: later duplicates get ``.1``, ``.2``... (never a name already in the
+    list); returns the new names and the ``(old, new)`` renames."""
+    taken, used, out, renamed = set(names), set(), [], []
+    for n in names:
+        new, k = n, 1
+        while new in used or (new != n and new in taken):
+            new, k = f"{n}.{k}", k + 1
+        used.add(new)
+        out.append(new)
+        if new != n:
+            renamed.append((n, new))
+    return out, renamed
+
+
+def _skeleton(doc, graph: _Graph, skins: list[_Skin], log) -> tuple[Skeleton, dict]:
+    """Joints in topological order; returns the skeleton and ``{node index: joint index}``."""
+    if not skins:
+        empty = np.zeros((0, 3))
+        return Skeleton((), np.zeros(0), empty, np.zeros((0, 4)), empty, np.zeros((0, 4, 4))), {}
+    main = skins[0]
+    skin_pos = {int(n): k for k, n in enumerate(main.nodes)}
+    parent = graph.parent
+
+    # Non-joint nodes on the path between two joints become joints (their transform animates
+    # the chain below them); they carry no weight.
+    members = set(skin_pos)
+    for j in skin_pos:
+        chain, k = [], parent[j]
+        while k >= 0 and k not in skin_pos:
+            chain.append(int(k))
+            k = parent[k]
+        if k >= 0 and chain:
+            members.update(chain)
+    extra = sorted(members - skin_pos.keys())
+    for n in extra:
+        log(f"node '{graph.names[n] or n}' lies between joints but is not in the skin: added as a joint")
+
+    def joint_parent(n):
+        k = parent[n]
+        return int(k) if k >= 0 and k in members else -1
+
+    # Stable topological order: each node keyed by the smallest skin position in its subtree
+    # (extra nodes have none of their own), so a skin already in parent-first order is kept as is.
+    key = {n: skin_pos.get(n, len(skin_pos) + n) for n in members}
+    for n in sorted(members, key=lambda n: -graph.depth[n]):
+        p = joint_parent(n)
+        if p >= 0:
+            key[p] = min(key[p], key[n])
+    kids: dict[int, list[int]] = {}
+    heap = []
+    for n in members:
+        p = joint_parent(n)
+        if p < 0:
+            heap.append((key[n], n))
+        else:
+            kids.setdefault(p, []).append(n)
+    heapq.heapify(heap)
+    order = []
+    while heap:
+        _, n = heapq.heappop(heap)
+        order.append(n)
+        for c in kids.get(n, []):
+            heapq.heappush(heap, (key[c], c))
+    joint_of_node = {n: j for j, n in enumerate(order)}
+    if order != [int(n) for n in main.nodes]:
+        logger.debug("%s: skin joints reordered parents-first", doc.name)
+
+    raw_names = [graph.names[n] or f"joint_{n}" for n in order]
+    names, renamed = _unique(raw_names)
+    for old, new in renamed:
+        log(f"joint name '{old}' is used twice: renamed '{new}'")
+
+    parents = np.array([joint_of_node[joint_parent(n)] if joint_parent(n) >= 0 else -1 for n in order])
+    t, r, s = matrix_to_trs(graph.local[order])
+    ibm = np.empty((len(order), 4, 4))
+    for j, n in enumerate(order):
+        ibm[j] = main.ibm[skin_pos[n]] if n in skin_pos else np.linalg.inv(graph.world[n])
+    for sk in skins:
+        sk.to_joint = np.array([joint_of_node[int(n)] for n in sk.nodes], dtype=np.int64)
+
+    if "skeleton" in doc.get("skins", main.index):
+        sroot = doc.get("skins", main.index)["skeleton"]
+        roots = [n for n in order if joint_parent(n) < 0]
+        ok = isinstance(sroot, int) and 0 <= sroot < len(parent) and all(_is_ancestor(parent, sroot, n) for n in roots)
+        if not ok:
+            log(f"skins[{main.index}].skeleton ({graph.names[sroot] if isinstance(sroot, int) and 0 <= sroot < len(parent) else sroot!r}) "
+                "is not a common root of the joints: ignored")
+
+    # Anchors: the non-joint ancestors of the root joints, parents first.
+    anchor_nodes = set()
+    for n in order:
+        if joint_parent(n) < 0:
+            k = parent[n]
+            while k >= 0:
+                anchor_nodes.add(int(k))
+                k = parent[k]
+    anchor_order = sorted(anchor_nodes, key=lambda n: (graph.depth[n], n))
+    anchor_index = {n: a for a, n in enumerate(anchor_order)}
+    anchor_names, _ = _unique([graph.names[n] or f"node_{n}" for n in anchor_order])
+    anchors = tuple(
+        Anchor(anchor_names[a], graph.local[n], anchor_index.get(int(parent[n]), -1))
+        for a, n in enumerate(anchor_order)
+    )
+    root_anchor = np.array(
+        [anchor_index.get(int(parent[n]), -1) if joint_parent(n) < 0 else -1 for n in order], dtype=np.int64
+    )
+    skeleton = Skeleton(tuple(names), parents, t, r, s, ibm, anchors, root_anchor)
+    return skeleton, joint_of_node
+
+
+def _is_ancestor(parent, a: int, n: int) -> bool:
+    """Whether node ``a`` is ``n`` or one of its ancestors."""
+    while n >= 0:
+        if n == a:
+            return True
+        n = parent[n]
+    return False
+
+
+# --------------------------------------------------------------------------- 4. meshes
+
+
+def _triangles(doc, mode: int, idx: np.ndarray, label: str, log) -> np.ndarray | None:
+    """Triangle list ``(m, 3)`` from the primitive's index list, or None for points/lines."""
+    if mode == 4:
+        if len(idx) % 3:
+            log(f"{label}: {len(idx)} indices is not a multiple of 3: the last {len(idx) % 3} dropped")
+        return idx[: len(idx) // 3 * 3].reshape(-1, 3)
+    if mode == 5:  # strip: odd triangles swap their first two corners to keep the winding
+        i = np.arange(max(len(idx) - 2, 0))
+        odd = i % 2
+        tri = np.stack([idx[i + odd], idx[i + 1 - odd], idx[i + 2]], axis=1)
+    elif mode == 6:  # fan
+        i = np.arange(max(len(idx) - 2, 0))
+        tri = np.stack([idx[i + 1], idx[i + 2], np.full_like(i, idx[0] if len(idx) else 0)], axis=1)
+    elif mode in (0, 1, 2, 3):
+        log(f"{label}: points/lines primitive (mode {mode}) skipped")
+        return None
+    else:
+        raise doc.error(f"{label} has an unknown primitive mode {mode!r}")
+    keep = (tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])
+    return tri[keep]
+
+
+def _read_primitive(doc, prim: dict, label: str, njoints: int | None, log) -> dict | None:
+    """Arrays of one primitive; ``njoints`` is the skin's joint count (None if not skinned)."""
+    attrs = prim.get("attributes", {})
+    if "POSITION" not in attrs:
+        log(f"{label} has no POSITION: skipped")
+        return None
+    V = doc.accessor(attrs["POSITION"], f"{label} POSITION")
+    n = len(V)
+    if V.shape[1] != 3 or not np.all(np.isfinite(V)):
+        raise doc.error(f"{label}: POSITION must be finite VEC3")
+
+    def attr(key, comps):
+        a = doc.accessor(attrs[key], f"{label} {key}")
+        if len(a) != n or a.shape[1] not in comps:
+            raise doc.error(f"{label}: {key} has {len(a)} x {a.shape[1]} values, expected {n} x {comps}")
+        return a
+
+    if "indices" in prim:
+        idx = doc.accessor(prim["indices"], f"{label} indices")
+        if idx.dtype.kind != "u" or idx.shape[1] != 1:
+            raise doc.error(f"{label}: indices must be unsigned integer scalars")
+        idx = idx[:, 0].astype(np.int64)
+        if len(idx) and idx.max() >= n:
+            raise doc.error(f"{label}: index {int(idx.max())} is past the vertex count {n}")
+    else:
+        idx = np.arange(n, dtype=np.int64)
+    F = _triangles(doc, prim.get("mode", 4), idx, label, log)
+    if F is None:
+        return None
+    if prim.get("targets"):
+        log(f"{label}: {len(prim['targets'])} morph targets ignored")
+    out = {"positions": V, "faces": F, "material": prim.get("material", -1)}
+    if "NORMAL" in attrs:
+        out["normals"] = attr("NORMAL", (3,))
+    uvs, k = [], 0
+    while f"TEXCOORD_{k}" in attrs:
+        uvs.append(attr(f"TEXCOORD_{k}", (2,)))
+        k += 1
+    out["uvs"] = tuple(uvs)
+    if "COLOR_0" in attrs:
+        c = attr("COLOR_0", (3, 4))
+        out["colors"] = np.concatenate([c, np.ones((n, 1))], axis=1) if c.shape[1] == 3 else c
+    if njoints is not None and "JOINTS_0" in attrs and "WEIGHTS_0" in attrs:
+        J, W, k = [], [], 0
+        while f"JOINTS_{k}" in attrs and f"WEIGHTS_{k}" in attrs:
+            j = attr(f"JOINTS_{k}", (4,))
+            if j.dtype.kind != "u":
+                raise doc.error(f"{label}: JOINTS_{k} must be unsigned byte or short")
+            J.append(j.astype(np.int64))
+            W.append(attr(f"WEIGHTS_{k}", (4,)).astype(np.float64))
+            k += 1
+        J, W = np.concatenate(J, axis=1), np.concatenate(W, axis=1)
+        if J.max() >= njoints:
+            raise doc.error(f"{label}: JOINTS refer to joint {int(J.max())} but the skin has {njoints} joints")
+        out["joints"], out["weights"] = J, W
+    return out
+
+
+def repair_weights(joints, weights):
+    """Clean skin weights (the rules of :mod:`rigmix.io.gltf`), except rows left without weight.
+
+    Parameters
+    ----------
+    joints : (n, K) int array
+    weights : (n, K) float array, may hold NaN, inf, negatives and duplicate joint slots.
+
+    Returns
+    -------
+    joints : (n, K) int64
+        Unused slots (weight 0) set to joint 0.
+    weights : (n, K) float64
+        Non-negative rows summing to 1, or all zero for the rows in ``empty``.
+    empty : (n,) bool
+        Rows with no finite positive weight (to be filled by the caller).
+    counts : dict
+        Rows affected: ``nonfinite``, ``negative``, ``duplicate``, ``unnormalized``.
+    """
+    J = np.array(joints, dtype=np.int64)
+    W = np.array(weights, dtype=np.float64)
+    bad = ~np.isfinite(W)
+    counts = {"nonfinite": int(bad.any(axis=1).sum())}
+    W[bad] = 0.0
+    neg = W < 0
+    counts["negative"] = int(neg.any(axis=1).sum())
+    W[neg] = 0.0
+    dup = np.zeros(len(W), dtype=bool)
+    K = W.shape[1]
+    for b in range(1, K):
+        for a in range(b):
+            same = (J[:, a] == J[:, b]) & (W[:, b] > 0)
+            dup |= same & (W[:, a] > 0)
+            W[same, a] += W[same, b]
+            W[same, b] = 0.0
+    counts["duplicate"] = int(dup.sum())
+    s = W.sum(axis=1)
+    empty = s <= 0
+    counts["unnormalized"] = int((~empty & (np.abs(s - 1.0) > SUM_TOLERANCE)).sum())
+    W[~empty] /= s[~empty, None]
+    J[W == 0] = 0
+    return J, W, empty, counts
+
+
+def _fill_empty_rows(parts, skeleton: Skeleton, log):
+    """Give rows without weight the weights of a co-located vertex, else the nearest joint.
+
+    ``parts``: list of dicts with ``name``, ``positions`` (bind space), ``joints``,
+    ``weights``, ``empty`` (modified in place).
+    """
+    if not any(p["empty"].any() for p in parts):
+        return
+    from scipy.spatial import cKDTree
+
+    allV = np.concatenate([p["positions"] for p in parts])
+    diag = float(np.linalg.norm(allV.max(0) - allV.min(0))) if len(allV) else 1.0
+    donors = [(p, np.flatnonzero(~p["empty"])) for p in parts]
+    dV = np.concatenate([p["positions"][i] for p, i in donors])
+    dJ = [p["joints"][i] for p, i in donors]
+    K = max(p["joints"].shape[1] for p in parts)
+    dJ = np.concatenate([np.pad(j, ((0, 0), (0, K - j.shape[1]))) for j in dJ])
+    dW = np.concatenate([np.pad(p["weights"][i], ((0, 0), (0, K - p["weights"].shape[1]))) for p, i in donors])
+    tree = cKDTree(dV) if len(dV) else None
+    bind_pos = np.linalg.inv(skeleton.inverse_binds)[:, :3, 3]
+    for p in parts:
+        rows = np.flatnonzero(p["empty"])
+        if not len(rows):
+            continue
+        P = p["positions"][rows]
+        copied = np.zeros(len(rows), dtype=bool)
+        if tree is not None:
+            d, k = tree.query(P)
+            copied = d <= COLOCATED * diag
+            Kp = p["joints"].shape[1]
+            for r, src in zip(rows[copied], k[copied]):
+                order = np.argsort(-dW[src], kind="stable")[:Kp]
+                w = dW[src, order]
+                p["joints"][r] = dJ[src, order]
+                p["weights"][r] = w / w.sum()
+        near = np.argmin(((P[~copied, None, :] - bind_pos[None]) ** 2).sum(-1), axis=1)
+        p["joints"][rows[~copied]] = 0
+        p["weights"][rows[~copied]] = 0.0
+        p["joints"][rows[~copied], 0] = near
+        p["weights"][rows[~copied], 0] = 1.0
+        nonfinite = p["nonfinite"][rows]
+        for mask, how in ((copied, "given the weights of a vertex at the same position"),
+                          (~copied, "bound with weight 1 to the joint nearest in the bind pose")):
+            for bad, what in ((nonfinite, "NaN or infinite"), (~nonfinite, "zero or negative")):
+                if (mask & bad).any():
+                    log(f"mesh '{p['name']}': {int((mask & bad).sum())} vertices with {what} weights {how}")
+
+
+def _meshes(doc, graph: _Graph, skins, skeleton: Skeleton, joint_of_node, nmat, log):
+    """Skinned primitives -> Mesh, unskinned ones -> Prop (rigid on a joint, or static)."""
+    skin_by_index = {s.index: s for s in skins}
+    parts, props = [], []
+    names_raw = []
+    rest_world = {n: graph.world[n] for n in joint_of_node}
+    for i, node in enumerate(doc.items("nodes")):
+        if "mesh" not in node:
+            continue
+        mi = node["mesh"]
+        mesh = doc.get("meshes", mi, f"nodes[{i}]")
+        prims = mesh.get("primitives", [])
+        base = mesh.get("name") or f"mesh_{mi}"
+        skin = None
+        if "skin" in node:
+            doc.get("skins", node["skin"], f"nodes[{i}]")
+            skin = skin_by_index[node["skin"]]
+        for pi, prim in enumerate(prims):
+            extras = prim.get("extras")
+            name = extras.get("name") if isinstance(extras, dict) else None
+            if not isinstance(name, str) or not name:  # rigmix writes the Mesh name there
+                name = base if len(prims) == 1 else f"{base}.{pi}"
+            label = f"mesh '{name}'"
+            d = _read_primitive(doc, prim, label, None if skin is None else len(skin.nodes), log)
+            if d is None:
+                continue
+            mat = d["material"]
+            if not (isinstance(mat, int) and -1 <= mat < nmat):
+                raise doc.error(f"{label} refers to materials[{mat!r}], the file has {nmat}")
+            if skin is not None and "joints" in d:
+                V, N = d["positions"], d.get("normals")
+                if not np.allclose(skin.bind_map, np.eye(4)):
+                    V = V @ skin.bind_map[:3, :3].T + skin.bind_map[:3, 3]
+                    if N is not None:
+                        N = N @ np.linalg.inv(skin.bind_map[:3, :3])
+                        N = N / np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-30)
+                d = dict(d, positions=V, normals=N, joints=skin.to_joint[d["joints"]])
+                names_raw.append(name)
+                parts.append(d)
+                continue
+            if skin is not None:
+                log(f"{label} is on a skinned node but has no JOINTS_0/WEIGHTS_0: read as a static prop")
+            # Rigid: follows its nearest joint ancestor, or static in the world.
+            k = graph.parent[i]
+            while k >= 0 and k not in joint_of_node:
+                k = graph.parent[k]
+            joint = joint_of_node[k] if k >= 0 else -1
+            matrix = graph.world[i] if k < 0 else np.linalg.inv(rest_world[k]) @ graph.world[i]
+            props.append((name, d, joint, matrix))
+
+    all_names, _ = _unique(names_raw + [p[0] for p in props])
+    for p, nm in zip(parts, all_names):
+        p["name"] = nm
+        p["weights_raw"] = p["weights"]
+        J, W, empty, counts = repair_weights(p["joints"], p["weights"])
+        p["joints"], p["weights"], p["empty"] = J, W, empty
+        p["nonfinite"] = ~np.all(np.isfinite(p["weights_raw"]), axis=1)
+        label = f"mesh '{nm}'"
+        if counts["duplicate"]:
+            log(f"{label}: {counts['duplicate']} vertices with duplicate joint slots: their weights summed")
+        if counts["negative"]:
+            log(f"{label}: {counts['negative']} vertices with negative weights: clamped to 0")
+        if counts["unnormalized"]:
+            log(f"{label}: {counts['unnormalized']} vertices with weights not summing to 1: renormalized")
+    _fill_empty_rows(parts, skeleton, log)
+
+    def build(nm, d, skinned):
+        return Mesh(
+            name=nm, positions=d["positions"], faces=d["faces"], normals=d.get("normals"),
+            uvs=d["uvs"], colors=d.get("colors"), joints=d["joints"] if skinned else None,
+            weights=d["weights"] if skinned else None, material=d["material"],
+        )
+
+    meshes = tuple(build(p["name"], p, True) for p in parts)
+    prop_objs = tuple(
+        Prop(build(nm, d, False), joint, matrix)
+        for (_, d, joint, matrix), nm in zip(props, all_names[len(parts):])
+    )
+    return meshes, prop_objs
+
+
+# --------------------------------------------------------------------------- 5. clips
+
+
+def _clips(doc, joint_of_node, skeleton: Skeleton, log) -> tuple[Clip, ...]:
+    clips = []
+    raw_names = []
+    for ai, anim in enumerate(doc.items("animations")):
+        raw_names.append(anim.get("name") or f"clip_{ai}")
+    names, renamed = _unique(raw_names)
+    for old, new in renamed:
+        log(f"animation name '{old}' is used twice: renamed '{new}'")
+    for ai, anim in enumerate(doc.items("animations")):
+        name = names[ai]
+        samplers = anim.get("samplers", [])
+        tracks, seen = [], set()
+        ignored_nodes, morph = set(), 0
+        for ci, ch in enumerate(anim.get("channels", [])):
+            target = ch.get("target", {})
+            path = target.get("path")
+            node = target.get("node")
+            if path == "weights":
+                morph += 1
+                continue
+            if node is None or path not in ("translation", "rotation", "scale"):
+                continue
+            if node not in joint_of_node:
+                ignored_nodes.add(node)
+                continue
+            j = joint_of_node[node]
+            if (j, path) in seen:
+                log(f"animation '{name}': second {path} channel on joint '{skeleton.names[j]}' ignored")
+                continue
+            seen.add((j, path))
+            si = ch.get("sampler")
+            if not isinstance(si, int) or not 0 <= si < len(samplers):
+                raise doc.error(f"animation '{name}' channel {ci} refers to sampler {si!r}, it has {len(samplers)}")
+            tracks.append(_track(doc, samplers[si], j, path, f"animation '{name}' sampler {si}", log))
+        if morph:
+            log(f"animation '{name}': {morph} morph-weight channels ignored")
+        if ignored_nodes:
+            nn = ", ".join(sorted(f"'{doc.get('nodes', n).get('name', n)}'" for n in ignored_nodes))
+            log(f"animation '{name}': channels on non-joint nodes {nn} ignored")
+        if not tracks:
+            log(f"animation '{name}' animates no joint: dropped")
+            continue
+        clips.append(Clip(name, tuple(tracks)))
+    return tuple(clips)
+
+
+def _track(doc, sampler: dict, joint: int, path: str, label: str, log) -> Track:
+    interp = sampler.get("interpolation", "LINEAR")
+    if interp not in ("LINEAR", "STEP", "CUBICSPLINE"):
+        raise doc.error(f"{label} has unknown interpolation {interp!r}")
+    times = doc.accessor(sampler.get("input"), f"{label} input")
+    if times.shape[1] != 1 or not np.all(np.isfinite(times)):
+        raise doc.error(f"{label}: input must be finite scalar times")
+    times = times[:, 0]
+    values = doc.accessor(sampler.get("output"), f"{label} output")
+    C = 4 if path == "rotation" else 3
+    per = 3 if interp == "CUBICSPLINE" else 1
+    if values.shape[1] != C or len(values) != per * len(times):
+        raise doc.error(
+            f"{label}: {path} output has {len(values)} x {values.shape[1]} values for {len(times)} keys, "
+            f"expected {per * len(times)} x {C}"
+        )
+    if not np.all(np.isfinite(values)):
+        raise doc.error(f"{label}: {path} output holds NaN or infinite values")
+    values = values.reshape(len(times), 3, C) if per == 3 else values
+    if np.any(np.diff(times) <= 0):
+        times, first = np.unique(times, return_index=True)
+        values = values[first]
+        log(f"{label}: key times not strictly increasing: sorted, duplicates dropped")
+    if path == "rotation" and per == 1:
+        values = quat_normalize(values)
+    return Track(joint, path, times, values, interp)
+
+
+# --------------------------------------------------------------------------- 6. materials
+
+
+def _sniff_mime(data: bytes) -> str | None:
+    if data[:8] == b"\x89PNG\r\n\x1a\n":
+        return "image/png"
+    if data[:3] == b"\xff\xd8\xff":
+        return "image/jpeg"
+    return None
+
+
+def _image(doc, index: int, log) -> tuple[bytes, str] | None:
+    img = doc.get("images", index)
+    label = f"images[{index}]" + (f" '{img['name']}'" if img.get("name") else "")
+    if "bufferView" in img:
+        data = bytes(doc.buffer_view(img["bufferView"], label))
+    elif isinstance(img.get("uri"), str) and img["uri"].startswith("data:"):
+        data, _ = decode_data_uri(img["uri"], doc, label)
+    elif isinstance(img.get("uri"), str):
+        try:
+            data = doc.resolve_uri(img["uri"], label).read_bytes()
+        except InputError as exc:
+            log(f"{label}: {str(exc).split(': ', 1)[1]}: texture dropped")
+            return None
+    else:
+        raise doc.error(f"{label} has neither a bufferView nor a uri")
+    mime = _sniff_mime(data)
+    if mime is None:
+        log(f"{label}: not a PNG or JPEG image: texture dropped")
+        return None
+    return data, mime
+
+
+def _materials(doc, log) -> tuple[Material, ...]:
+    textures: dict[int, Texture | None] = {}
+
+    def texture(ti: int) -> Texture | None:
+        if ti not in textures:
+            tex = doc.get("textures", ti)
+            got = _image(doc, tex["source"], log) if "source" in tex else None
+            sampler = {}
+            if "sampler" in tex:
+                smp = doc.get("samplers", tex["sampler"])
+                sampler = {k: smp[k] for k in ("magFilter", "minFilter", "wrapS", "wrapT") if k in smp}
+            name = tex.get("name") or ("source" in tex and doc.get("images", tex["source"]).get("name")) or ""
+            textures[ti] = None if got is None else Texture(got[0], got[1], name, sampler)
+        return textures[ti]
+
+    out = []
+    for mi, m in enumerate(doc.items("materials")):
+        pbr = m.get("pbrMetallicRoughness", {})
+        tex, texcoord = None, 0
+        if "baseColorTexture" in pbr:
+            tex = texture(pbr["baseColorTexture"]["index"])
+            texcoord = int(pbr["baseColorTexture"].get("texCoord", 0))
+        out.append(Material(
+            name=m.get("name", "") or "",
+            base_color=pbr.get("baseColorFactor", [1.0, 1.0, 1.0, 1.0]),
+            metallic=float(pbr.get("metallicFactor", 1.0)),
+            roughness=float(pbr.get("roughnessFactor", 1.0)),
+            base_color_texture=tex,
+            base_color_texcoord=texcoord,
+            double_sided=bool(m.get("doubleSided", False)),
+            alpha_mode=m.get("alphaMode", "OPAQUE"),
+            alpha_cutoff=float(m.get("alphaCutoff", 0.5)),
+            emissive=m.get("emissiveFactor", [0.0, 0.0, 0.0]),
+            extra={"extras": m["extras"]} if m.get("extras") else {},
+        ))
+    return tuple(out)
