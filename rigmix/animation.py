@@ -82,7 +82,9 @@ def sample_track(track: Track, times) -> np.ndarray:
     if track.interpolation == "LINEAR":
         a, b = points[i], points[i + 1]
         if rotation:
-            return quat_slerp(a, b, u)
+            # slerp flips b into a's hemisphere; at and after a segment's end key return that
+            # key as stored, as interior keys are (they start the next segment)
+            return np.where((u >= 1.0)[:, None], quat_normalize(b), quat_slerp(a, b, u))
         return a + u[:, None] * (b - a)
 
     # CUBICSPLINE (glTF 2.0 appendix C): tangents are scaled by the key interval
