@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 
 import rigmix.skinning as skinning
 from rigmix.character import Anchor, Character, Clip, Mesh, Skeleton, Track
+from rigmix.io.gltf import read_gltf
 from rigmix.skinning import (
     dual_quaternion_skinning,
     linear_blend_skinning,
@@ -324,8 +325,7 @@ def test_bad_joint_index_is_reported():
 
 
 def _read(name):
-    gltf = pytest.importorskip("rigmix.io.gltf")
-    return gltf.read_gltf(asset(name))
+    return read_gltf(asset(name))
 
 
 @pytest.mark.parametrize("name", ["CesiumMan", "Fox", "Horse"])
