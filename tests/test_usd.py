@@ -12,7 +12,8 @@ from rigmix.animation import clip_times, sample_clip
 from rigmix.character import Anchor, Clip, Skeleton, Track
 from rigmix.io.gltf import read_gltf
 from rigmix.io.usd import joint_paths, write_usd
-from rigmix.skinning import skin_character
+from rigmix.errors import RigmixError
+from rigmix.skinning import rest_pose, skin_character
 
 from conftest import asset
 from test_skinning import chain_character
@@ -188,3 +189,28 @@ def test_real_character_matches_usdskel(tmp_path, name):
     # measured: CesiumMan 2e-7, Fox 8e-8 (float32 in USD), Horse 2e-6 (its rest scales such as
     # 1.000011 are rounded by SkelAnimation's half3 scales)
     assert_usd_matches(ch, tmp_path / f"{name}.usdc", clip, ten_times(clip))
+
+
+@pytest.mark.parametrize("make", [lambda: chain_character(anchor=True), two_anchor_character])
+def test_without_clip_usdskel_skins_the_rest_pose(tmp_path, make):
+    """No SkelAnimation: UsdSkel uses restTransforms (roots folded or not) = our rest pose."""
+    ch = replace(make(), clips=())
+    path = tmp_path / "rest.usda"
+    write_usd(ch, path)
+    stage = Usd.Stage.Open(str(path))
+    assert not any(p.IsA(UsdSkel.Animation) for p in stage.Traverse())
+    (usd,) = usd_skinned_world(path, [0.0])
+    (ours,) = rest_pose(ch)
+    np.testing.assert_allclose(usd[0], ours, atol=1e-6)
+
+
+def test_clip_chosen_by_name_and_unknown_name_is_an_error(tmp_path):
+    ch = chain_character()
+    ch = replace(ch, clips=(Clip("still", ()),) + ch.clips)
+    path = tmp_path / "named.usda"
+    write_usd(ch, path, clip="bend")
+    stage = Usd.Stage.Open(str(path))
+    anim = UsdSkel.Animation(stage.GetDefaultPrim().GetChild("Animation"))
+    assert anim.GetPrim().GetCustomDataByKey("rigmix:clipName") == "bend"
+    with pytest.raises(RigmixError, match="no clip 'run'"):
+        write_usd(ch, tmp_path / "bad.usda", clip="run")
