@@ -1,0 +1,428 @@
+"""Animation completion: fast kernels against slow references, self-composition ground truth
+on the shared Fox, and a centaur (two different characters) for coverage and smoothness."""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from rigmix.animation import clip_times, sample_clip
+from rigmix.character import Character, Clip, Skeleton, Track
+from rigmix.completion import (
+    CompletionOptions,
+    FixedFrame,
+    angular_acceleration,
+    choose_frames,
+    complete_clips,
+    continuity_scores,
+    global_rotations,
+    hop_weights,
+    keyframe_scores,
+    map_pose,
+    rotation_features,
+    smooth_seams,
+)
+from rigmix.errors import InputError
+from rigmix.transforms import quat_angle, quat_multiply, quat_normalize
+
+from conftest import asset
+
+try:
+    from rigmix.mapping import BoneMap
+except ImportError:  # the mapping stage is written in parallel: a stand-in with its fields
+
+    @dataclass(frozen=True)
+    class BoneMap:
+        source: str
+        target: np.ndarray
+        confidence: np.ndarray
+
+
+# --------------------------------------------------------------------------------------------
+# helpers (also used by benchmarks/completion_bench.py)
+
+
+def random_quats(rng, shape):
+    return quat_normalize(rng.normal(size=shape + (4,)))
+
+
+def graft(base, base_id, onto, donor, donor_id, root, *, drop=None, extra=()):
+    """A hand-made plan: ``donor``'s subtree at ``root`` fused with ``base``'s joint ``onto``.
+
+    S_R holds ``base``'s joints except the subtree ``drop`` (default: the descendants of
+    ``onto``), then ``root``'s descendants in ``donor`` (``root`` itself is ``onto``).
+
+    Parameters
+    ----------
+    extra : iterable of (character id, input joint name, output joint name, confidence)
+        Mappings of dropped joints (as the mapping stage would propagate them).
+
+    Returns
+    -------
+    skeleton : Skeleton, provenance : list of list of (str, int), maps : dict of BoneMap
+    """
+    bs, ds = base.skeleton, donor.skeleton
+    b, a = bs.index(onto), ds.index(root)
+    dropped = bs.subtree(bs.index(drop)) if drop else bs.subtree(b) & (np.arange(bs.num_joints) != b)
+    keep = np.flatnonzero(~dropped)
+    part = np.flatnonzero(ds.subtree(a))[1:]
+    bmap = -np.ones(bs.num_joints, dtype=np.int64)
+    bmap[keep] = np.arange(len(keep))
+    dmap = -np.ones(ds.num_joints, dtype=np.int64)
+    dmap[part] = len(keep) + np.arange(len(part))
+    dmap[a] = bmap[b]
+    names = [bs.names[i] for i in keep] + [f"{donor_id}.{ds.names[i]}" for i in part]
+    parents = [bmap[p] if p >= 0 else -1 for p in bs.parents[keep]] + [dmap[p] for p in ds.parents[part]]
+
+    def cat(x, y):
+        return np.concatenate([x[keep], y[part]])
+
+    skel = Skeleton(names, parents, cat(bs.translations, ds.translations),
+                    cat(bs.rotations, ds.rotations), cat(bs.scales, ds.scales),
+                    cat(bs.inverse_binds, ds.inverse_binds), bs.anchors,
+                    np.concatenate([bs.root_anchor[keep], -np.ones(len(part), dtype=np.int64)]))
+    prov = [[(base_id, int(i))] for i in keep] + [[(donor_id, int(i))] for i in part]
+    prov[bmap[b]].append((donor_id, a))
+    target = {base_id: bmap, donor_id: dmap}
+    conf = {k: (v >= 0).astype(np.float64) for k, v in target.items()}
+    chars = {base_id: base, donor_id: donor}
+    for cid, jname, oname, c in extra:
+        i = chars[cid].skeleton.index(jname)
+        target[cid][i] = names.index(oname)
+        conf[cid][i] = c
+    maps = {k: BoneMap(k, target[k], conf[k]) for k in target}
+    return skel, prov, maps
+
+
+def acceleration_figures(skeleton, inputs, maps, provenance, clips, keys):
+    """Mean angular acceleration of the completed joints, output over source, per input.
+
+    For the clips completed for input ``x``, the completed joints are those whose provenance
+    does not list ``x``; the reference is the same joints driven by the other input's own
+    clips (mapped onto S_R).
+    """
+    out = {}
+    for x in inputs:
+        comp = np.array([x not in [cid for cid, _ in prov] for prov in provenance])
+        if not comp.any():
+            continue
+        acc_out = []
+        for clip, (cid, _) in zip(clips, keys):
+            if cid == x:
+                _, R, _ = sample_clip(skeleton, clip, clip_times(clip))
+                acc_out.append(angular_acceleration(R[:, comp]).ravel())
+        acc_src = []
+        for y, ch in inputs.items():
+            if y == x:
+                continue
+            for clip in ch.clips:
+                T, R, S = sample_clip(ch.skeleton, clip, clip_times(clip))
+                _, Ro, _, _ = map_pose(skeleton, ch.skeleton, maps[y], T, R, S)
+                acc_src.append(angular_acceleration(Ro[:, comp]).ravel())
+        a, b = np.concatenate(acc_out), np.concatenate(acc_src)
+        out[x] = {"mean_ratio": float(a.mean() / b.mean()),
+                  "p95_ratio": float(np.percentile(a, 95) / np.percentile(b, 95)),
+                  "max_ratio": float(a.max() / b.max())}
+    return out
+
+
+def _angles_to_source(skeleton_out, clip, source, source_clip, joints_out, joints_in):
+    t = clip_times(source_clip)
+    _, R0, _ = sample_clip(source.skeleton, source_clip, t)
+    _, R1, _ = sample_clip(skeleton_out, clip, t)
+    return quat_angle(R0[:, joints_in], R1[:, joints_out])
+
+
+# --------------------------------------------------------------------------------------------
+# kernels against slow references
+
+
+def _scores_reference(Ga, Pa, Gb, Pb, w, rw, tw, length, metric):
+    """Obviously correct double loop over pairs of frames."""
+    out = np.zeros((len(Ga), len(Gb)))
+    for a in range(len(Ga)):
+        for b in range(len(Gb)):
+            r = d = 0.0
+            for j in range(len(w)):
+                dot = float(np.dot(Ga[a, j], Gb[b, j]))
+                r += w[j] * (dot * dot if metric == "squared" else abs(dot))
+                d += w[j] * float(np.sum((Pa[a, j] - Pb[b, j]) ** 2))
+            out[a, b] = rw * r / w.sum() + tw * (1 - d / (w.sum() * length**2))
+    return out
+
+
+@pytest.mark.parametrize("metric", ["squared", "abs"])
+def test_keyframe_scores_match_slow_reference(metric):
+    rng = np.random.default_rng(7)
+    J, Fa, Fb = 6, 9, 13
+    Ga, Gb = random_quats(rng, (Fa, J)), random_quats(rng, (Fb, J))
+    Pa, Pb = rng.normal(size=(Fa, J, 3)), rng.normal(size=(Fb, J, 3))
+    w = rng.uniform(0, 1, J)
+    w[2] = 0.0
+    fast = keyframe_scores(Ga, Pa, Gb, Pb, w, rotation_weight=0.8, translation_weight=0.2,
+                           length=2.5, metric=metric)
+    slow = _scores_reference(Ga, Pa, Gb, Pb, w, 0.8, 0.2, 2.5, metric)
+    np.testing.assert_allclose(fast, slow, atol=1e-12)
+    # sign of quaternions is irrelevant
+    flip = keyframe_scores(-Ga, Pa, Gb, Pb, w, length=2.5, metric=metric)
+    np.testing.assert_allclose(flip, fast, atol=1e-12)
+
+
+def test_rotation_features_give_squared_dots():
+    rng = np.random.default_rng(1)
+    Qa, Qb = random_quats(rng, (5, 3)), random_quats(rng, (4, 3))
+    w = np.array([0.5, 1.0, 2.0])
+    got = rotation_features(Qa, w) @ rotation_features(Qb, w).T
+    want = np.einsum("j,abj->ab", w, np.einsum("ajk,bjk->abj", Qa, Qb) ** 2)
+    np.testing.assert_allclose(got, want, atol=1e-13)
+
+
+def _continuity_reference(S, seg, weights):
+    Fa, Fb = S.shape
+    out = np.zeros_like(S)
+    for a in range(Fa):
+        for b in range(Fb):
+            num, den = S[a, b], 1.0
+            for step, wk in enumerate(weights, start=1):
+                for k in (-step, step):
+                    if 0 <= a + k < Fa and 0 <= b + k < Fb and seg[b + k] == seg[b]:
+                        num += wk * S[a + k, b + k]
+                        den += wk
+            out[a, b] = num / den
+    return out
+
+
+def test_continuity_matches_slow_reference():
+    rng = np.random.default_rng(3)
+    S = rng.normal(size=(7, 11))
+    seg = np.array([0, 0, 0, 1, 1, 2, 2, 2, 2, 3, 3])
+    np.testing.assert_allclose(continuity_scores(S, seg, (0.2, 0.1)),
+                               _continuity_reference(S, seg, (0.2, 0.1)), atol=1e-14)
+
+
+def test_choose_frames_viterbi_matches_brute_force():
+    rng = np.random.default_rng(5)
+    seg = np.array([0, 0, 0, 1, 1])
+    for _ in range(20):
+        S = rng.uniform(size=(4, 5))
+        lam = 0.3
+        path = choose_frames(S, seg, jump_penalty=lam)
+
+        def total(p):
+            cost = sum(S[a, b] for a, b in enumerate(p))
+            cost -= lam * sum(not (q == p_ + 1 and seg[q] == seg[p_]) for p_, q in zip(p, p[1:]))
+            return cost
+
+        best = max(itertools.product(range(5), repeat=4), key=total)
+        assert total(tuple(path)) == pytest.approx(total(best), abs=1e-12)
+    np.testing.assert_array_equal(choose_frames(S, seg, jump_penalty=0.0), S.argmax(axis=1))
+    pinned = choose_frames(S, seg, jump_penalty=lam, fixed={2: 4})
+    assert pinned[2] == 4
+
+
+def test_hop_weights_on_a_chain():
+    parents = np.array([-1, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 2])
+    w = hop_weights(parents, [1])
+    d = np.array([1, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 2])
+    want = np.where(d <= 2, 1.0, 2.0 ** -(d - 2.0))
+    want[d > 8] = 0.0
+    np.testing.assert_allclose(w, want)
+
+
+def test_angular_acceleration_of_constant_and_accelerating_spin():
+    t = np.arange(20) / 30.0
+    for alpha in (0.0, 3.0):
+        angle = 2.0 * t + 0.5 * alpha * t**2
+        q = np.stack([np.zeros_like(t), np.sin(angle / 2), np.zeros_like(t), np.cos(angle / 2)], -1)
+        acc = angular_acceleration(q[:, None], fps=30.0)
+        np.testing.assert_allclose(acc, alpha, atol=1e-6)
+
+
+def test_smooth_seams_leaves_frames_far_from_seams_untouched():
+    rng = np.random.default_rng(2)
+    R = random_quats(rng, (60, 2))
+    T = rng.normal(size=(60, 2, 3))
+    Rs, Ts = smooth_seams(R, T, [30], 1.5)
+    far = np.r_[0:15, 46:60]
+    assert quat_angle(Rs[far], R[far]).max() < 1e-3
+    assert quat_angle(Rs[28:33], R[28:33]).max() > 1e-2  # the seam itself is smoothed
+
+
+# --------------------------------------------------------------------------------------------
+# mapping keyframes onto S_R
+
+
+def _chain(n, rots=None):
+    rots = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1)) if rots is None else rots
+    return Skeleton([f"j{i}" for i in range(n)], np.arange(n) - 1, np.tile([0.0, 1.0, 0.0], (n, 1)),
+                    rots, np.ones((n, 3)), np.tile(np.eye(4), (n, 1, 1)))
+
+
+def test_map_pose_accumulates_chains_and_blends_confidence():
+    rng = np.random.default_rng(4)
+    src = _chain(4, random_quats(rng, (4,)))
+    r = src.rotations
+    # S_R: the source chain with joints 1 and 2 merged (rest = their product)
+    out = _chain(3, np.stack([r[0], quat_multiply(r[1], r[2]), r[3]]))
+    F = 5
+    R = random_quats(rng, (F, 4))
+    T = np.broadcast_to(src.translations, (F, 4, 3))
+    S = np.ones((F, 4, 3))
+    m = BoneMap("x", np.array([0, 1, 1, 2]), np.ones(4))
+    _, Ro, _, mass = map_pose(out, src, m, T, R, S)
+    np.testing.assert_allclose(mass, 1.0)
+    # accumulated rotations: global rotations of S_R equal the source's at the chain ends
+    Gs, Go = global_rotations(src.parents, R), global_rotations(out.parents, Ro)
+    np.testing.assert_allclose(quat_angle(Go, Gs[:, [0, 2, 3]]), 0.0, atol=1e-6)
+    # confidence 0.5 halves the local delta angle; confidence 0 leaves the rest pose
+    half = BoneMap("x", np.array([0, 1, -1, 2]), np.array([1.0, 0.5, 0.0, 0.0]))
+    _, Rh, _, mass = map_pose(out, src, half, T, R, S)
+    np.testing.assert_allclose(mass, [1.0, 0.5, 0.0])
+    full_delta = quat_angle(src.rotations[1], R[:, 1])
+    np.testing.assert_allclose(quat_angle(out.rotations[1], Rh[:, 1]), full_delta / 2, atol=1e-9)
+    np.testing.assert_allclose(quat_angle(out.rotations[2], Rh[:, 2]), 0.0, atol=1e-7)
+
+
+# --------------------------------------------------------------------------------------------
+# self-composition: the exact answer is known
+
+
+@pytest.fixture(scope="module")
+def fox():
+    from rigmix.io import load_character
+
+    return load_character(asset("Fox"))
+
+
+def _self_compose(fox, part_root, options):
+    sk = fox.skeleton
+    J = sk.num_joints
+    part = sk.subtree(part_root)
+    prov = [[("B", j)] if part[j] else [("A", j)] for j in range(J)]
+    prov[part_root] = [("A", part_root), ("B", part_root)]
+    maps = {k: BoneMap(k, np.arange(J), np.ones(J)) for k in "AB"}
+    clips = complete_clips(sk, {"A": fox, "B": fox}, maps, options=options, provenance=prov)
+    return clips, part
+
+
+@pytest.mark.parametrize("part_name, options", [
+    ("b_Tail01_012", CompletionOptions()),
+    ("b_Spine02_03", CompletionOptions()),
+    ("b_Spine02_03", CompletionOptions(metric="abs", jump_penalty=0.0)),  # the paper's rule
+])
+def test_self_composition_reproduces_every_clip(fox, part_name, options):
+    clips, part = _self_compose(fox, fox.skeleton.index(part_name), options)
+    names = [c.name for c in fox.clips]
+    assert [c.name for c in clips] == [f"{k}:{n}" for k in "AB" for n in names]
+    J = np.arange(fox.skeleton.num_joints)
+    for clip in clips:
+        src = fox.clip(clip.name.split(":", 1)[1])
+        err = _angles_to_source(fox.skeleton, clip, fox, src, J, J)  # (F, J) radians
+        assert err.max() < 1e-3, (clip.name, float(err.max()))
+        assert len(clip.tracks) == 3 * len(J)
+
+
+def test_self_composition_without_provenance_uses_confidence(fox):
+    """No provenance: ownership from confidence-1 reach; a half-confident tail is completed."""
+    sk = fox.skeleton
+    J = sk.num_joints
+    tail = sk.subtree(sk.index("b_Tail01_012"))
+    ca = np.where(tail & (np.arange(J) != sk.index("b_Tail01_012")), 0.9, 1.0)
+    cb = np.where(tail, 1.0, 0.9)
+    maps = {"A": BoneMap("A", np.arange(J), ca), "B": BoneMap("B", np.arange(J), cb)}
+    clips = complete_clips(sk, {"A": fox, "B": fox}, maps, selection=[("A", "Survey"), ("A", "Run")])
+    assert [c.name for c in clips] == ["Survey", "Run"]
+    for clip in clips:
+        err = _angles_to_source(sk, clip, fox, fox.clip(clip.name), np.arange(J), np.arange(J))
+        assert err.max() < 1e-3
+
+
+def test_fixed_frames_and_sources_are_honoured(fox):
+    sk = fox.skeleton
+    J = sk.num_joints
+    tail = sk.index("b_Tail01_012")
+    opts = CompletionOptions(
+        clips={"A": ["Survey"]}, sources={"B": ["Walk"]}, smoothing=0.0,
+        fixed_frames=(FixedFrame("A", "Survey", 10, "B", "Walk", 3),))
+    clips, part = _self_compose(fox, tail, opts)
+    (clip,) = clips
+    assert clip.name == "Survey"
+    t = clip_times(fox.clip("Survey"))
+    _, R, _ = sample_clip(sk, clip, t)
+    _, Rw, _ = sample_clip(sk, fox.clip("Walk"), clip_times(fox.clip("Walk")))
+    kids = np.flatnonzero(part & (np.arange(J) != tail))
+    # frame 10 pinned to Walk frame 3
+    assert quat_angle(R[10, kids], Rw[3, kids]).max() < 1e-6
+    # every completed frame comes from Walk: each tail pose is one of Walk's tail poses
+    d = quat_angle(R[:, None, kids], Rw[None, :, kids]).max(axis=2).min(axis=1)
+    assert d.max() < 1e-6
+
+
+def test_bad_selection_is_a_clear_error(fox):
+    J = fox.skeleton.num_joints
+    maps = {"A": BoneMap("A", np.arange(J), np.ones(J))}
+    with pytest.raises(InputError, match="no clip 'Swim'"):
+        complete_clips(fox.skeleton, {"A": fox}, maps, selection=[("A", "Swim")])
+    with pytest.raises(InputError, match="bone map"):
+        complete_clips(fox.skeleton, {"A": fox, "B": fox}, maps)
+
+
+# --------------------------------------------------------------------------------------------
+# two different characters
+
+
+def _check_centaur(skel, inputs, maps, prov, clips):
+    """Every clip of both inputs completed, the completed part moving; acceleration figures."""
+    keys = [(cid, c.name) for cid, ch in inputs.items() for c in ch.clips]
+    assert len(clips) == len(keys)
+    assert len({c.name for c in clips}) == len(clips)
+    rest = quat_normalize(skel.rotations)
+    for clip, (cid, _) in zip(clips, keys):
+        comp = np.array([cid not in [k for k, _ in p] for p in prov])
+        _, R, _ = sample_clip(skel, clip, clip_times(clip))
+        Rc = R[:, comp]
+        # the completed part moves: away from rest and changing over time
+        assert quat_angle(Rc, rest[comp]).max() > 0.05, clip.name
+        assert quat_angle(Rc[1:], Rc[:-1]).max() > 1e-3, clip.name
+    return acceleration_figures(skel, inputs, maps, prov, clips, keys)
+
+
+def test_centaur_from_examples_completes_everything_smoothly():
+    from rigmix import examples
+
+    quad, human = examples.quadruped(), examples.humanoid()
+    extra = [("human", "Hips", "Hips", 0.5), ("human", "Spine", "Spine", 0.6),
+             ("quad", "Head", "human.Head", 0.7)]
+    skel, prov, maps = graft(quad, "quad", "Neck", human, "human", "Chest", extra=extra)
+    inputs = {"quad": quad, "human": human}
+    clips = complete_clips(skel, inputs, maps, provenance=prov)
+    # both inputs have a 'walk' and an 'idle': prefixed with the character id
+    assert [c.name for c in clips] == ["quad:walk", "trot", "quad:idle", "human:walk", "human:idle"]
+    figs = _check_centaur(skel, inputs, maps, prov, clips)
+    for x, f in figs.items():
+        assert f["mean_ratio"] <= 2.0, (x, f)
+
+
+@pytest.fixture(scope="module")
+def centaur():
+    from rigmix.io import load_character
+
+    horse, knight = load_character(asset("Horse")), load_character(asset("Knight"))
+    extra = [("knight", "Body", "Body", 0.5), ("knight", "Hips", "Torso", 0.6),
+             ("knight", "Abdomen", "Torso2", 0.7), ("horse", "Neck1", "knight.Neck", 0.6),
+             ("horse", "Neck2", "knight.Neck", 0.6), ("horse", "Neck3", "knight.Neck", 0.6),
+             ("horse", "Head", "knight.Head", 0.7)]
+    skel, prov, maps = graft(horse, "horse", "Torso3", knight, "knight", "Torso", drop="Neck1", extra=extra)
+    return skel, prov, maps, {"horse": horse, "knight": knight}
+
+
+def test_centaur_horse_knight(centaur):
+    skel, prov, maps, inputs = centaur
+    clips = complete_clips(skel, inputs, maps, provenance=prov)
+    assert [c.name for c in clips] == [c.name for ch in inputs.values() for c in ch.clips]
+    figs = _check_centaur(skel, inputs, maps, prov, clips)
+    for x, f in figs.items():
+        assert f["mean_ratio"] <= 2.0, (x, f)
