@@ -1,0 +1,410 @@
+"""The composition config: which characters, which actions (PIPELINE.md section 1).
+
+A config is a TOML file validated by a strict pydantic schema (``extra="forbid"``: a typo is an
+error naming the key), or a :class:`Config` built in code. ``rigmix schema`` prints
+:func:`config_schema`.
+
+.. code-block:: toml
+
+    name = "centaur"                      # optional, the output character's name
+
+    [characters.horse]
+    path = "${RIGMIX_ASSETS}/QuaterniusHorse/Horse.glb"
+    [characters.knight]
+    path = "knight.glb"                   # relative to this config file
+    scale = "auto"                        # or a number (the override)
+    placement = { translation = [0, 0, 0], rotation = [0, 90, 0] }
+    [characters.knight.rotations]         # rest-pose rotations, degrees (XYZ) or xyzw quaternion
+    "UpperArm.L" = [0, 0, -30]
+    "UpperArm.R" = { quaternion = [0, 0, 0.2588, 0.9659] }
+
+    [[actions]]
+    op = "replace"                        # attach | replace | remove
+    source = "knight"
+    source_joint = "Body"
+    target = "horse"
+    target_joint = "Neck1"
+    mode = "blend"                        # replace only: blend | union
+
+Paths: relative paths are resolved against the config file's folder (or
+:meth:`Config.with_base_dir`); ``${NAME}`` is replaced by the environment variable ``NAME``,
+and ``${RIGMIX_ASSETS}`` defaults to ``../shared/data/characters`` beside the repository.
+``builtin:NAME`` names a procedural character of :mod:`rigmix.examples` (``builtin:humanoid``).
+"""
+
+from __future__ import annotations
+
+import difflib
+import os
+import re
+import tomllib
+from pathlib import Path
+from typing import Annotated, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, model_validator
+
+from .errors import InputError
+
+__all__ = [
+    "JointRotation",
+    "Placement",
+    "CharacterConfig",
+    "AttachAction",
+    "ReplaceAction",
+    "RemoveAction",
+    "Action",
+    "MappingOptions",
+    "PositioningOptions",
+    "Config",
+    "load_config",
+    "parse_config",
+    "config_schema",
+    "expand_path",
+    "closest_names",
+    "default_assets_dir",
+    "BUILTIN_PREFIX",
+]
+
+#: Prefix of a path that names a procedural character of :mod:`rigmix.examples`.
+BUILTIN_PREFIX = "builtin:"
+
+_STRICT = ConfigDict(extra="forbid", frozen=True)
+
+
+class JointRotation(BaseModel):
+    """A rotation, in degrees (Euler angles) or as a unit quaternion xyzw.
+
+    In TOML, a list of 3 numbers is shorthand for ``{euler = [...]}`` and a list of 4 for
+    ``{quaternion = [...]}``.
+    """
+
+    model_config = _STRICT
+
+    euler: tuple[float, float, float] | None = Field(
+        None, description="Euler angles in degrees, applied in `order`.")
+    order: str = Field(
+        "XYZ", pattern=r"^([XYZ]{3}|[xyz]{3})$",
+        description="scipy Euler order: upper case intrinsic (e.g. XYZ), lower case extrinsic.")
+    quaternion: tuple[float, float, float, float] | None = Field(
+        None, description="Unit quaternion x, y, z, w (normalized on use).")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _shorthand(cls, data):
+        if isinstance(data, (list, tuple)):
+            if len(data) == 3:
+                return {"euler": data}
+            if len(data) == 4:
+                return {"quaternion": data}
+            raise ValueError("a rotation list has 3 Euler angles (degrees) or 4 quaternion values (xyzw)")
+        return data
+
+    @model_validator(mode="after")
+    def _one_form(self):
+        if (self.euler is None) == (self.quaternion is None):
+            raise ValueError("give exactly one of `euler` (degrees) or `quaternion` (xyzw)")
+        if self.quaternion is not None and sum(q * q for q in self.quaternion) < 1e-12:
+            raise ValueError("quaternion has zero length")
+        return self
+
+    def as_quaternion(self):
+        """The rotation as a unit quaternion ``(4,)`` xyzw."""
+        import numpy as np
+        from scipy.spatial.transform import Rotation
+
+        if self.quaternion is not None:
+            q = np.asarray(self.quaternion, dtype=np.float64)
+            return q / np.linalg.norm(q)
+        return Rotation.from_euler(self.order, self.euler, degrees=True).as_quat()
+
+
+class Placement(BaseModel):
+    """A rigid placement of a whole character in world space, applied after its scale."""
+
+    model_config = _STRICT
+
+    translation: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="World translation, in the output's units (after scaling).")
+    rotation: JointRotation | None = Field(
+        None, description="World rotation about the origin, applied before the translation.")
+
+
+class CharacterConfig(BaseModel):
+    """One input character."""
+
+    model_config = _STRICT
+
+    path: str = Field(
+        description="glTF/GLB file, relative to the config file, `${VAR}` expanded "
+                    "(RIGMIX_ASSETS defaults to ../shared/data/characters beside the repository), "
+                    "or `builtin:NAME` for a procedural character of rigmix.examples.")
+    scale: Literal["auto"] | Annotated[float, Field(gt=0)] = Field(
+        "auto", description="Uniform scale applied before composing: a number (override) or "
+                            "'auto' (matched to the character it is fused with; 1 for a body).")
+    rotations: dict[str, JointRotation] = Field(
+        default_factory=dict,
+        description="Rest-pose rotations per joint name, about the joint, in world axes, applied "
+                    "parents first; the subtree and the mesh follow.")
+    placement: Placement | None = Field(
+        None, description="Rigid placement of the whole character (a moved character is then "
+                          "translated onto its target anyway; the rotation still counts).")
+
+
+class _ActionBase(BaseModel):
+    model_config = _STRICT
+
+    target: str = Field(description="Character id (a key of [characters]) that receives the action.")
+    target_joint: str = Field(description="Joint of `target`, named as in its file.")
+
+
+class AttachAction(_ActionBase):
+    """Graft the subtree at `source_joint` of `source` onto `target_joint` of `target`.
+
+    The two joints are fused into one joint of the output; the target keeps its whole subtree
+    (field operator: union).
+    """
+
+    op: Literal["attach"]
+    source: str = Field(description="Character id that gives the subtree.")
+    source_joint: str = Field(description="Root of the grafted subtree, fused with `target_joint`.")
+
+
+class ReplaceAction(_ActionBase):
+    """The subtree at `source_joint` of `source` replaces the subtree at `target_joint`.
+
+    The two joints are fused; the target's descendants of `target_joint` are dropped.
+    """
+
+    op: Literal["replace"]
+    source: str = Field(description="Character id that gives the subtree.")
+    source_joint: str = Field(description="Root of the new subtree, fused with `target_joint`.")
+    mode: Literal["blend", "union"] = Field(
+        "blend", description="Surface operator at the junction: presence-weighted blend or union (min).")
+
+
+class RemoveAction(_ActionBase):
+    """Drop the subtree at `target_joint` (the joint included) and its surface."""
+
+    op: Literal["remove"]
+
+
+Action = Annotated[Union[AttachAction, ReplaceAction, RemoveAction], Field(discriminator="op")]
+
+
+class MappingOptions(BaseModel):
+    """Bone-to-bone mapping options (PIPELINE.md section 2; see :mod:`rigmix.mapping`)."""
+
+    model_config = _STRICT
+
+    score: Literal["paper", "prototype"] = Field(
+        "paper", description="Candidate score: the paper's (geometric, topological, parametric, "
+                             "valence) or the public prototype's (path, topology, directions, children).")
+    injectivity_bonus: tuple[float, float] = Field(
+        (0.5, 0.1), description="Ranking bonus for a candidate not picked yet, and for one picked "
+                                "only with confidence < 1.")
+
+
+class PositioningOptions(BaseModel):
+    """Preliminary positioning options (PIPELINE.md section 1; see :mod:`rigmix.operations`)."""
+
+    model_config = _STRICT
+
+    translate: bool = Field(
+        True, description="Move each source character so that its fused joints land on their targets.")
+
+
+class Config(BaseModel):
+    """A composition: input characters and the actions on their skeletons.
+
+    Buildable in code (``Config(characters={...}, actions=[...])``; relative paths then resolve
+    against the current directory unless :meth:`with_base_dir` says otherwise) or read with
+    :func:`load_config`.
+    """
+
+    model_config = _STRICT
+
+    name: str = Field("composition", description="Name of the output character.")
+    characters: dict[str, CharacterConfig] = Field(
+        min_length=1, description="Input characters by id (the id is used by actions and reports).")
+    actions: list[Action] = Field(default_factory=list, description="Actions, applied together.")
+    mapping: MappingOptions = Field(default_factory=MappingOptions)
+    positioning: PositioningOptions = Field(default_factory=PositioningOptions)
+
+    _base_dir: Path | None = PrivateAttr(default=None)
+    _source: str = PrivateAttr(default="")
+
+    @model_validator(mode="after")
+    def _known_characters(self):
+        ids = list(self.characters)
+        for i, a in enumerate(self.actions):
+            for key in ("source", "target"):
+                cid = getattr(a, key, None)
+                if cid is not None and cid not in self.characters:
+                    raise ValueError(
+                        f"actions[{i}].{key}: unknown character {cid!r}; "
+                        f"known: {', '.join(ids)}{_closest_hint(cid, ids)}")
+        return self
+
+    # -- where the config came from -------------------------------------------------------
+    def with_base_dir(self, base_dir, source: str = "") -> "Config":
+        """A copy whose relative paths resolve against ``base_dir`` (messages name ``source``)."""
+        out = self.model_copy()
+        out._base_dir = Path(base_dir)
+        out._source = str(source)
+        return out
+
+    @property
+    def base_dir(self) -> Path:
+        """Folder that relative character paths resolve against."""
+        return self._base_dir if self._base_dir is not None else Path.cwd()
+
+    @property
+    def source(self) -> str:
+        """The config file (for messages), ``"<config>"`` when built in code."""
+        return self._source or "<config>"
+
+    def character_path(self, cid: str) -> Path | str:
+        """Resolved path of character ``cid`` (a ``Path``), or the ``builtin:NAME`` string."""
+        raw = self.characters[cid].path
+        if raw.startswith(BUILTIN_PREFIX):
+            return raw
+        try:
+            return expand_path(raw, self.base_dir)
+        except KeyError as e:
+            raise InputError(
+                f"config {self.source}: characters.{cid}.path: environment variable {e.args[0]} "
+                f"is not set (in {raw!r})") from None
+
+
+def default_assets_dir() -> Path:
+    """``$RIGMIX_ASSETS``, else ``../shared/data/characters`` beside the repository."""
+    env = os.environ.get("RIGMIX_ASSETS")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "characters"
+
+
+_VAR = re.compile(r"\$\{(\w+)\}")
+
+
+def expand_path(raw: str, base_dir) -> Path:
+    """Expand ``${VAR}`` and ``~`` in ``raw`` and resolve it against ``base_dir``.
+
+    Raises ``KeyError(name)`` for an unset variable other than ``RIGMIX_ASSETS``.
+    """
+
+    def sub(m):
+        name = m.group(1)
+        if name == "RIGMIX_ASSETS":
+            return str(default_assets_dir())
+        if name not in os.environ:
+            raise KeyError(name)
+        return os.environ[name]
+
+    p = Path(_VAR.sub(sub, raw)).expanduser()
+    return p if p.is_absolute() else Path(base_dir) / p
+
+
+def closest_names(name: str, names, n: int = 3) -> list[str]:
+    """Up to ``n`` names of ``names`` closest to ``name`` (difflib), case-insensitive first."""
+    names = list(names)
+    exact = [x for x in names if x.lower() == name.lower()]
+    close = difflib.get_close_matches(name, names, n=n, cutoff=0.5)
+    out = []
+    for x in exact + close:
+        if x not in out:
+            out.append(x)
+    return out[:n]
+
+
+def _closest_hint(name: str, names) -> str:
+    close = closest_names(name, names)
+    return f" (closest: {', '.join(close)})" if close else ""
+
+
+def _loc(loc) -> str:
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        elif part in ("attach", "replace", "remove") and out.startswith("actions"):
+            continue  # the discriminated union's tag: not a key the user wrote
+        else:
+            out += ("." if out else "") + str(part)
+    return out
+
+
+def _error_text(err: ValidationError) -> str:
+    parts = []
+    for e in err.errors():
+        loc = _loc(e["loc"])
+        if e["type"] == "extra_forbidden":
+            parts.append(f"{loc}: unknown key")
+        else:
+            msg = e["msg"].removeprefix("Value error, ")
+            parts.append(f"{loc}: {msg}" if loc else msg)
+    return "; ".join(parts)
+
+
+def parse_config(data: dict, *, base_dir=None, source: str = "") -> Config:
+    """Validate a config mapping (as read from TOML) into a :class:`Config`.
+
+    Raises
+    ------
+    InputError
+        Naming ``source`` and every offending key.
+    """
+    try:
+        cfg = Config.model_validate(data)
+    except ValidationError as e:
+        raise InputError(f"config {source or '<config>'}: {_error_text(e)}") from None
+    return cfg.with_base_dir(base_dir if base_dir is not None else Path.cwd(), source)
+
+
+def load_config(path) -> Config:
+    """Read and validate a composition config (TOML).
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``.toml`` file; relative character paths resolve against its folder.
+
+    Returns
+    -------
+    Config
+
+    Raises
+    ------
+    InputError
+        The file is missing or not TOML, a key is unknown or a value invalid, an action names an
+        unknown character, or a character file does not exist.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(f"config: no such file {path}") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"config: cannot read {path}: {e}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(f"config {path}: not valid TOML: {e}") from None
+    cfg = parse_config(data, base_dir=path.resolve().parent, source=str(path))
+    check_files(cfg)
+    return cfg
+
+
+def check_files(cfg: Config) -> None:
+    """Raise :class:`InputError` naming the key of the first character file that does not exist."""
+    for cid in cfg.characters:
+        p = cfg.character_path(cid)
+        if isinstance(p, Path) and not p.is_file():
+            raise InputError(
+                f"config {cfg.source}: characters.{cid}.path: no such file {p} "
+                f"(from {cfg.characters[cid].path!r}; set RIGMIX_ASSETS for ${{RIGMIX_ASSETS}} paths)")
+
+
+def config_schema() -> dict:
+    """The JSON schema of :class:`Config` (what ``rigmix schema`` prints)."""
+    return Config.model_json_schema()

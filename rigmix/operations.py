@@ -1,0 +1,615 @@
+"""Operations: the actions of a config -> the output skeleton S_R with provenance, and the
+characters moved into place (PIPELINE.md section 1; SkinMixer sec. 4).
+
+Semantics, once:
+
+* ``attach`` (X.a onto Y.b): joint ``a`` of X and joint ``b`` of Y are *fused* into one output
+  joint; X contributes the subtree at ``a``, Y keeps everything.
+* ``replace`` (X.a replaces Y.b): the same fusion, and Y's descendants of ``b`` are dropped.
+  Replacing a joint by itself (same character, same joint) is the identity.
+* ``remove`` (Y.b): Y's subtree at ``b``, ``b`` included, is dropped.
+
+A character that is the source of no action (or the target of an action at a joint outside the
+subtrees it gives) is a *body*: all its joints are candidates. A character that is only a source
+gives just the subtrees at its source joints. Every input joint may appear at most once in the
+output: to use a part twice, list the file under two ids.
+
+The fused joint takes the target's name, rest transform and parent. Output joints are ordered
+parents first; among the valid orders the one kept follows the body's own joint order, with a
+grafted subtree placed where the joint it is fused with sits (a self-composition therefore
+reproduces the input order exactly). Name collisions are resolved in that order: the first
+keeps the name, later ones get ``.001``, ``.002``... (as Blender does).
+"""
+
+from __future__ import annotations
+
+import heapq
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .character import Anchor, Character, Skeleton
+from .config import Config, closest_names
+from .errors import InputError
+from .positioning import pair_scale, position_character, smooth_translations
+from .transforms import matrix_to_trs, quat_to_matrix
+
+__all__ = ["ResolvedAction", "FusedPair", "Plan", "resolve_actions", "plan_operations"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ResolvedAction:
+    """One action of the config with joint names resolved to indices.
+
+    Attributes
+    ----------
+    index : int
+        Position in ``config.actions``.
+    op : {"attach", "replace", "remove"}
+    target : str
+        Character id receiving the action.
+    target_joint : int
+    source : str or None
+        Character id giving a subtree (``None`` for ``remove``).
+    source_joint : int
+        ``-1`` for ``remove``.
+    mode : {"blend", "union"} or None
+        Surface operator of a ``replace`` (``"union"`` for ``attach``, ``None`` for ``remove``).
+    """
+
+    index: int
+    op: str
+    target: str
+    target_joint: int
+    source: str | None = None
+    source_joint: int = -1
+    mode: str | None = None
+
+    @property
+    def grafts(self) -> bool:
+        """True for attach and replace (actions that fuse two joints)."""
+        return self.op in ("attach", "replace")
+
+    @property
+    def identity(self) -> bool:
+        """A joint replaced by itself (same character, same joint): changes nothing."""
+        return self.op == "replace" and self.source == self.target and self.source_joint == self.target_joint
+
+
+@dataclass(frozen=True)
+class FusedPair:
+    """Two input joints that become one output joint.
+
+    Attributes
+    ----------
+    output : int
+        The output joint.
+    target, source : str
+        Character ids (the target stays in place, the source is moved onto it).
+    target_joint, source_joint : int
+        Input joint indices.
+    action : int
+        Index of the action in the config.
+    """
+
+    output: int
+    target: str
+    target_joint: int
+    source: str
+    source_joint: int
+    action: int
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The output skeleton and everything later stages need to know about its origin.
+
+    Attributes
+    ----------
+    skeleton : Skeleton
+        S_R: unique names, parents before children, bind pose = rest pose
+        (``inverse_binds`` are the inverses of its rest world matrices).
+    provenance : tuple of tuple of (str, int), (J_R,)
+        For each output joint, the input joints it copies (one) or fuses (several): character id
+        and joint index; the first is the one whose name and rest transform it takes.
+    used : dict of str -> (J_in,) bool array
+        Joints of each input that survive in S_R.
+    image : dict of str -> (J_in,) int64 array
+        The output joint of each surviving input joint, ``-1`` for the others.
+    fused_pairs : tuple of FusedPair
+    actions : tuple of ResolvedAction
+    positioned : dict of str -> Character
+        Each input after scale, placement, rest-pose rotations and preliminary translation,
+        rebased (mesh in world space at rest, bind = rest). Later stages start from these.
+    scales : dict of str -> float
+    translations : dict of str -> (J_in, 3) float64 array
+        The preliminary per-joint translations (world space, after scaling).
+    report : dict
+        JSON-ready summary: scales and how they were chosen, fused pairs, renamed joints.
+    """
+
+    skeleton: Skeleton
+    provenance: tuple
+    used: dict
+    image: dict
+    fused_pairs: tuple
+    actions: tuple
+    positioned: dict
+    scales: dict
+    translations: dict
+    report: dict = field(default_factory=dict)
+
+    def output_index(self, cid: str, joint: int) -> int:
+        """Output joint of input joint ``joint`` of character ``cid`` (``-1`` if dropped)."""
+        return int(self.image[cid][joint])
+
+
+# --------------------------------------------------------------------------------------------
+# Resolving names
+# --------------------------------------------------------------------------------------------
+
+
+def _where(config: Config, cid: str, inputs) -> str:
+    src = inputs[cid].source or config.characters[cid].path
+    return f"{cid!r} ({src})"
+
+
+def _joint(inputs, config, cid, name, key) -> int:
+    names = inputs[cid].skeleton.names
+    if name in names:
+        return names.index(name)
+    close = closest_names(name, names)
+    hint = f"; closest: {', '.join(close)}" if close else f"; joints: {', '.join(names[:12])}..."
+    raise InputError(f"config {config.source}: {key}: no joint {name!r} in character "
+                     f"{_where(config, cid, inputs)}{hint}")
+
+
+def resolve_actions(inputs, config: Config) -> tuple[ResolvedAction, ...]:
+    """Resolve joint names and check each action on its own.
+
+    Parameters
+    ----------
+    inputs : dict of str -> Character
+        Loaded characters, by config id.
+    config : Config
+
+    Returns
+    -------
+    tuple of ResolvedAction
+
+    Raises
+    ------
+    InputError
+        An unknown joint (listing the closest names), or a subtree grafted onto itself.
+    """
+    out = []
+    for i, a in enumerate(config.actions):
+        tj = _joint(inputs, config, a.target, a.target_joint, f"actions[{i}].target_joint")
+        if a.op == "remove":
+            out.append(ResolvedAction(i, "remove", a.target, tj))
+            continue
+        sj = _joint(inputs, config, a.source, a.source_joint, f"actions[{i}].source_joint")
+        mode = a.mode if a.op == "replace" else "union"
+        r = ResolvedAction(i, a.op, a.target, tj, a.source, sj, mode)
+        if a.source == a.target and not r.identity:
+            sub = inputs[a.source].skeleton.subtree(sj)
+            if sub[tj]:
+                raise InputError(
+                    f"config {config.source}: actions[{i}]: cannot {a.op} the subtree at "
+                    f"{a.source_joint!r} onto {a.target_joint!r} of the same character {a.source!r}: "
+                    f"the target is inside the subtree (a subtree cannot be grafted onto itself)")
+        out.append(r)
+    return tuple(out)
+
+
+# --------------------------------------------------------------------------------------------
+# The output skeleton's structure (no geometry)
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Structure:
+    used: dict        # cid -> (J,) bool
+    part: dict        # cid -> (J,) int: -1 body, k: given by action k, -2 unused
+    members: tuple    # per node: tuple of (cid, j), primary first
+    parent: np.ndarray  # per node: parent node or -1
+    order: np.ndarray   # output index -> node
+    body: dict        # cid -> bool
+
+
+def _structure(inputs, actions, config: Config) -> _Structure:
+    ids = list(config.characters)
+    rank = {cid: i for i, cid in enumerate(ids)}
+    sk = {cid: inputs[cid].skeleton for cid in ids}
+    grafts = [a for a in actions if a.grafts and not a.identity]
+    given = {a.index: sk[a.source].subtree(a.source_joint) for a in grafts}
+    gives = {cid: [a for a in grafts if a.source == cid] for cid in ids}
+
+    def inside_given(cid, j):
+        return any(given[a.index][j] for a in gives[cid])
+
+    body = {}
+    for cid in ids:
+        targeted_outside = any(a.grafts and a.target == cid and not inside_given(cid, a.target_joint)
+                               for a in actions)
+        body[cid] = not gives[cid] or targeted_outside
+    base = {cid: np.full(sk[cid].num_joints, body[cid]) for cid in ids}
+    parts = {a.index: given[a.index].copy() for a in grafts}
+
+    # a target joint must exist in the output before the removals are applied
+    def available(cid):
+        m = base[cid].copy()
+        for a in gives[cid]:
+            m |= parts[a.index]
+        return m
+
+    for a in actions:
+        if a.identity:
+            continue
+        if not available(a.target)[a.target_joint]:
+            raise InputError(
+                f"config {config.source}: actions[{a.index}].target_joint: joint "
+                f"{sk[a.target].names[a.target_joint]!r} of {a.target!r} is not in the output: "
+                f"{a.target!r} only gives the subtree(s) at "
+                f"{', '.join(repr(sk[a.target].names[g.source_joint]) for g in gives[a.target])}")
+    for a in actions:
+        if a.op == "replace" and not a.identity:
+            rm = sk[a.target].subtree(a.target_joint)
+            rm[a.target_joint] = False
+        elif a.op == "remove":
+            rm = sk[a.target].subtree(a.target_joint)
+        else:
+            continue
+        base[a.target] &= ~rm
+        for g in gives[a.target]:
+            if g.index != a.index:
+                parts[g.index] &= ~rm
+
+    used, part = {}, {}
+    for cid in ids:
+        count = base[cid].astype(int)
+        p = np.where(base[cid], -1, -2)
+        for g in gives[cid]:
+            twice = np.flatnonzero(parts[g.index] & (count > 0))
+            if len(twice):
+                j = twice[0]
+                first = "the body" if base[cid][j] else "another action's subtree"
+                raise InputError(
+                    f"config {config.source}: actions[{g.index}]: joint {sk[cid].names[j]!r} of "
+                    f"{cid!r} would appear twice in the output (in {first} and in the subtree at "
+                    f"{sk[cid].names[g.source_joint]!r}); to use a part of a character twice, list its "
+                    "file again under a second id")
+            count += parts[g.index]
+            p = np.where(parts[g.index], g.index, p)
+        used[cid] = count > 0
+        part[cid] = p
+    for a in actions:
+        if a.op == "remove":
+            continue  # its own target is gone on purpose; availability was checked above
+        for cid, j, key in ((a.target, a.target_joint, "target_joint"), (a.source, a.source_joint, "source_joint")):
+            if cid is not None and not used[cid][j]:
+                raise InputError(
+                    f"config {config.source}: actions[{a.index}].{key}: joint {sk[cid].names[j]!r} of "
+                    f"{cid!r} is removed by another action")
+
+    # nodes: used joints, fused pairs merged (union-find)
+    keys = [(cid, int(j)) for cid in ids for j in np.flatnonzero(used[cid])]
+    node_of = {m: i for i, m in enumerate(keys)}
+    uf = list(range(len(keys)))
+
+    def find(x):
+        while uf[x] != x:
+            uf[x] = uf[uf[x]]
+            x = uf[x]
+        return x
+
+    for a in grafts:
+        ra, rb = find(node_of[(a.source, a.source_joint)]), find(node_of[(a.target, a.target_joint)])
+        uf[ra] = rb
+    groups: dict[int, list] = {}
+    for i, m in enumerate(keys):
+        groups.setdefault(find(i), []).append(m)
+    cut = {(a.source, a.source_joint) for a in grafts}
+    members, node_id = [], {}
+    for root in sorted(groups):
+        ms = groups[root]
+        uncut = [m for m in ms if m not in cut]
+        if len(uncut) > 1:
+            names = ", ".join(f"{c}:{sk[c].names[j]}" for c, j in uncut)
+            raise InputError(f"config {config.source}: actions fuse joints that each keep their parent "
+                             f"({names}): a joint can be fused with one target only")
+        if not uncut:
+            names = ", ".join(f"{c}:{sk[c].names[j]}" for c, j in ms)
+            raise InputError(f"config {config.source}: the actions create a cycle: joints {names} are "
+                             "only ever moved onto each other (every character is a source; one must stay)")
+        primary = uncut[0]
+        ordered = [primary] + sorted((m for m in ms if m != primary), key=lambda m: (rank[m[0]], m[1]))
+        for m in ordered:
+            node_id[m] = len(members)
+        members.append(tuple(ordered))
+    N = len(members)
+    parent = np.full(N, -1, dtype=np.int64)
+    for n, ms in enumerate(members):
+        cid, j = ms[0]
+        p = sk[cid].parents[j]
+        if p >= 0 and used[cid][p]:
+            parent[n] = node_id[(cid, int(p))]
+    # cycles: every walk up must end at a root
+    state = np.zeros(N, dtype=np.int8)  # 0 new, 1 on the current walk, 2 done
+    for n in range(N):
+        path = []
+        x = n
+        while x >= 0 and state[x] == 0:
+            state[x] = 1
+            path.append(x)
+            x = parent[x]
+        if x >= 0 and state[x] == 1:
+            cyc = []
+            y = x
+            while True:
+                cyc.append(members[y][0])
+                y = parent[y]
+                if y == x:
+                    break
+            names = " -> ".join(f"{c}:{sk[c].names[j]}" for c, j in cyc)
+            raise InputError(f"config {config.source}: the actions create a cycle in the output "
+                             f"skeleton ({names} -> ...): a subtree is grafted below itself")
+        for y in path:
+            state[y] = 2
+
+    # order: parents first; preference keys keep a body's own order, grafts where they are fused
+    key_cache: dict[int, tuple] = {}
+
+    def key(n):
+        if n in key_cache:
+            return key_cache[n]
+        cid, j = members[n][0]
+        k = part[cid][j]
+        if k == -1:
+            out = (rank[cid], float(j), 0)
+        else:
+            a = actions[k]
+            kb = key(node_id[(a.source, a.source_joint)])
+            out = (kb[0], kb[1] + (j - a.source_joint), kb[2] + 1)
+        key_cache[n] = out
+        return out
+
+    children: dict[int, list] = {}
+    for n in range(N):
+        children.setdefault(int(parent[n]), []).append(n)
+    heap = [(key(n), n) for n in children.get(-1, [])]
+    heapq.heapify(heap)
+    order = []
+    while heap:
+        _, n = heapq.heappop(heap)
+        order.append(n)
+        for c in children.get(n, []):
+            heapq.heappush(heap, (key(c), c))
+    assert len(order) == N, "every node is reachable from a root once cycles are excluded"
+    return _Structure(used, part, tuple(members), parent, np.asarray(order, dtype=np.int64), body)
+
+
+# --------------------------------------------------------------------------------------------
+# Positioning
+# --------------------------------------------------------------------------------------------
+
+
+def _rotation_quat(rot):
+    return np.asarray(rot.as_quaternion(), dtype=np.float64)
+
+
+def _placement_matrix(placement):
+    if placement is None:
+        return None
+    M = np.eye(4)
+    if placement.rotation is not None:
+        M[:3, :3] = quat_to_matrix(_rotation_quat(placement.rotation))
+    M[:3, 3] = placement.translation
+    return M
+
+
+def _positioning_order(actions, config):
+    """Characters ordered so that every target is positioned before what is moved onto it."""
+    ids = list(config.characters)
+    deps = {cid: set() for cid in ids}
+    for a in actions:
+        if a.grafts and a.source != a.target:
+            deps[a.source].add(a.target)
+    order, done = [], set()
+    while len(order) < len(ids):
+        ready = [c for c in ids if c not in done and deps[c] <= done]
+        if not ready:
+            left = [c for c in ids if c not in done]
+            raise InputError(f"config {config.source}: characters {', '.join(map(repr, left))} are each "
+                             "moved onto another in a loop; one of them must stay in place (be only a target)")
+        order.append(ready[0])
+        done.add(ready[0])
+    return order
+
+
+def _position_all(inputs, actions, config, structure):
+    positioned, scales, translations, info = {}, {}, {}, {}
+    for cid in _positioning_order(actions, config):
+        ch = inputs[cid]
+        cc = config.characters[cid]
+        sk = ch.skeleton
+        pairs = [a for a in actions if a.grafts and a.source == cid and not a.identity]
+        moved = [a for a in pairs if a.target != cid]
+        if cc.scale != "auto":
+            s, method, ratios = float(cc.scale), "override", []
+        elif moved:
+            ratios = [pair_scale(a.op, positioned[a.target], a.target_joint, ch, a.source_joint) for a in moved]
+            s = float(np.exp(np.mean(np.log([r for r, _ in ratios]))))
+            method = "+".join(sorted({m for _, m in ratios}))
+        else:
+            s, method, ratios = 1.0, "body", []
+        rotations = {}
+        for name, rot in cc.rotations.items():
+            j = _joint(inputs, config, cid, name, f"characters.{cid}.rotations")
+            rotations[j] = _rotation_quat(rot)
+        placement = _placement_matrix(cc.placement)
+        posed = position_character(ch, scale=s, placement=placement, rotations=rotations)
+        t = np.zeros((sk.num_joints, 3))
+        if pairs and config.positioning.translate:
+            here = posed.skeleton.rest_worlds()[:, :3, 3]
+            fixed, values = [], []
+            if structure.body[cid]:
+                # a body keeps its own joints in place; only the subtrees it gives move
+                for j in np.flatnonzero(structure.part[cid] == -1):
+                    fixed.append(int(j))
+                    values.append(np.zeros(3))
+            for a in pairs:
+                tgt = positioned[a.target] if a.target != cid else posed
+                goal = tgt.skeleton.rest_worlds()[a.target_joint, :3, 3]
+                fixed.append(a.source_joint)
+                values.append(goal - here[a.source_joint])
+            t = smooth_translations(sk.parents, fixed, np.asarray(values))
+        positioned[cid] = position_character(ch, scale=s, placement=placement, rotations=rotations,
+                                             translations=t)
+        scales[cid] = s
+        translations[cid] = t
+        info[cid] = {
+            "scale": s,
+            "scale_method": method,
+            "scale_ratios": [float(r) for r, _ in ratios],
+            "role": "body" if structure.body[cid] else "source",
+            "moved": bool(np.any(t)) or s != 1.0 or bool(rotations) or placement is not None,
+        }
+        if method != "override" and s != 1.0:
+            logger.info("operations: %s scaled by %.4g (%s)", cid, s, method)
+    return positioned, scales, translations, info
+
+
+# --------------------------------------------------------------------------------------------
+# The output skeleton
+# --------------------------------------------------------------------------------------------
+
+
+def _unique_names(names):
+    seen, out, renamed = set(), [], {}
+    for nm in names:
+        new = nm
+        k = 1
+        while new in seen:
+            new = f"{nm}.{k:03d}"
+            k += 1
+        seen.add(new)
+        out.append(new)
+        if new != nm:
+            renamed[new] = nm
+    return out, renamed
+
+
+def _build_skeleton(structure, positioned, config):
+    order = structure.order
+    N = len(order)
+    out_of_node = np.empty(N, dtype=np.int64)
+    out_of_node[order] = np.arange(N)
+    worlds_in = {cid: c.skeleton.rest_worlds() for cid, c in positioned.items()}
+    parents = np.where(structure.parent[order] >= 0, out_of_node[np.maximum(structure.parent[order], 0)], -1)
+    names, worlds = [], np.zeros((N, 4, 4))
+    T, R, S = np.zeros((N, 3)), np.zeros((N, 4)), np.zeros((N, 3))
+    anchors, anchor_offset = [], {}
+    root_anchor = np.full(N, -1, dtype=np.int64)
+    computed = []
+    for o, n in enumerate(order):
+        cid, j = structure.members[n][0]
+        sk = positioned[cid].skeleton
+        names.append(sk.names[j])
+        worlds[o] = worlds_in[cid][j]
+        T[o], R[o], S[o] = sk.translations[j], sk.rotations[j], sk.scales[j]
+        if parents[o] < 0:
+            if sk.parents[j] >= 0:
+                computed.append(o)  # a root here but not in its file: local = world
+            elif sk.root_anchor[j] >= 0:
+                if cid not in anchor_offset:
+                    anchor_offset[cid] = len(anchors)
+                    anchors.extend(Anchor(a.name, a.matrix, a.parent + anchor_offset[cid] if a.parent >= 0 else -1)
+                                   for a in sk.anchors)
+                root_anchor[o] = anchor_offset[cid] + sk.root_anchor[j]
+        else:
+            pcid, pj = structure.members[structure.parent[n]][0]
+            if pcid != cid or sk.parents[j] != pj:
+                computed.append(o)  # a grafted joint: its local is relative to a new parent
+    if computed:
+        comp = np.asarray(computed)
+        P = np.where(parents[comp, None, None] >= 0, worlds[np.maximum(parents[comp], 0)], np.eye(4))
+        t, r, s = matrix_to_trs(np.linalg.inv(P) @ worlds[comp])
+        T[comp], R[comp], S[comp] = t, r, s
+    unique, renamed = _unique_names(names)
+    skeleton = Skeleton(
+        names=tuple(unique), parents=parents, translations=T, rotations=R, scales=S,
+        inverse_binds=np.linalg.inv(worlds), anchors=tuple(anchors), root_anchor=root_anchor,
+    )
+    return skeleton, out_of_node, renamed
+
+
+# --------------------------------------------------------------------------------------------
+# Entry point
+# --------------------------------------------------------------------------------------------
+
+
+def plan_operations(inputs, config: Config) -> Plan:
+    """Apply the config's actions: output skeleton, provenance, preliminary positioning.
+
+    Parameters
+    ----------
+    inputs : dict of str -> Character
+        Loaded characters, by config id (every id of ``config.characters``).
+    config : Config
+
+    Returns
+    -------
+    Plan
+
+    Raises
+    ------
+    InputError
+        Unknown joints (with the closest names), a subtree grafted onto itself, a joint used
+        twice, an action on a removed joint, a cycle created by the actions.
+    """
+    missing = [cid for cid in config.characters if cid not in inputs]
+    if missing:
+        raise InputError(f"operations: characters {', '.join(missing)} of {config.source} are not loaded")
+    for cid in config.characters:
+        inputs[cid].require_skinned("operations")
+    actions = resolve_actions(inputs, config)
+    structure = _structure(inputs, actions, config)
+    positioned, scales, translations, info = _position_all(inputs, actions, config, structure)
+    skeleton, out_of_node, renamed = _build_skeleton(structure, positioned, config)
+
+    provenance = tuple(structure.members[n] for n in structure.order)
+    image = {cid: np.full(inputs[cid].skeleton.num_joints, -1, dtype=np.int64) for cid in config.characters}
+    for o, ms in enumerate(provenance):
+        for cid, j in ms:
+            image[cid][j] = o
+    for arr in image.values():
+        arr.setflags(write=False)
+    used = {cid: structure.used[cid].copy() for cid in config.characters}
+    for arr in used.values():
+        arr.setflags(write=False)
+    fused = tuple(
+        FusedPair(int(image[a.target][a.target_joint]), a.target, a.target_joint, a.source, a.source_joint, a.index)
+        for a in actions if a.grafts
+    )
+
+    def jname(cid, j):
+        return f"{cid}:{inputs[cid].skeleton.names[j]}"
+
+    report = {
+        "characters": info,
+        "fused_pairs": [
+            {"output": skeleton.names[f.output], "target": jname(f.target, f.target_joint),
+             "source": jname(f.source, f.source_joint), "action": f.action}
+            for f in fused
+        ],
+        "output_joints": skeleton.num_joints,
+        "renamed": {new: jname(*provenance[skeleton.names.index(new)][0]) for new in renamed},
+    }
+    logger.debug("operations: %d output joints, %d fused pairs", skeleton.num_joints, len(fused))
+    return Plan(skeleton=skeleton, provenance=provenance, used=used, image=image, fused_pairs=fused,
+                actions=actions, positioned=positioned, scales=scales, translations=translations,
+                report=report)

@@ -1,0 +1,403 @@
+"""Preliminary positioning and scale matching (PIPELINE.md section 1; SkinMixer sec. 4.1).
+
+Before fusion every source character is scaled to the units of the character it is fused
+with, optionally posed (rest-pose rotations per joint) and placed, then translated so that its
+fused joints land on their targets. The per-joint translations of the joints that are not fused
+come from Laplacian smoothing over the skeleton graph (a harmonic field: each free joint's
+translation is the mean of its neighbours'), so one fused pair gives a rigid translation and
+several give a smooth field. The rest mesh follows by linear blend skinning.
+
+A positioned character is *rebased*: its mesh positions are its rest-pose positions in world
+space and its inverse bind matrices are the inverses of its rest world matrices (bind pose =
+rest pose), so later stages never need the original bind space.
+
+Scale matching (automatic, overridable in the config): for a fused pair (joint ``a`` of the
+moved character X, joint ``b`` of the target Y) the scale of X is
+
+* ``replace``: ``chain_length(Y, b) / chain_length(X, a)``, the ratio of the longest bone chains
+  from the fused joints down to a leaf (the replaced limb against the new limb);
+* ``attach``: ``cross_section(Y, b) / cross_section(X, a)``, the ratio of the median distances
+  from the fused joints to the mesh vertices they drive (weight >= 0.5), i.e. the local
+  thickness of the two bodies where they meet;
+* when a measure is degenerate (a leaf joint, no vertex driven by the joint), the ratio of the
+  bounding-box diagonals of the two rest meshes.
+
+With several fused pairs the scale is the geometric mean of the pair ratios.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .skinning import linear_blend_skinning
+from .transforms import matrix_to_trs, quat_multiply, quat_to_matrix
+
+__all__ = [
+    "skeleton_adjacency",
+    "smooth_translations",
+    "rest_world_mesh",
+    "chain_length",
+    "cross_section",
+    "size",
+    "pair_scale",
+    "pose_worlds",
+    "position_character",
+]
+
+logger = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------------------------
+# The skeleton graph and the harmonic translation field
+# --------------------------------------------------------------------------------------------
+
+
+def skeleton_adjacency(parents):
+    """Adjacency of the skeleton graph, with one virtual node joining the roots.
+
+    Parameters
+    ----------
+    parents : (J,) int array
+        Parent of each joint, ``-1`` for roots.
+
+    Returns
+    -------
+    A : (J + 1, J + 1) scipy.sparse.csr_matrix
+        Symmetric 0/1 adjacency; node ``J`` is the virtual node linked to every root, so that a
+        forest (the Horse has five roots) is one connected graph. With a single root the virtual
+        node just copies the root's value and changes nothing.
+    """
+    parents = np.asarray(parents, dtype=np.int64)
+    J = len(parents)
+    child = np.arange(J)
+    par = np.where(parents >= 0, parents, J)
+    rows = np.concatenate([child, par])
+    cols = np.concatenate([par, child])
+    A = sp.coo_matrix((np.ones(2 * J), (rows, cols)), shape=(J + 1, J + 1)).tocsr()
+    A.data[:] = 1.0
+    return A
+
+
+def smooth_translations(parents, fixed, values):
+    """Per-joint translations: fixed where assigned, harmonic (Laplacian-smoothed) elsewhere.
+
+    Equivalent to iterating ``t_i <- mean of neighbours' t`` on the free joints to convergence,
+    solved directly (sparse Cholesky-free LU on the free block).
+
+    Parameters
+    ----------
+    parents : (J,) int array
+        Skeleton parents, ``-1`` for roots.
+    fixed : (F,) int array
+        Joints whose translation is assigned.
+    values : (F, 3) float array
+        Their translations (world space).
+
+    Returns
+    -------
+    t : (J, 3) float64
+        One fixed joint gives every joint the same translation (rigid); none gives zeros.
+    """
+    parents = np.asarray(parents, dtype=np.int64)
+    J = len(parents)
+    fixed = np.asarray(fixed, dtype=np.int64).reshape(-1)
+    values = np.asarray(values, dtype=np.float64).reshape(-1, 3)
+    t = np.zeros((J + 1, 3))
+    if len(fixed) == 0:
+        return t[:J]
+    t[fixed] = values
+    A = skeleton_adjacency(parents)
+    L = sp.diags(np.asarray(A.sum(axis=1)).ravel()) - A
+    free = np.ones(J + 1, dtype=bool)
+    free[fixed] = False
+    if free.any():
+        L = L.tocsr()
+        Lff = L[free][:, free].tocsc()
+        rhs = -(L[free][:, ~free] @ t[~free])
+        t[free] = spla.splu(Lff).solve(rhs)
+    return t[:J]
+
+
+# --------------------------------------------------------------------------------------------
+# Measures for scale matching
+# --------------------------------------------------------------------------------------------
+
+
+def rest_world_mesh(character):
+    """Rest-pose positions in world space of all skinned meshes, stacked.
+
+    Returns
+    -------
+    V : (n, 3) float64
+        Every mesh of ``character.meshes`` skinned at the rest pose (unskinned ones as stored).
+    W : (n, J) float64
+        Their dense skin weights (zero rows for unskinned meshes).
+    """
+    sk = character.skeleton
+    M = sk.rest_worlds() @ sk.inverse_binds
+    Vs, Ws = [], []
+    for mesh in character.meshes:
+        if mesh.skinned:
+            Vs.append(linear_blend_skinning(mesh.positions, mesh.joints, mesh.weights, M))
+        else:
+            Vs.append(np.asarray(mesh.positions))
+        Ws.append(mesh.dense_weights(sk.num_joints))
+    if not Vs:
+        return np.zeros((0, 3)), np.zeros((0, sk.num_joints))
+    return np.concatenate(Vs), np.concatenate(Ws)
+
+
+def chain_length(parents, positions, j):
+    """Length of the longest bone chain from joint ``j`` down to a leaf of its subtree.
+
+    Parameters
+    ----------
+    parents : (J,) int array
+    positions : (J, 3) float array
+        Joint world positions.
+    j : int
+
+    Returns
+    -------
+    float
+        Sum of bone lengths along the longest root-to-leaf path of the subtree at ``j``
+        (0 for a leaf).
+    """
+    parents = np.asarray(parents)
+    P = np.asarray(positions, dtype=np.float64)
+    down = np.zeros(len(parents))
+    for k in range(len(parents) - 1, j, -1):  # children after parents: reverse order is bottom-up
+        p = parents[k]
+        if p >= j:
+            down[p] = max(down[p], down[k] + np.linalg.norm(P[k] - P[p]))
+    return float(down[j])
+
+
+def cross_section(V, W, position, j, *, min_weight=0.5, min_vertices=3):
+    """Local thickness of a body at joint ``j``: median distance to the vertices it drives.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+        Rest positions, world space.
+    W : (n, J) float array
+        Dense skin weights.
+    position : (3,) float array
+        Joint ``j``'s rest world position.
+    j : int
+    min_weight : float
+        A vertex counts when its weight on ``j`` is at least this.
+    min_vertices : int
+        Fewer counted vertices make the measure degenerate.
+
+    Returns
+    -------
+    float or None
+        ``None`` when degenerate.
+    """
+    if len(V) == 0:
+        return None
+    sel = W[:, j] >= min_weight
+    if sel.sum() < min_vertices:
+        return None
+    r = float(np.median(np.linalg.norm(V[sel] - np.asarray(position), axis=1)))
+    return r if r > 0 else None
+
+
+def size(V, joint_positions):
+    """Bounding-box diagonal of the rest mesh (of the joints when there is no mesh)."""
+    P = V if len(V) else joint_positions
+    if len(P) == 0:
+        return 0.0
+    return float(np.linalg.norm(P.max(axis=0) - P.min(axis=0)))
+
+
+def pair_scale(op, target, target_joint, source, source_joint, *, eps=1e-9):
+    """Scale to apply to ``source`` so that it matches ``target`` around one fused pair.
+
+    Parameters
+    ----------
+    op : {"attach", "replace"}
+    target, source : Character
+        ``target`` already in its final units (positioned), ``source`` as loaded.
+    target_joint, source_joint : int
+
+    Returns
+    -------
+    scale : float
+    method : str
+        ``"limb-length"``, ``"cross-section"`` or ``"size"`` (the fallback).
+    """
+    tw = target.skeleton.rest_worlds()[:, :3, 3]
+    sw = source.skeleton.rest_worlds()[:, :3, 3]
+    if op == "replace":
+        lt = chain_length(target.skeleton.parents, tw, target_joint)
+        ls = chain_length(source.skeleton.parents, sw, source_joint)
+        if lt > eps and ls > eps:
+            return lt / ls, "limb-length"
+    Vt, Wt = rest_world_mesh(target)
+    Vs, Ws = rest_world_mesh(source)
+    if op == "attach":
+        rt = cross_section(Vt, Wt, tw[target_joint], target_joint)
+        rs = cross_section(Vs, Ws, sw[source_joint], source_joint)
+        if rt is not None and rs is not None:
+            return rt / rs, "cross-section"
+    st, ss = size(Vt, tw), size(Vs, sw)
+    if st > eps and ss > eps:
+        return st / ss, "size"
+    return 1.0, "size"
+
+
+# --------------------------------------------------------------------------------------------
+# Moving a character
+# --------------------------------------------------------------------------------------------
+
+
+def _translation(t):
+    M = np.eye(4)
+    M[:3, 3] = t
+    return M
+
+
+def pose_worlds(skeleton, worlds, rotations):
+    """Rest world matrices after world-axis rotations of joints about their own positions.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    worlds : (J, 4, 4) float array
+        Rest world matrices before the rotations.
+    rotations : dict of int -> (4,) float array
+        Joint -> unit quaternion xyzw in world axes; applied parents first, each one rotating
+        the joint and its subtree about the joint's current position.
+
+    Returns
+    -------
+    (J, 4, 4) float64
+    """
+    out = np.array(worlds, dtype=np.float64, copy=True)
+    for j in sorted(rotations):
+        R = np.eye(4)
+        R[:3, :3] = quat_to_matrix(np.asarray(rotations[j], dtype=np.float64))
+        p = out[j, :3, 3].copy()
+        M = _translation(p) @ R @ _translation(-p)
+        sub = skeleton.subtree(j)
+        out[sub] = M @ out[sub]
+    return out
+
+
+def _locals_from_worlds(skeleton, worlds):
+    """Rest local TRS of a skeleton whose joints have the given world matrices."""
+    base = skeleton.root_parent_worlds()
+    par = np.where(skeleton.parents[:, None, None] >= 0, worlds[np.maximum(skeleton.parents, 0)], base)
+    L = np.linalg.inv(par) @ worlds
+    return matrix_to_trs(L)
+
+
+def _move_mesh(mesh, M_old, D, J):
+    """Rest-pose a mesh (``M_old``: skinning matrices of the old rest) then apply per-joint ``D``."""
+    if not mesh.skinned:
+        return mesh
+    V0 = linear_blend_skinning(mesh.positions, mesh.joints, mesh.weights, M_old)
+    V = linear_blend_skinning(V0, mesh.joints, mesh.weights, D)
+    normals = None
+    if mesh.normals is not None:
+        # blended linear part applied to the bind normals (rigid motions: no inverse transpose)
+        A = np.einsum("nk,nkij->nij", mesh.weights, (D @ M_old)[mesh.joints][:, :, :3, :3])
+        N = np.einsum("nij,nj->ni", A, mesh.normals)
+        n = np.linalg.norm(N, axis=1, keepdims=True)
+        normals = np.where(n > 1e-12, N / np.where(n > 1e-12, n, 1.0), mesh.normals)
+    return replace(mesh, positions=V, normals=normals)
+
+
+def _scale_clip(clip, skeleton, s, C):
+    """Clip tracks for the character scaled by ``s`` (roots also moved by ``C``)."""
+    tC, qC, _ = matrix_to_trs(C)
+    A = C[:3, :3]
+    rotate_roots = not np.allclose(qC, [0, 0, 0, 1])
+    tracks = []
+    for tr in clip.tracks:
+        root = skeleton.parents[tr.joint] < 0
+        vals = np.array(tr.values, copy=True)
+        cubic = tr.interpolation == "CUBICSPLINE"
+        if tr.path == "translation":
+            if root:
+                vals = vals @ A.T
+                if cubic:
+                    vals[:, 1] += tC
+                else:
+                    vals += tC
+            else:
+                vals = vals * s
+        elif tr.path == "rotation" and root and rotate_roots:
+            vals = quat_multiply(qC, vals)
+        tracks.append(replace(tr, values=vals))
+    return replace(clip, tracks=tuple(tracks))
+
+
+def position_character(character, *, scale=1.0, placement=None, rotations=None, translations=None):
+    """Scale, place, pose and translate a character; the rest mesh follows by skinning.
+
+    Parameters
+    ----------
+    character : Character
+    scale : float
+        Uniform scale about the world origin.
+    placement : (4, 4) float array, optional
+        Rigid world transform applied after the scale.
+    rotations : dict of int -> (4,) float array, optional
+        Rest-pose rotations, world axes, about each joint (see :func:`pose_worlds`).
+    translations : (J, 3) float array, optional
+        Per-joint world translations applied last (e.g. from :func:`smooth_translations`);
+        the mesh moves by ``sum_k w_k t_{j_k}``.
+
+    Returns
+    -------
+    Character
+        Rebased: bind pose = rest pose, mesh positions in world space. Clips are rescaled
+        (non-root translation keys times ``scale``; root keys moved with the placement); the
+        rest-pose rotations and translations change the rest pose only. ``character`` itself
+        when nothing changes.
+    """
+    sk = character.skeleton
+    J = sk.num_joints
+    P = np.eye(4) if placement is None else np.asarray(placement, dtype=np.float64)
+    rotations = rotations or {}
+    t = np.zeros((J, 3)) if translations is None else np.asarray(translations, dtype=np.float64)
+    if scale == 1.0 and np.allclose(P, np.eye(4)) and not rotations and not np.any(t):
+        return character
+    s = float(scale)
+    G = P @ np.diag([s, s, s, 1.0])
+    W = sk.rest_worlds()
+    W1 = G @ W @ np.diag([1.0 / s, 1.0 / s, 1.0 / s, 1.0])
+    W3 = pose_worlds(sk, W1, rotations)
+    W3[:, :3, 3] += t
+
+    T, R, S = _locals_from_worlds(sk, W3)
+    skeleton = replace(sk, translations=T, rotations=R, scales=S, inverse_binds=np.linalg.inv(W3))
+    M_old = G @ W @ sk.inverse_binds  # bind space -> scaled and placed rest pose
+    D = W3 @ np.linalg.inv(W1)  # per joint: scaled rest -> final rest
+    meshes = tuple(
+        _move_mesh(m, M_old, D, J) if m.skinned else replace(m, positions=m.positions @ G[:3, :3].T + G[:3, 3])
+        for m in character.meshes
+    )
+    Sinv = np.diag([1.0 / s, 1.0 / s, 1.0 / s, 1.0])
+    Sfwd = np.diag([s, s, s, 1.0])
+    props = []
+    for pr in character.props:
+        m = replace(pr.mesh, positions=pr.mesh.positions * s)
+        M = Sfwd @ pr.matrix @ Sinv if pr.joint >= 0 else G @ pr.matrix @ Sinv
+        props.append(replace(pr, mesh=m, matrix=M))
+    # roots: local' = inv(anchor) @ G @ anchor @ local @ S^-1, so their keys move with C
+    base = sk.root_parent_worlds()
+    roots = sk.roots
+    C = np.linalg.inv(base[roots[0]]) @ G @ base[roots[0]] if len(roots) else G
+    if len(roots) > 1 and not all(np.allclose(base[r], base[roots[0]]) for r in roots):
+        logger.debug("position_character: %s roots hang from different anchors", character.name)
+    clips = tuple(_scale_clip(c, sk, s, C) for c in character.clips)
+    return replace(character, skeleton=skeleton, meshes=meshes, props=tuple(props), clips=clips)
