@@ -13,7 +13,7 @@ import pytest
 
 from conftest import CHARACTERS, asset
 from rigmix.animation import sample_clip, sample_track
-from rigmix.character import Character, Clip, Mesh, Skeleton, Track
+from rigmix.character import Character, Clip, Mesh
 from rigmix.errors import InputError, UnsupportedError
 from rigmix.geometry import bounding_box_diagonal
 from rigmix.io import load_character
@@ -156,6 +156,7 @@ def test_round_trip(name, written):
             assert xb.base_color_texture.data == xa.base_color_texture.data
             assert xb.base_color_texture.mime_type == xa.base_color_texture.mime_type
     assert [c.name for c in b.clips] == [c.name for c in a.clips]
+    assert not b.warnings  # what rigmix writes needs no repair
     for ca, cb in zip(a.clips, b.clips):
         assert [(t.joint, t.path, t.interpolation) for t in cb.tracks] == [
             (t.joint, t.path, t.interpolation) for t in ca.tracks]
@@ -700,6 +701,22 @@ def test_indices_and_joints_past_their_range(tmp_path):
     s.J1[4, 1] = 3
     with pytest.raises(InputError, match="refer to joint 3 but the skin has 3 joints"):
         read_gltf(s.build(tmp_path, "glb"))
+
+
+def test_compressed_geometry_is_refused(tmp_path):
+    def draco(gl):
+        gl["extensionsUsed"] = gl["extensionsRequired"] = ["KHR_draco_mesh_compression"]
+
+    with pytest.raises(UnsupportedError, match="synth.glb: compressed geometry"):
+        read_gltf(Synth().build(tmp_path, "glb", mutate=draco))
+
+
+def test_written_file_mode_is_not_private(tmp_path):
+    path = tmp_path / "f.glb"
+    write_gltf(original("SimpleSkin"), path)
+    ref = tmp_path / "ref"
+    ref.write_bytes(b"")
+    assert path.stat().st_mode & 0o777 == ref.stat().st_mode & 0o777  # as open() makes, not mkstemp's 0600
 
 
 def test_hierarchy_cycle_is_refused(tmp_path):

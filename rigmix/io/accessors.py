@@ -55,7 +55,7 @@ TYPE_SHAPES = {
     "MAT4": (4, 4),
 }
 #: An accessor without a buffer view is all zeros; refuse to allocate more elements than this.
-MAX_ZERO_ELEMENTS = 1 << 27
+MAX_ZERO_ELEMENTS = 1 << 24
 
 
 @dataclass

@@ -2,7 +2,8 @@
 
 :func:`read_gltf` and :func:`write_gltf` are the public API; the work is done in
 :mod:`rigmix.io.accessors` (containers, buffers, bounds-checked accessors),
-:mod:`rigmix.io.gltf_read` and :mod:`rigmix.io.gltf_write`.
+:mod:`rigmix.io.gltf_read` (+ :mod:`rigmix.io.gltf_materials`, :mod:`rigmix.io.repair`) and
+:mod:`rigmix.io.gltf_write`.
 
 Reading: glTF -> model
 ----------------------
@@ -67,7 +68,8 @@ joints). Files are written to a temporary file in the same folder and renamed ov
 
 from __future__ import annotations
 
-from .gltf_read import read_gltf, repair_weights
+from .gltf_read import read_gltf
 from .gltf_write import sparsify_weights, write_gltf
+from .repair import repair_weights
 
 __all__ = ["read_gltf", "write_gltf", "repair_weights", "sparsify_weights"]

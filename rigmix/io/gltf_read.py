@@ -11,30 +11,29 @@ one mismatch between glTF and the domain model:
    unique names, rest TRS, inverse binds, anchors above the roots.
 4. ``_meshes``: primitives -> ``Mesh`` (skinned) or ``Prop`` (rigid/static); weights repaired.
 5. ``_clips``: channels on joints -> ``Track``.
-6. ``_materials``: metallic-roughness materials and base colour textures.
+6. ``read_materials`` (:mod:`rigmix.io.gltf_materials`): materials and base colour textures.
+
+The weight repairs are in :mod:`rigmix.io.repair`.
 """
 
 from __future__ import annotations
 
 import heapq
 import logging
-from pathlib import Path
 
 import numpy as np
 
-from ..character import Anchor, Character, Clip, Material, Mesh, Prop, Skeleton, Texture, Track
-from ..errors import InputError, RigmixError, UnsupportedError
+from ..character import Anchor, Character, Clip, Mesh, Prop, Skeleton, Track
+from ..errors import RigmixError, UnsupportedError
 from ..transforms import matrix_to_trs, quat_normalize, trs_to_matrix
-from .accessors import Document, decode_data_uri, load_document
+from .accessors import Document, load_document
+from .gltf_materials import read_materials
+from .repair import fill_empty_rows, repair_weights
 
 __all__ = ["read_gltf"]
 
 logger = logging.getLogger(__name__)
 
-#: Weight rows whose sum is off by more than this are reported (all rows are renormalized).
-SUM_TOLERANCE = 1e-3
-#: A vertex within this fraction of the bind-pose bounding-box diagonal counts as co-located.
-COLOCATED = 1e-6
 
 
 class _Log:
@@ -81,11 +80,25 @@ def read_gltf(path) -> Character:
         raise doc.error(f"malformed glTF ({type(exc).__name__}: {exc})") from None
 
 
+#: Required extensions without which the geometry cannot be read.
+UNREADABLE_EXTENSIONS = ("KHR_draco_mesh_compression", "EXT_meshopt_compression", "KHR_meshopt_compression")
+
+
 def _read(doc: Document, log: _Log) -> Character:
+    required = doc.json.get("extensionsRequired", [])
+    for ext in required:
+        if ext in UNREADABLE_EXTENSIONS:
+            raise UnsupportedError(
+                f"{doc.name}: compressed geometry ({ext}) is not supported: re-export the file "
+                "without mesh compression (e.g. gltf-transform copy, or Blender without Draco)"
+            )
+    for ext in required:
+        if ext != "KHR_mesh_quantization":  # integer attributes: the accessor reader handles them
+            log(f"required extension {ext} is not supported: its data are ignored")
     graph = _node_graph(doc)
     skins = _choose_skin(doc, graph)
     skeleton, joint_of_node = _skeleton(doc, graph, skins, log)
-    materials = _materials(doc, log)
+    materials = read_materials(doc, log)
     meshes, props = _meshes(doc, graph, skins, skeleton, joint_of_node, len(materials), log)
     clips = _clips(doc, joint_of_node, skeleton, log)
     return Character(
@@ -418,98 +431,6 @@ def _read_primitive(doc, prim: dict, label: str, njoints: int | None, log) -> di
     return out
 
 
-def repair_weights(joints, weights):
-    """Clean skin weights (the rules of :mod:`rigmix.io.gltf`), except rows left without weight.
-
-    Parameters
-    ----------
-    joints : (n, K) int array
-    weights : (n, K) float array, may hold NaN, inf, negatives and duplicate joint slots.
-
-    Returns
-    -------
-    joints : (n, K) int64
-        Unused slots (weight 0) set to joint 0.
-    weights : (n, K) float64
-        Non-negative rows summing to 1, or all zero for the rows in ``empty``.
-    empty : (n,) bool
-        Rows with no finite positive weight (to be filled by the caller).
-    counts : dict
-        Rows affected: ``nonfinite``, ``negative``, ``duplicate``, ``unnormalized``.
-    """
-    J = np.array(joints, dtype=np.int64)
-    W = np.array(weights, dtype=np.float64)
-    bad = ~np.isfinite(W)
-    counts = {"nonfinite": int(bad.any(axis=1).sum())}
-    W[bad] = 0.0
-    neg = W < 0
-    counts["negative"] = int(neg.any(axis=1).sum())
-    W[neg] = 0.0
-    dup = np.zeros(len(W), dtype=bool)
-    K = W.shape[1]
-    for b in range(1, K):
-        for a in range(b):
-            same = (J[:, a] == J[:, b]) & (W[:, b] > 0)
-            dup |= same & (W[:, a] > 0)
-            W[same, a] += W[same, b]
-            W[same, b] = 0.0
-    counts["duplicate"] = int(dup.sum())
-    s = W.sum(axis=1)
-    empty = s <= 0
-    counts["unnormalized"] = int((~empty & (np.abs(s - 1.0) > SUM_TOLERANCE)).sum())
-    W[~empty] /= s[~empty, None]
-    J[W == 0] = 0
-    return J, W, empty, counts
-
-
-def _fill_empty_rows(parts, skeleton: Skeleton, log):
-    """Give rows without weight the weights of a co-located vertex, else the nearest joint.
-
-    ``parts``: list of dicts with ``name``, ``positions`` (bind space), ``joints``,
-    ``weights``, ``empty`` (modified in place).
-    """
-    if not any(p["empty"].any() for p in parts):
-        return
-    from scipy.spatial import cKDTree
-
-    allV = np.concatenate([p["positions"] for p in parts])
-    diag = float(np.linalg.norm(allV.max(0) - allV.min(0))) if len(allV) else 1.0
-    donors = [(p, np.flatnonzero(~p["empty"])) for p in parts]
-    dV = np.concatenate([p["positions"][i] for p, i in donors])
-    dJ = [p["joints"][i] for p, i in donors]
-    K = max(p["joints"].shape[1] for p in parts)
-    dJ = np.concatenate([np.pad(j, ((0, 0), (0, K - j.shape[1]))) for j in dJ])
-    dW = np.concatenate([np.pad(p["weights"][i], ((0, 0), (0, K - p["weights"].shape[1]))) for p, i in donors])
-    tree = cKDTree(dV) if len(dV) else None
-    bind_pos = np.linalg.inv(skeleton.inverse_binds)[:, :3, 3]
-    for p in parts:
-        rows = np.flatnonzero(p["empty"])
-        if not len(rows):
-            continue
-        P = p["positions"][rows]
-        copied = np.zeros(len(rows), dtype=bool)
-        if tree is not None:
-            d, k = tree.query(P)
-            copied = d <= COLOCATED * diag
-            Kp = p["joints"].shape[1]
-            for r, src in zip(rows[copied], k[copied]):
-                order = np.argsort(-dW[src], kind="stable")[:Kp]
-                w = dW[src, order]
-                p["joints"][r] = dJ[src, order]
-                p["weights"][r] = w / w.sum()
-        near = np.argmin(((P[~copied, None, :] - bind_pos[None]) ** 2).sum(-1), axis=1)
-        p["joints"][rows[~copied]] = 0
-        p["weights"][rows[~copied]] = 0.0
-        p["joints"][rows[~copied], 0] = near
-        p["weights"][rows[~copied], 0] = 1.0
-        nonfinite = p["nonfinite"][rows]
-        for mask, how in ((copied, "given the weights of a vertex at the same position"),
-                          (~copied, "bound with weight 1 to the joint nearest in the bind pose")):
-            for bad, what in ((nonfinite, "NaN or infinite"), (~nonfinite, "zero or negative")):
-                if (mask & bad).any():
-                    log(f"mesh '{p['name']}': {int((mask & bad).sum())} vertices with {what} weights {how}")
-
-
 def _meshes(doc, graph: _Graph, skins, skeleton: Skeleton, joint_of_node, nmat, log):
     """Skinned primitives -> Mesh, unskinned ones -> Prop (rigid on a joint, or static)."""
     skin_by_index = {s.index: s for s in skins}
@@ -574,7 +495,7 @@ def _meshes(doc, graph: _Graph, skins, skeleton: Skeleton, joint_of_node, nmat, 
             log(f"{label}: {counts['negative']} vertices with negative weights: clamped to 0")
         if counts["unnormalized"]:
             log(f"{label}: {counts['unnormalized']} vertices with weights not summing to 1: renormalized")
-    _fill_empty_rows(parts, skeleton, log)
+    fill_empty_rows(parts, skeleton, log)
 
     def build(nm, d, skinned):
         return Mesh(
@@ -666,74 +587,3 @@ def _track(doc, sampler: dict, joint: int, path: str, label: str, log) -> Track:
     if path == "rotation" and per == 1:
         values = quat_normalize(values)
     return Track(joint, path, times, values, interp)
-
-
-# --------------------------------------------------------------------------- 6. materials
-
-
-def _sniff_mime(data: bytes) -> str | None:
-    if data[:8] == b"\x89PNG\r\n\x1a\n":
-        return "image/png"
-    if data[:3] == b"\xff\xd8\xff":
-        return "image/jpeg"
-    return None
-
-
-def _image(doc, index: int, log) -> tuple[bytes, str] | None:
-    img = doc.get("images", index)
-    label = f"images[{index}]" + (f" '{img['name']}'" if img.get("name") else "")
-    if "bufferView" in img:
-        data = bytes(doc.buffer_view(img["bufferView"], label))
-    elif isinstance(img.get("uri"), str) and img["uri"].startswith("data:"):
-        data, _ = decode_data_uri(img["uri"], doc, label)
-    elif isinstance(img.get("uri"), str):
-        try:
-            data = doc.resolve_uri(img["uri"], label).read_bytes()
-        except InputError as exc:
-            log(f"{label}: {str(exc).split(': ', 1)[1]}: texture dropped")
-            return None
-    else:
-        raise doc.error(f"{label} has neither a bufferView nor a uri")
-    mime = _sniff_mime(data)
-    if mime is None:
-        log(f"{label}: not a PNG or JPEG image: texture dropped")
-        return None
-    return data, mime
-
-
-def _materials(doc, log) -> tuple[Material, ...]:
-    textures: dict[int, Texture | None] = {}
-
-    def texture(ti: int) -> Texture | None:
-        if ti not in textures:
-            tex = doc.get("textures", ti)
-            got = _image(doc, tex["source"], log) if "source" in tex else None
-            sampler = {}
-            if "sampler" in tex:
-                smp = doc.get("samplers", tex["sampler"])
-                sampler = {k: smp[k] for k in ("magFilter", "minFilter", "wrapS", "wrapT") if k in smp}
-            name = tex.get("name") or ("source" in tex and doc.get("images", tex["source"]).get("name")) or ""
-            textures[ti] = None if got is None else Texture(got[0], got[1], name, sampler)
-        return textures[ti]
-
-    out = []
-    for mi, m in enumerate(doc.items("materials")):
-        pbr = m.get("pbrMetallicRoughness", {})
-        tex, texcoord = None, 0
-        if "baseColorTexture" in pbr:
-            tex = texture(pbr["baseColorTexture"]["index"])
-            texcoord = int(pbr["baseColorTexture"].get("texCoord", 0))
-        out.append(Material(
-            name=m.get("name", "") or "",
-            base_color=pbr.get("baseColorFactor", [1.0, 1.0, 1.0, 1.0]),
-            metallic=float(pbr.get("metallicFactor", 1.0)),
-            roughness=float(pbr.get("roughnessFactor", 1.0)),
-            base_color_texture=tex,
-            base_color_texcoord=texcoord,
-            double_sided=bool(m.get("doubleSided", False)),
-            alpha_mode=m.get("alphaMode", "OPAQUE"),
-            alpha_cutoff=float(m.get("alphaCutoff", 0.5)),
-            emissive=m.get("emissiveFactor", [0.0, 0.0, 0.0]),
-            extra={"extras": m["extras"]} if m.get("extras") else {},
-        ))
-    return tuple(out)

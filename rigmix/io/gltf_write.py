@@ -229,6 +229,9 @@ def _animations(blob: _Blob, character: Character, joint_nodes: list[int]) -> li
     for clip in character.clips:
         samplers, channels = [], []
         for tr in clip.tracks:
+            if not 0 <= tr.joint < len(joint_nodes):
+                raise InputError(f"write_gltf: clip '{clip.name}' has a track on joint {tr.joint}, "
+                                 f"the skeleton has {len(joint_nodes)} joints")
             times = np.asarray(tr.times, dtype=np.float32)
             key = times.tobytes()
             if key not in times_cache:
@@ -369,6 +372,9 @@ def write_gltf(character: Character, path) -> None:
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(payload)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the usual file mode
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
