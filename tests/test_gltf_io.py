@@ -508,6 +508,24 @@ def test_static_gltf_reads_as_props(tmp_path):
     assert {p.mesh.name for p in read_gltf(out).props} == {"Body", "Hat"}
 
 
+def test_node_between_joints_becomes_a_joint_and_names_are_made_unique(tmp_path):
+    def bend(gl):
+        gl["nodes"].append({"name": "Mid", "translation": [0.0, 0.25, 0.0]})  # node 6, a 2nd 'Mid'
+        gl["nodes"][2]["children"] = [6, 5]
+        gl["nodes"][6]["children"] = [1]
+
+    c = read_gltf(Synth().build(tmp_path, "glb", mutate=bend))
+    assert c.skeleton.names == ("Root", "Mid", "Mid.1", "Tip")
+    np.testing.assert_array_equal(c.skeleton.parents, [-1, 0, 1, 2])
+    np.testing.assert_allclose(c.skeleton.translations[2], [0, 0.25, 0])
+    assert any("node 'Mid' lies between joints but is not in the skin: added as a joint" in w for w in c.warnings)
+    assert any("joint name 'Mid' is used twice: renamed 'Mid.1'" in w for w in c.warnings)
+    W = c.meshes[0].dense_weights(4)
+    assert np.all(W[:, 2] == 0)  # the added joint carries no weight
+    np.testing.assert_allclose(W[:, [0, 1, 3]], Synth().dense_expected(), atol=1e-7)
+    assert c.props[0].joint == 1
+
+
 def test_second_skin_subset_is_merged_and_disjoint_skin_is_refused(tmp_path):
     s = Synth()
 

@@ -171,9 +171,7 @@ class Document:
                 (count, cols, rows), dtype=dtype, buffer=view, offset=offset,
                 strides=(stride, col_stride, dtype.itemsize),
             )
-            out = raw.reshape(count, ncomp)  # copies (the view is strided), so it is ours
-            if out.base is not None:
-                out = out.copy()
+            out = raw.copy().reshape(count, ncomp)  # one contiguous copy we own
         else:
             if count * ncomp > MAX_ZERO_ELEMENTS:
                 raise self.error(f"{label} has no bufferView and a count of {count}: too large to allocate")
