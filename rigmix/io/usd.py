@@ -1,15 +1,16 @@
-"""USD export with UsdSkel (minimal: skeleton, skinned meshes, one clip).
+"""USD export with UsdSkel: skeleton, skinned meshes, every clip, materials, props.
 
 This module and :mod:`rigmix.io.gltf` are the only places where conventions change. USD's
 differences from rigmix's conventions (:mod:`rigmix.character`), and what we do:
 
 * **Matrices.** USD matrices act on row vectors (``p' = p @ M``, translation in the last row);
   ours act on column vectors. Every matrix is transposed on the way out (:func:`_gf_matrices`).
-* **Quaternions.** ``GfQuatf`` is constructed as ``(w, x, y, z)``; ours are ``(x, y, z, w)``.
-  Rotations are converted explicitly with ``Gf.Quatf(w, Gf.Vec3f(x, y, z))``.
-* **Texture coordinates.** USD's ``st`` has ``t`` up; glTF's ``v`` goes down: ``t = 1 - v``.
+* **Quaternions.** ``GfQuatf`` is ``(w, x, y, z)`` in its constructor but stored imaginary
+  first, i.e. ``(x, y, z, w)`` in memory: our xyzw arrays are handed to ``Vt.QuatfArray``
+  as they are (pinned by a test reading ``GetReal``/``GetImaginary`` back).
+* **Texture coordinates.** USD's ``st`` has ``t`` up; glTF's ``v`` goes down: ``st = (u, 1 - v)``.
 * **Scale precision.** ``SkelAnimation.scales`` is ``half3[]`` in the schema (about three
-  significant digits); unit and power-of-two scales are exact, others are rounded.
+  significant digits); unit and power-of-two scales are exact, others are rounded (lossy).
 * **Anchors.** A UsdSkel skeleton has one implicit root space (the Skeleton prim's world), while
   our roots each hang from an anchor (e.g. CesiumMan's ``Z_UP`` matrix). When all root joints
   share one anchor world ``A`` (every shared character), ``A`` becomes the ``SkelRoot``'s
@@ -19,19 +20,46 @@ differences from rigmix's conventions (:mod:`rigmix.character`), and what we do:
   world is folded into that root's rest and animated local transforms. Either way
   ``SkelRoot world @ UsdSkel skinned points`` equals :func:`rigmix.skinning.linear_blend_skinning`
   of the same pose (checked in ``tests/test_usd.py`` against ``UsdSkel``'s own skinning).
+* **Props.** A rigid prop follows its joint's *animated* world matrix, which a plain
+  ``Xform`` child cannot express (UsdSkel joints are not prims). A prop on joint ``j`` is
+  therefore written as a rigidly skinned mesh: ``jointIndices = [j]``, ``jointWeights = [1]``
+  with ``constant`` interpolation, points in bind space ``inverse(inverse_bind[j]) @ matrix @ p``
+  (then skeleton space), so that UsdSkel gives ``world[j] @ matrix @ p``. Static props
+  (``joint == -1``) are ``Mesh`` prims with their matrix as a transform op.
+
+Layout of the written stage (``<Root>`` = the character's name made a valid identifier)::
+
+    /<Root>                 SkelRoot (Xform for a character without joints), default prim
+        Skeleton            joints, bindTransforms, restTransforms; BindingAPI with an
+                            ``animation`` variant set: one variant per clip, each setting
+                            ``skel:animationSource`` to that clip's prim
+        Animations/<clip>   one SkelAnimation per clip (outside the variants: all kept)
+        <mesh>              one Mesh per Character.meshes (BindingAPI: jointIndices,
+                            jointWeights with elementSize K, geomBindTransform identity)
+        prop_<mesh>         props (rigidly skinned to their joint, or static)
+        Materials/<mat>     UsdPreviewSurface networks (:mod:`rigmix.io.usd_shade`)
 
 Stage metadata: ``upAxis = Y``, ``metersPerUnit = 1``, ``timeCodesPerSecond = fps`` (30 by
-default; time code = seconds x fps), the ``SkelRoot`` is the default prim. Joint paths are
-built from sanitized, unique joint names (``Tf.MakeValidIdentifier``); the original names are in
-the Skeleton prim's ``customData["rigmix:jointNames"]``.
+default; time code = seconds x fps). Joint paths are built from sanitized, unique joint names
+(``Tf.MakeValidIdentifier``); the original names are in the Skeleton prim's
+``customData["rigmix:jointNames"]``, each clip's original name in its SkelAnimation's
+``customData["rigmix:clipName"]`` (variant names are the sanitized ones), and the SkelRoot's
+``customData["rigmix:clipNames"]`` lists them in order.
 
-Not written yet (the full exporter comes later): materials and textures, props, more than one
-clip, blend shapes.
+Files are written atomically: the layer goes to a temporary file in the target folder that is
+renamed over the target (textures likewise, before the layer), so an error never leaves a
+partial file. ``.usda`` (text), ``.usdc`` and ``.usd`` (crate) write textures into a
+``textures/`` folder next to the file; ``.usdz`` packages the layer and its textures.
+
+Not written: blend shapes (rigmix does not read morph targets), texture transforms, metallic /
+roughness / normal / occlusion / emissive textures (the model keeps only the base colour one).
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -39,10 +67,14 @@ import numpy as np
 from ..animation import clip_times, sample_clip
 from ..errors import InputError
 from ..transforms import matrix_to_trs, trs_to_matrix
+from .usd_shade import define_materials, texture_files, write_texture_files
 
-__all__ = ["write_usd"]
+__all__ = ["write_usd", "joint_paths", "USD_SUFFIXES"]
 
 logger = logging.getLogger(__name__)
+
+#: Suffixes :func:`write_usd` writes.
+USD_SUFFIXES = (".usda", ".usdc", ".usd", ".usdz")
 
 
 def _pxr():
@@ -94,10 +126,14 @@ def _gf_matrix(M):
 
 
 def _quatf_array(R):
-    """``(N, 4)`` xyzw quaternions -> ``Vt.QuatfArray`` (``GfQuatf(w, (x, y, z))``)."""
-    Gf, _, _, _, _, _, Vt = _pxr()
-    R = np.asarray(R, dtype=np.float64).reshape(-1, 4)
-    return Vt.QuatfArray([Gf.Quatf(float(w), Gf.Vec3f(float(x), float(y), float(z))) for x, y, z, w in R])
+    """``(N, 4)`` xyzw quaternions -> ``Vt.QuatfArray`` (GfQuatf stores x, y, z, w in memory)."""
+    Vt = _pxr()[6]
+    return Vt.QuatfArray.FromNumpy(np.ascontiguousarray(np.asarray(R).reshape(-1, 4), dtype=np.float32))
+
+
+def _vec3f(A):
+    Vt = _pxr()[6]
+    return Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(np.asarray(A).reshape(-1, 3), dtype=np.float32))
 
 
 def _root_frames(skeleton):
@@ -120,141 +156,300 @@ def _root_frames(skeleton):
     return np.eye(4), fold
 
 
+def _where(character):
+    return character.source or character.name or "character"
+
+
 def _resolve_clip(character, clip):
-    if clip is None:
-        return character.clips[0] if character.clips else None
+    """A Clip from a Clip, a name or an index (InputError naming the clips when absent)."""
     if isinstance(clip, (int, np.integer)):
+        if not -len(character.clips) <= int(clip) < len(character.clips):
+            raise InputError(f"usd: {_where(character)} has no clip #{int(clip)}; it has {len(character.clips)}")
         return character.clips[int(clip)]
     if isinstance(clip, str):
         try:
             return character.clip(clip)
         except KeyError:
             names = [c.name for c in character.clips]
-            raise InputError(f"usd: {character.source or character.name} has no clip {clip!r}; clips: {names}") from None
+            raise InputError(f"usd: {_where(character)} has no clip {clip!r}; clips: {names}") from None
     return clip
 
 
-def write_usd(character, path, *, clip=None, fps=30.0):
-    """Write a character as a UsdSkel asset (``.usda``, ``.usdc`` or ``.usd``).
+def _check_suffix(path):
+    if path.suffix.lower() not in USD_SUFFIXES:
+        raise InputError(f"usd: cannot write {path.name}: the suffix must be one of {', '.join(USD_SUFFIXES)}")
+
+
+def write_usd(character, path, *, clips=None, default_clip=None, fps=30.0):
+    """Write a character as a UsdSkel asset (``.usda``, ``.usdc``, ``.usd`` or ``.usdz``).
 
     Parameters
     ----------
     character : rigmix.character.Character
-        Skinned character; its meshes become ``UsdGeom.Mesh`` prims bound to one Skeleton.
+        Its meshes become ``UsdGeom.Mesh`` prims bound to one Skeleton, its clips
+        ``SkelAnimation`` prims, its materials ``UsdPreviewSurface`` networks, its props rigidly
+        skinned (or static) meshes. A character without joints is written as plain meshes.
     path : str or Path
-        Output file; the format follows the extension.
-    clip : Clip, str, int or None
-        The clip written as the skeleton's ``SkelAnimation`` (by object, name or index);
-        ``None``: the first clip, if any.
+        Output file; the format follows the suffix. Textures go to ``textures/`` next to it
+        (inside the package for ``.usdz``).
+    clips : sequence of (Clip, str or int), optional
+        The clips written (objects, names or indices); default: every clip of the character.
+    default_clip : Clip, str or int, optional
+        The ``animation`` variant selected in the file; default: the first written clip.
     fps : float
-        Sampling rate of the animation and the stage's ``timeCodesPerSecond``.
+        Sampling rate of the animations and the stage's ``timeCodesPerSecond``; each clip is
+        sampled at :func:`rigmix.animation.clip_times` (``1/fps`` apart, end included).
 
     Returns
     -------
     pathlib.Path
         The written file.
 
-    Notes
-    -----
-    Layout: ``/<Character> (SkelRoot)`` holding ``Skeleton``, ``Animation`` (``SkelAnimation``)
-    and one ``Mesh`` per mesh. See the module docstring for the conventions converted.
+    Raises
+    ------
+    InputError
+        Unknown suffix or clip, or a file that cannot be written (no partial file is left).
     """
-    Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt = _pxr()
     path = Path(path)
+    _check_suffix(path)
+    if fps <= 0:
+        raise InputError(f"usd: fps must be positive, got {fps}")
+    chosen = list(character.clips) if clips is None else [_resolve_clip(character, c) for c in clips]
+    if character.skeleton.num_joints == 0:
+        chosen = []
+    selected = None
+    if chosen:
+        selected = chosen[0] if default_clip is None else _resolve_clip(character, default_clip)
+        if all(selected is not c for c in chosen):
+            chosen.insert(0, selected)
+
+    root_ident = _unique_identifiers([character.name or "Character"])[0]
+    tex_names, tex_files = texture_files(character.materials, root_ident, _unique_identifiers)
+    stage = _build_stage(character, root_ident, chosen, selected, tex_names, fps)
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        if path.suffix.lower() == ".usdz":
+            _write_usdz(stage, tex_files, path)
+        else:
+            write_texture_files(tex_files, path.parent)
+            _export_atomic(stage, path)
+    except OSError as exc:
+        raise InputError(f"usd: could not write {path}: {exc}") from exc
+    logger.debug("usd: wrote %s (%d joints, %d meshes, %d clips, %d materials)", path,
+                 character.skeleton.num_joints, len(character.meshes), len(chosen), len(character.materials))
+    return path
+
+
+def _export_atomic(stage, path):
+    """Export the root layer to a temporary file beside ``path``, then rename it over ``path``."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        if not stage.GetRootLayer().Export(tmp):
+            raise InputError(f"usd: could not write {path} (check the folder and the suffix)")
+        _readable(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _readable(file):
+    """Give a ``mkstemp`` file (mode 0600) the permissions of an ordinary new file."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(file, 0o666 & ~umask)
+
+
+def _write_usdz(stage, tex_files, path):
+    from pxr import Sdf, UsdUtils
+
+    with tempfile.TemporaryDirectory(prefix=".rigmix-usdz-", dir=path.parent) as tmpdir:
+        tmpdir = Path(tmpdir)
+        layer = tmpdir / (path.stem + ".usdc")
+        write_texture_files(tex_files, tmpdir)
+        if not stage.GetRootLayer().Export(str(layer)):
+            raise InputError(f"usd: could not write the layer of {path}")
+        packed = tmpdir / ("package" + path.suffix)
+        if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(layer)), str(packed)):
+            raise InputError(f"usd: could not package {path} as usdz")
+        _readable(packed)
+        os.replace(packed, path)
+
+
+def _build_stage(character, root_ident, clips, selected, tex_names, fps):
+    """The in-memory stage (see the module docstring for the layout)."""
+    _, Sdf, _, Usd, UsdGeom, UsdSkel, Vt = _pxr()
     sk = character.skeleton
-    if sk.num_joints == 0:
-        raise InputError(f"usd: {character.source or character.name} has no skeleton to write as UsdSkel")
-    clip = _resolve_clip(character, clip)
-    base, fold = _root_frames(sk)
+    rigged = sk.num_joints > 0
+    base, fold = _root_frames(sk) if rigged else (np.eye(4), None)
     base_inv = np.linalg.inv(base)
-    roots = sk.roots
 
     stage = Usd.Stage.CreateInMemory()
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     stage.SetTimeCodesPerSecond(fps)
     stage.SetFramesPerSecond(fps)
+    stage.GetRootLayer().customLayerData = {"creator": "rigmix"}
 
-    root_name = _unique_identifiers([character.name or "Character"])[0]
-    root = UsdSkel.Root.Define(stage, Sdf.Path("/" + root_name))
+    root_path = Sdf.Path("/" + root_ident)
+    root = UsdSkel.Root.Define(stage, root_path) if rigged else UsdGeom.Xform.Define(stage, root_path)
     stage.SetDefaultPrim(root.GetPrim())
     if not np.allclose(base, np.eye(4), atol=0):
         UsdGeom.Xformable(root).AddTransformOp().Set(_gf_matrix(base))
+    if character.name:
+        root.GetPrim().SetCustomDataByKey("rigmix:name", character.name)
 
-    # skeleton: joint paths, bind transforms (skel space), rest transforms (local)
-    taken = {"Skeleton", "Animation"}
-    skel = UsdSkel.Skeleton.Define(stage, root.GetPath().AppendChild("Skeleton"))
-    joints = Vt.TokenArray(joint_paths(sk))
-    skel.CreateJointsAttr(joints)
+    taken = {"Skeleton", "Animations", "Materials"}
+    materials = []
+    if character.materials:
+        mat_idents = _unique_identifiers([m.name or "material" for m in character.materials])
+        materials = define_materials(stage, root_path.AppendChild("Materials"), character.materials,
+                                     mat_idents, tex_names)
+
+    skel = None
+    if rigged:
+        skel = _define_skeleton(stage, root_path, sk, base_inv, fold)
+        if clips:
+            _define_animations(stage, root_path, skel, sk, clips, selected, fold, fps)
+            root.GetPrim().SetCustomDataByKey("rigmix:clipNames", Vt.StringArray([c.name for c in clips]))
+
+    meshes = list(character.meshes)
+    names = [m.name or "mesh" for m in meshes] + [f"prop_{p.mesh.name or 'mesh'}" for p in character.props]
+    idents = _unique_identifiers(names, taken)
+    bind_worlds = np.linalg.inv(sk.inverse_binds) if rigged else None
+    for mesh, ident in zip(meshes, idents):
+        if mesh.skinned and not rigged:  # pragma: no cover - the reader never makes this
+            raise InputError(f"usd: {_where(character)} mesh {mesh.name!r} is skinned but there is no skeleton")
+        prim = _define_mesh(stage, root_path.AppendChild(ident), mesh, base_inv, materials, character)
+        if mesh.skinned:
+            _bind(prim, skel, mesh.joints, mesh.weights, constant=False)
+    for prop, ident in zip(character.props, idents[len(meshes):]):
+        if prop.joint >= 0 and rigged:
+            to_skel = base_inv @ bind_worlds[prop.joint] @ prop.matrix
+            prim = _define_mesh(stage, root_path.AppendChild(ident), prop.mesh, to_skel, materials, character)
+            _bind(prim, skel, np.array([[prop.joint]]), np.ones((1, 1)), constant=True)
+            prim.GetPrim().SetCustomDataByKey("rigmix:propJoint", sk.names[prop.joint])
+        else:
+            prim = _define_mesh(stage, root_path.AppendChild(ident), prop.mesh, np.eye(4), materials, character)
+            UsdGeom.Xformable(prim).AddTransformOp().Set(_gf_matrix(base_inv @ prop.matrix))
+    return stage
+
+
+def _define_skeleton(stage, root_path, sk, base_inv, fold):
+    """Skeleton prim: joint paths, bind transforms (skeleton space), rest transforms (local)."""
+    _, _, _, _, _, UsdSkel, Vt = _pxr()
+    skel = UsdSkel.Skeleton.Define(stage, root_path.AppendChild("Skeleton"))
+    skel.CreateJointsAttr(Vt.TokenArray(joint_paths(sk)))
+    skel.CreateJointNamesAttr(Vt.TokenArray(list(sk.names)))
     skel.GetPrim().SetCustomDataByKey("rigmix:jointNames", Vt.StringArray(list(sk.names)))
     skel.CreateBindTransformsAttr(_gf_matrices(base_inv @ np.linalg.inv(sk.inverse_binds)))
     rest = sk.rest_locals()
+    roots = sk.roots
     rest[roots] = fold[roots] @ rest[roots]
     skel.CreateRestTransformsAttr(_gf_matrices(rest))
+    UsdSkel.BindingAPI.Apply(skel.GetPrim())
+    return skel
 
-    # animation: sampled on the clip's fps grid, end included
-    if clip is not None:
-        anim = UsdSkel.Animation.Define(stage, root.GetPath().AppendChild("Animation"))
+
+def _define_animations(stage, root_path, skel, sk, clips, selected, fold, fps):
+    """One SkelAnimation per clip under ``Animations``, and the ``animation`` variant set."""
+    _, _, _, Usd, UsdGeom, UsdSkel, Vt = _pxr()
+    scope = UsdGeom.Scope.Define(stage, root_path.AppendChild("Animations"))
+    joints = Vt.TokenArray(joint_paths(sk))
+    idents = _unique_identifiers([c.name or "clip" for c in clips])
+    roots = sk.roots
+    folded = [r for r in roots if not np.array_equal(fold[r], np.eye(4))]
+    starts, ends = [], []
+    anim_paths = []
+    for clip, ident in zip(clips, idents):
+        anim = UsdSkel.Animation.Define(stage, scope.GetPath().AppendChild(ident))
         anim.CreateJointsAttr(joints)
-        anim.GetPrim().SetCustomDataByKey("rigmix:clipName", clip.name)
+        prim = anim.GetPrim()
+        prim.SetCustomDataByKey("rigmix:clipName", clip.name)
         times = clip_times(clip, fps)
+        prim.SetCustomDataByKey("rigmix:startTime", float(times[0]))
+        prim.SetCustomDataByKey("rigmix:endTime", float(times[-1]))
         T, R, S = sample_clip(sk, clip, times)
-        folded = [r for r in roots if not np.array_equal(fold[r], np.eye(4))]
         if folded:
             L = trs_to_matrix(T[:, folded], R[:, folded], S[:, folded])
             T[:, folded], R[:, folded], S[:, folded] = matrix_to_trs(fold[folded] @ L)
         t_attr = anim.CreateTranslationsAttr()
         r_attr = anim.CreateRotationsAttr()
         s_attr = anim.CreateScalesAttr()
+        S16 = S.astype(np.float16)
         for f, t in enumerate(times):
             code = Usd.TimeCode(float(t * fps))
-            t_attr.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(T[f], dtype=np.float32)), code)
+            t_attr.Set(_vec3f(T[f]), code)
             r_attr.Set(_quatf_array(R[f]), code)
-            s_attr.Set(Vt.Vec3hArray.FromNumpy(np.ascontiguousarray(S[f], dtype=np.float16)), code)
-        stage.SetStartTimeCode(float(times[0] * fps))
-        stage.SetEndTimeCode(float(times[-1] * fps))
-        UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
+            s_attr.Set(Vt.Vec3hArray.FromNumpy(np.ascontiguousarray(S16[f])), code)
+        starts.append(times[0])
+        ends.append(times[-1])
+        anim_paths.append(anim.GetPath())
+    stage.SetStartTimeCode(float(min(starts) * fps))
+    stage.SetEndTimeCode(float(max(ends) * fps))
 
-    # meshes, in skeleton space
-    mesh_names = _unique_identifiers([m.name or "mesh" for m in character.meshes], taken)
-    lin_inv = base_inv[:3, :3]
-    normal_matrix = np.linalg.inv(lin_inv).T  # normals transform by the inverse transpose
-    for mesh, name in zip(character.meshes, mesh_names):
-        prim = UsdGeom.Mesh.Define(stage, root.GetPath().AppendChild(name))
-        P = mesh.positions @ lin_inv.T + base_inv[:3, 3]
-        prim.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(P, dtype=np.float32)))
-        prim.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(mesh.faces), 3, dtype=np.int32)))
-        prim.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(mesh.faces.ravel(), dtype=np.int32)))
-        prim.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-        lo, hi = (P.min(axis=0), P.max(axis=0)) if len(P) else (np.zeros(3), np.zeros(3))
-        prim.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
-        pv = UsdGeom.PrimvarsAPI(prim)
-        if mesh.normals is not None:
-            N = mesh.normals @ normal_matrix.T
-            N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
-            prim.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(N, dtype=np.float32)))
-            prim.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
-        for i, uv in enumerate(mesh.uvs):
-            st = np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1)  # glTF v down -> USD t up
-            var = pv.CreatePrimvar("st" if i == 0 else f"st{i}", Sdf.ValueTypeNames.TexCoord2fArray,
-                                   UsdGeom.Tokens.vertex)
-            var.Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(st, dtype=np.float32)))
-        if mesh.colors is not None:
-            prim.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex).Set(
-                Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(mesh.colors[:, :3], dtype=np.float32)))
-        if not mesh.skinned:
-            continue
-        binding = UsdSkel.BindingAPI.Apply(prim.GetPrim())
-        binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
-        K = mesh.joints.shape[1]
-        binding.CreateJointIndicesPrimvar(False, K).Set(
-            Vt.IntArray.FromNumpy(np.ascontiguousarray(mesh.joints.ravel(), dtype=np.int32)))
-        binding.CreateJointWeightsPrimvar(False, K).Set(
-            Vt.FloatArray.FromNumpy(np.ascontiguousarray(mesh.weights.ravel(), dtype=np.float32)))
-        binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
+    vset = skel.GetPrim().GetVariantSets().AddVariantSet("animation")
+    for ident, anim_path in zip(idents, anim_paths):
+        vset.AddVariant(ident)
+        vset.SetVariantSelection(ident)
+        with vset.GetVariantEditContext():
+            UsdSkel.BindingAPI(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim_path])
+    vset.SetVariantSelection(idents[[c is selected for c in clips].index(True)])
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not stage.GetRootLayer().Export(str(path)):
-        raise InputError(f"usd: could not write {path} (check the folder and the extension: .usda, .usdc, .usd)")
-    logger.debug("usd: wrote %s (%d joints, %d meshes)", path, sk.num_joints, len(character.meshes))
-    return path
+
+def _define_mesh(stage, path, mesh, to_skel, materials, character):
+    """A Mesh prim with points and normals mapped by ``to_skel`` (4, 4), st, colours, material."""
+    Gf, Sdf, _, _, UsdGeom, _, Vt = _pxr()
+    from pxr import UsdShade
+
+    prim = UsdGeom.Mesh.Define(stage, path)
+    if mesh.name:
+        prim.GetPrim().SetCustomDataByKey("rigmix:name", mesh.name)
+    lin = to_skel[:3, :3]
+    P = mesh.positions @ lin.T + to_skel[:3, 3]
+    prim.CreatePointsAttr(_vec3f(P))
+    prim.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(mesh.faces), 3, dtype=np.int32)))
+    prim.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(mesh.faces.ravel(), dtype=np.int32)))
+    prim.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    prim.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)  # glTF: counter-clockwise front faces
+    lo, hi = (P.min(axis=0), P.max(axis=0)) if len(P) else (np.zeros(3), np.zeros(3))
+    prim.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
+    pv = UsdGeom.PrimvarsAPI(prim)
+    if mesh.normals is not None:
+        N = mesh.normals @ np.linalg.inv(lin)  # rows: (inverse transpose @ n) transposed
+        N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
+        prim.CreateNormalsAttr(_vec3f(N))
+        prim.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+    for i, uv in enumerate(mesh.uvs):
+        st = np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1)  # glTF v down -> USD t up
+        var = pv.CreatePrimvar("st" if i == 0 else f"st{i}", Sdf.ValueTypeNames.TexCoord2fArray,
+                               UsdGeom.Tokens.vertex)
+        var.Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(st, dtype=np.float32)))
+    material = character.materials[mesh.material] if 0 <= mesh.material < len(materials) else None
+    if mesh.colors is not None:
+        prim.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex).Set(_vec3f(mesh.colors[:, :3]))
+        if np.any(mesh.colors[:, 3] < 1):
+            prim.CreateDisplayOpacityPrimvar(UsdGeom.Tokens.vertex).Set(
+                Vt.FloatArray.FromNumpy(np.ascontiguousarray(mesh.colors[:, 3], dtype=np.float32)))
+    elif material is not None:  # a viewer without shading still shows the flat colour
+        prim.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(_vec3f(material.base_color[:3]))
+    if material is not None:
+        prim.CreateDoubleSidedAttr(bool(material.double_sided))
+        UsdShade.MaterialBindingAPI.Apply(prim.GetPrim()).Bind(materials[mesh.material])
+    return prim
+
+
+def _bind(prim, skel, joints, weights, *, constant):
+    """UsdSkel binding: jointIndices/jointWeights (elementSize K), geomBindTransform identity."""
+    Gf, _, _, _, _, UsdSkel, Vt = _pxr()
+    binding = UsdSkel.BindingAPI.Apply(prim.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
+    K = joints.shape[1]
+    binding.CreateJointIndicesPrimvar(constant, K).Set(
+        Vt.IntArray.FromNumpy(np.ascontiguousarray(joints.ravel(), dtype=np.int32)))
+    binding.CreateJointWeightsPrimvar(constant, K).Set(
+        Vt.FloatArray.FromNumpy(np.ascontiguousarray(weights.ravel(), dtype=np.float32)))
+    # points are already in skeleton space (module docstring): no extra bind transform
+    binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
