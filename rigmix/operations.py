@@ -17,15 +17,15 @@ output: to use a part twice, list the file under two ids.
 The fused joint takes the target's name, rest transform and parent. Output joints are ordered
 parents first; among the valid orders the one kept follows the body's own joint order, with a
 grafted subtree placed where the joint it is fused with sits (a self-composition therefore
-reproduces the input order exactly). Name collisions are resolved in that order: the first
-keeps the name, later ones get ``.001``, ``.002``... (as Blender does).
+reproduces the input order exactly). Name collisions: a body's joints keep their names, grafted
+joints that collide get ``.001``, ``.002``... (as Blender does), in output order.
 """
 
 from __future__ import annotations
 
 import heapq
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -218,6 +218,7 @@ class _Structure:
     parent: np.ndarray  # per node: parent node or -1
     order: np.ndarray   # output index -> node
     body: dict        # cid -> bool
+    level: np.ndarray   # per node: 0 in a body, 1 grafted, 2 grafted onto a graft...
 
 
 def _structure(inputs, actions, config: Config) -> _Structure:
@@ -389,7 +390,8 @@ def _structure(inputs, actions, config: Config) -> _Structure:
         for c in children.get(n, []):
             heapq.heappush(heap, (key(c), c))
     assert len(order) == N, "every node is reachable from a root once cycles are excluded"
-    return _Structure(used, part, tuple(members), parent, np.asarray(order, dtype=np.int64), body)
+    level = np.array([key(n)[2] for n in range(N)], dtype=np.int64)
+    return _Structure(used, part, tuple(members), parent, np.asarray(order, dtype=np.int64), body, level)
 
 
 # --------------------------------------------------------------------------------------------
@@ -488,18 +490,19 @@ def _position_all(inputs, actions, config, structure):
 # --------------------------------------------------------------------------------------------
 
 
-def _unique_names(names):
-    seen, out, renamed = set(), [], {}
-    for nm in names:
-        new = nm
-        k = 1
-        while new in seen:
-            new = f"{nm}.{k:03d}"
-            k += 1
-        seen.add(new)
-        out.append(new)
-        if new != nm:
-            renamed[new] = nm
+def _unique_names(names, priority):
+    """Unique names: in ``priority`` order the first keeps its name, later ones get ``.001``..."""
+    taken = set(names)
+    out, renamed, seen = list(names), {}, set()
+    for o in sorted(range(len(names)), key=lambda o: (priority[o], o)):
+        nm = names[o]
+        if nm in seen:
+            k = 1
+            while f"{nm}.{k:03d}" in taken or f"{nm}.{k:03d}" in seen:
+                k += 1
+            out[o] = f"{nm}.{k:03d}"
+            renamed[out[o]] = nm
+        seen.add(out[o])
     return out, renamed
 
 
@@ -539,11 +542,14 @@ def _build_skeleton(structure, positioned, config):
         P = np.where(parents[comp, None, None] >= 0, worlds[np.maximum(parents[comp], 0)], np.eye(4))
         t, r, s = matrix_to_trs(np.linalg.inv(P) @ worlds[comp])
         T[comp], R[comp], S[comp] = t, r, s
-    unique, renamed = _unique_names(names)
+    unique, renamed = _unique_names(names, [structure.level[n] for n in order])
     skeleton = Skeleton(
         names=tuple(unique), parents=parents, translations=T, rotations=R, scales=S,
         inverse_binds=np.linalg.inv(worlds), anchors=tuple(anchors), root_anchor=root_anchor,
     )
+    # bind = rest exactly for the skeleton as stored (TRS cannot hold the ~1e-7 shear of float32
+    # input matrices, so the stored locals' forward kinematics is the reference)
+    skeleton = replace(skeleton, inverse_binds=np.linalg.inv(skeleton.rest_worlds()))
     return skeleton, out_of_node, renamed
 
 

@@ -363,6 +363,14 @@ def position_character(character, *, scale=1.0, placement=None, rotations=None, 
         (non-root translation keys times ``scale``; root keys moved with the placement); the
         rest-pose rotations and translations change the rest pose only. ``character`` itself
         when nothing changes.
+
+    Notes
+    -----
+    Rebasing keeps animations exact when every joint's rest skinning matrix
+    ``rest_world @ inverse_bind`` is the same (bind pose = rest pose up to one global transform,
+    e.g. CesiumMan's Z-up node or the Quaternius x100 armature). Where an asset's bind pose
+    differs per joint from its rest pose, the rest pose becomes the bind pose: on the shared
+    Horse animated vertices then move by up to about 1e-4 of its size.
     """
     sk = character.skeleton
     J = sk.num_joints

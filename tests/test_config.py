@@ -1,0 +1,183 @@
+"""The composition config: TOML schema, paths, errors that name the file and the key."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from rigmix.config import (
+    Config,
+    ReplaceAction,
+    config_schema,
+    default_assets_dir,
+    expand_path,
+    load_config,
+    parse_config,
+)
+from rigmix.errors import InputError
+
+CONFIGS = Path(__file__).parent / "configs"
+EXAMPLES = Path(__file__).parent.parent / "examples"
+
+
+def write(tmp_path, text, name="c.toml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_paths_relative_to_config_file(tmp_path):
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "a.glb").write_bytes(b"")
+    p = write(tmp_path, '[characters.a]\npath = "sub/a.glb"\n')
+    cfg = load_config(p)
+    assert cfg.character_path("a") == tmp_path / "sub" / "a.glb"
+    assert cfg.source == str(p)
+    assert cfg.base_dir == tmp_path
+
+
+def test_rigmix_assets_expansion(tmp_path, monkeypatch):
+    monkeypatch.setenv("RIGMIX_ASSETS", str(tmp_path))
+    (tmp_path / "x.glb").write_bytes(b"")
+    cfg = parse_config({"characters": {"a": {"path": "${RIGMIX_ASSETS}/x.glb"}}}, base_dir="/elsewhere")
+    assert cfg.character_path("a") == tmp_path / "x.glb"
+    monkeypatch.delenv("RIGMIX_ASSETS")
+    # default: ../shared/data/characters beside the repository
+    repo = Path(__file__).resolve().parent.parent
+    assert default_assets_dir() == repo.parent / "shared" / "data" / "characters"
+    assert expand_path("${RIGMIX_ASSETS}/x.glb", "/tmp") == repo.parent / "shared" / "data" / "characters" / "x.glb"
+
+
+def test_unset_variable_is_an_input_error(monkeypatch):
+    monkeypatch.delenv("RIGMIX_NO_SUCH_VAR", raising=False)
+    cfg = parse_config({"characters": {"a": {"path": "${RIGMIX_NO_SUCH_VAR}/x.glb"}}})
+    with pytest.raises(InputError, match="RIGMIX_NO_SUCH_VAR"):
+        cfg.character_path("a")
+
+
+def test_builtin_paths_are_kept():
+    cfg = parse_config({"characters": {"a": {"path": "builtin:humanoid"}}})
+    assert cfg.character_path("a") == "builtin:humanoid"
+
+
+def test_full_config_parses(tmp_path):
+    (tmp_path / "h.glb").write_bytes(b"")
+    (tmp_path / "k.glb").write_bytes(b"")
+    p = write(tmp_path, """
+name = "centaur"
+[characters.horse]
+path = "h.glb"
+[characters.knight]
+path = "k.glb"
+scale = 0.5
+placement = { translation = [1, 2, 3], rotation = [0, 90, 0] }
+[characters.knight.rotations]
+"UpperArm.L" = [0, 0, -30]
+"UpperArm.R" = { quaternion = [0, 0, 0.2588190451, 0.9659258263] }
+"Neck" = { euler = [10, 0, 0], order = "zyx" }
+[[actions]]
+op = "replace"
+source = "knight"
+source_joint = "Abdomen"
+target = "horse"
+target_joint = "Neck1"
+mode = "union"
+[[actions]]
+op = "attach"
+source = "knight"
+source_joint = "Head"
+target = "horse"
+target_joint = "Tail1"
+[[actions]]
+op = "remove"
+target = "horse"
+target_joint = "Ear1.L"
+[mapping]
+score = "prototype"
+""")
+    cfg = load_config(p)
+    assert cfg.name == "centaur"
+    k = cfg.characters["knight"]
+    assert k.scale == 0.5
+    assert cfg.characters["horse"].scale == "auto"
+    assert [a.op for a in cfg.actions] == ["replace", "attach", "remove"]
+    assert isinstance(cfg.actions[0], ReplaceAction) and cfg.actions[0].mode == "union"
+    q = k.rotations["UpperArm.L"].as_quaternion()
+    assert q == pytest.approx([0, 0, -0.258819045, 0.965925826], abs=1e-8)
+    assert k.rotations["UpperArm.R"].as_quaternion() == pytest.approx([0, 0, 0.258819045, 0.965925826], abs=1e-8)
+    assert k.placement.translation == (1, 2, 3)
+    assert cfg.mapping.score == "prototype"
+
+
+def test_config_built_in_code_equals_loaded(tmp_path):
+    (tmp_path / "a.glb").write_bytes(b"")
+    p = write(tmp_path, '[characters.a]\npath = "a.glb"\n[[actions]]\nop = "remove"\ntarget = "a"\ntarget_joint = "j"\n')
+    loaded = load_config(p)
+    built = Config(characters={"a": {"path": "a.glb"}}, actions=[{"op": "remove", "target": "a", "target_joint": "j"}])
+    assert built.model_dump() == loaded.model_dump()
+    assert built.with_base_dir(tmp_path).character_path("a") == loaded.character_path("a")
+
+
+@pytest.mark.parametrize("text, key", [
+    ('[characters.a]\npath = "x"\nscal = 1\n', "characters.a.scal: unknown key"),
+    ('[characters.a]\npath = "x"\n[[actions]]\nop = "remove"\ntarget = "a"\ntarget_joint = "j"\nmode = "blend"\n',
+     "actions[0].mode: unknown key"),
+    ('[characters.a]\npath = "x"\nscale = -1\n', "characters.a.scale"),
+    ('[characters.a]\npath = "x"\n[characters.a.rotations]\nj = [1, 2]\n', "characters.a.rotations.j"),
+    ('[characters.a]\npath = "x"\n[[actions]]\nop = "graft"\ntarget = "a"\ntarget_joint = "j"\n', "actions[0]"),
+    ('[characters.a]\npath = "x"\n[[actions]]\nop = "attach"\ntarget = "a"\ntarget_joint = "j"\n',
+     "actions[0].source"),
+    ('characters = {}\n', "characters"),
+    ('[characters.a]\npath = "x"\n[mapping]\nscore = "best"\n', "mapping.score"),
+])
+def test_invalid_configs_name_file_and_key(tmp_path, text, key):
+    p = write(tmp_path, text, "bad.toml")
+    with pytest.raises(InputError) as e:
+        load_config(p)
+    msg = str(e.value)
+    assert "bad.toml" in msg and key in msg
+    assert "\n" not in msg  # one line for the CLI
+
+
+def test_unknown_character_lists_closest(tmp_path):
+    p = write(tmp_path, '[characters.horse]\npath = "x"\n[[actions]]\nop = "remove"\ntarget = "hrose"\n'
+                        'target_joint = "j"\n', "bad.toml")
+    with pytest.raises(InputError, match=r"actions\[0\]\.target: unknown character 'hrose'.*closest: horse"):
+        load_config(p)
+
+
+def test_missing_files(tmp_path):
+    with pytest.raises(InputError, match="no such file"):
+        load_config(tmp_path / "nope.toml")
+    p = write(tmp_path, '[characters.a]\npath = "missing.glb"\n', "m.toml")
+    with pytest.raises(InputError, match=r"m\.toml: characters\.a\.path: no such file .*missing\.glb"):
+        load_config(p)
+
+
+def test_not_toml(tmp_path):
+    p = write(tmp_path, "[characters.a\npath=", "broken.toml")
+    with pytest.raises(InputError, match="broken.toml: not valid TOML"):
+        load_config(p)
+
+
+def test_schema_is_json_and_strict():
+    s = config_schema()
+    json.dumps(s)
+    assert set(s["properties"]) >= {"characters", "actions", "mapping", "name"}
+    assert s["additionalProperties"] is False
+    defs = s["$defs"]
+    assert {"AttachAction", "ReplaceAction", "RemoveAction", "CharacterConfig"} <= set(defs)
+    assert all(d.get("additionalProperties") is False for d in defs.values() if d.get("type") == "object")
+
+
+def test_shipped_configs_parse():
+    """Every example and test config is valid (paths resolved, files checked when present)."""
+    files = sorted(CONFIGS.glob("*.toml")) + sorted(EXAMPLES.glob("*.toml"))
+    assert len(files) >= 6
+    for f in files:
+        if "${RIGMIX_ASSETS}" in f.read_text() and not default_assets_dir().exists():
+            continue
+        cfg = load_config(f)
+        assert cfg.characters

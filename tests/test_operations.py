@@ -1,0 +1,388 @@
+"""Output skeleton, provenance, scale matching and preliminary positioning (PIPELINE.md sec. 1)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import asset
+
+from rigmix.animation import sample_clip
+from rigmix.character import Character, Mesh, Skeleton
+from rigmix.config import Config, load_config
+from rigmix.errors import InputError
+from rigmix.io import load_character
+from rigmix.operations import plan_operations
+from rigmix.positioning import (
+    chain_length,
+    position_character,
+    rest_world_mesh,
+    skeleton_adjacency,
+    smooth_translations,
+)
+from rigmix.skinning import rest_pose, skinning_matrices, linear_blend_skinning
+from rigmix.transforms import quat_to_matrix
+
+CONFIGS = Path(__file__).parent / "configs"
+
+
+# --------------------------------------------------------------------------------------------
+# Fixtures
+# --------------------------------------------------------------------------------------------
+
+
+def toy(names, parents, positions, name="toy"):
+    """A character with identity rest rotations and one small triangle per joint, fully weighted."""
+    P = np.asarray(positions, dtype=float)
+    parents = np.asarray(parents)
+    J = len(names)
+    T = np.where(parents[:, None] >= 0, P - P[np.maximum(parents, 0)], P)
+    ibm = np.tile(np.eye(4), (J, 1, 1))
+    ibm[:, :3, 3] = -P
+    sk = Skeleton(names, parents, T, np.tile([0, 0, 0, 1.0], (J, 1)), np.ones((J, 3)), ibm)
+    V = np.concatenate([P + [0.05, 0, 0], P + [0, 0.05, 0], P + [0, 0, 0.05]])
+    F = np.stack([np.arange(J), np.arange(J) + J, np.arange(J) + 2 * J], axis=1)
+    joints = np.zeros((3 * J, 4), dtype=int)
+    joints[:, 0] = np.tile(np.arange(J), 3)
+    weights = np.zeros((3 * J, 4))
+    weights[:, 0] = 1
+    return Character(name, sk, meshes=(Mesh("m", V, F, joints=joints, weights=weights),))
+
+
+def biped(name="biped", scale=1.0):
+    names = ["hips", "spine", "chest", "neck", "head", "arm.L", "fore.L", "hand.L",
+             "arm.R", "fore.R", "hand.R", "leg.L", "shin.L", "leg.R", "shin.R"]
+    parents = [-1, 0, 1, 2, 3, 2, 5, 6, 2, 8, 9, 0, 11, 0, 13]
+    P = np.array([[0, 1, 0], [0, 1.2, 0], [0, 1.4, 0], [0, 1.6, 0], [0, 1.75, 0],
+                  [0.2, 1.45, 0], [0.45, 1.45, 0], [0.7, 1.45, 0],
+                  [-0.2, 1.45, 0], [-0.45, 1.45, 0], [-0.7, 1.45, 0],
+                  [0.1, 0.95, 0], [0.1, 0.5, 0], [-0.1, 0.95, 0], [-0.1, 0.5, 0]]) * scale
+    return toy(names, parents, P, name)
+
+
+def plan_for(chars, actions, **characters):
+    cfg = Config(characters={cid: {"path": f"{cid}.glb", **characters.get(cid, {})} for cid in chars},
+                 actions=actions)
+    return plan_operations(chars, cfg)
+
+
+@pytest.fixture(scope="module")
+def real():
+    """The shared characters used here, loaded once."""
+    names = {"CesiumMan", "RiggedFigure", "Fox", "Horse", "Knight", "Velociraptor"}
+    return {n: load_character(asset(n)) for n in names}
+
+
+def plan_config(name, real):
+    cfg = load_config(CONFIGS / name)
+    by_file = {Path(v.path).name: k for k, v in cfg.characters.items()}
+    files = {"CesiumMan.glb": "CesiumMan", "RiggedFigure.glb": "RiggedFigure", "Fox.glb": "Fox",
+             "Horse.glb": "Horse", "KnightCharacter.glb": "Knight", "Velociraptor.glb": "Velociraptor"}
+    inputs = {cid: real[files[Path(c.path).name]] for cid, c in cfg.characters.items()}
+    assert by_file
+    return plan_operations(inputs, cfg)
+
+
+def assert_valid_skeleton(sk):
+    assert len(set(sk.names)) == sk.num_joints
+    assert np.all(sk.parents < np.arange(sk.num_joints))
+    W = sk.rest_worlds()
+    assert np.allclose(W @ sk.inverse_binds, np.eye(4), atol=1e-8)
+
+
+# --------------------------------------------------------------------------------------------
+# The harmonic translation field
+# --------------------------------------------------------------------------------------------
+
+
+def jacobi(parents, fixed, values, iterations=20000):
+    """Slow reference: iterate t_i <- mean of neighbours on the free joints."""
+    A = skeleton_adjacency(parents).toarray()
+    t = np.zeros((len(A), 3))
+    t[fixed] = values
+    free = np.ones(len(A), bool)
+    free[fixed] = False
+    deg = A.sum(1)
+    for _ in range(iterations):
+        t[free] = (A @ t)[free] / deg[free, None]
+    return t[: len(parents)]
+
+
+def test_one_fixed_joint_is_rigid():
+    parents = [-1, 0, 1, 1, 3, -1, 5]  # a forest: two trees
+    t = smooth_translations(parents, [4], [[1.0, -2.0, 0.5]])
+    assert np.allclose(t, [1.0, -2.0, 0.5])
+    assert np.allclose(smooth_translations(parents, [], np.zeros((0, 3))), 0)
+
+
+def test_two_fixed_joints_give_a_harmonic_field():
+    rng = np.random.default_rng(0)
+    parents = np.array([-1, 0, 1, 2, 3, 2, 5, 6, 0, 8, 9])
+    fixed = np.array([4, 7])
+    values = rng.normal(size=(2, 3))
+    t = smooth_translations(parents, fixed, values)
+    assert np.allclose(t[fixed], values)
+    A = skeleton_adjacency(parents).toarray()[:-1, :-1]
+    for i in set(range(len(parents))) - set(fixed):
+        nb = np.flatnonzero(A[i])
+        assert np.allclose(t[i], t[nb].mean(axis=0)), i  # the Laplacian property
+    assert np.allclose(t, jacobi(parents, fixed, values), atol=1e-6)
+    assert not np.allclose(t, t[0])  # not rigid
+
+
+# --------------------------------------------------------------------------------------------
+# Output skeleton and provenance (synthetic)
+# --------------------------------------------------------------------------------------------
+
+
+def test_self_composition_is_identity_synthetic():
+    b = biped()
+    for chars, actions in [
+        ({"x": b}, [{"op": "replace", "source": "x", "source_joint": "arm.L", "target": "x", "target_joint": "arm.L"}]),
+        ({"x": b, "y": b}, [{"op": "replace", "source": "y", "source_joint": "arm.L", "target": "x",
+                             "target_joint": "arm.L"}]),
+    ]:
+        plan = plan_for(chars, actions)
+        sk = plan.skeleton
+        assert sk.names == b.skeleton.names
+        assert np.array_equal(sk.parents, b.skeleton.parents)
+        for f in ("translations", "rotations", "scales"):
+            assert np.allclose(getattr(sk, f), getattr(b.skeleton, f), atol=1e-12)
+        assert len(plan.fused_pairs) == 1 and sk.names[plan.fused_pairs[0].output] == "arm.L"
+
+
+def test_attach_names_provenance_and_order():
+    x, y = biped("x"), biped("y")
+    plan = plan_for({"x": x, "y": y}, [
+        {"op": "attach", "source": "y", "source_joint": "chest", "target": "x", "target_joint": "hips"}])
+    sk = plan.skeleton
+    assert_valid_skeleton(sk)
+    # x whole + y's chest subtree minus the fused chest
+    n_chest = int(y.skeleton.subtree(2).sum())
+    assert sk.num_joints == 15 + n_chest - 1
+    assert plan.used["x"].all() and plan.used["y"].sum() == n_chest
+    # collisions: the first in output order keeps the name, later ones get .001
+    assert "neck" in sk.names and "neck.001" in sk.names and "chest.001" not in sk.names
+    assert plan.report["renamed"]["neck.001"] == "y:neck"
+    hips = sk.names.index("hips")
+    assert plan.provenance[hips] == (("x", 0), ("y", 2))
+    for o, prov in enumerate(plan.provenance):
+        for cid, j in prov:
+            assert plan.image[cid][j] == o
+    # y moved rigidly onto x's hips: its chest lands exactly there
+    Wy = plan.positioned["y"].skeleton.rest_worlds()
+    Wx = plan.positioned["x"].skeleton.rest_worlds()
+    assert np.allclose(Wy[2, :3, 3], Wx[0, :3, 3])
+    # grafted joints keep their positioned world transform in the output
+    Wr = sk.rest_worlds()
+    assert np.allclose(Wr[sk.names.index("neck.001")], Wy[3])
+
+
+def test_replace_drops_the_target_subtree():
+    x, y = biped("x"), biped("y", scale=2.0)
+    plan = plan_for({"x": x, "y": y}, [
+        {"op": "replace", "source": "y", "source_joint": "arm.L", "target": "x", "target_joint": "arm.L"},
+        {"op": "remove", "target": "x", "target_joint": "leg.R"}])
+    sk = plan.skeleton
+    assert_valid_skeleton(sk)
+    used = dict(zip(x.skeleton.names, plan.used["x"]))
+    assert used["arm.L"] and not used["fore.L"] and not used["hand.L"]
+    assert not used["leg.R"] and not used["shin.R"] and used["leg.L"]
+    assert plan.scales["y"] == pytest.approx(0.5)  # limb-length ratio
+    assert plan.report["characters"]["y"]["scale_method"] == "limb-length"
+    # the override wins
+    plan2 = plan_for({"x": x, "y": y}, [
+        {"op": "replace", "source": "y", "source_joint": "arm.L", "target": "x", "target_joint": "arm.L"}],
+        y={"scale": 0.25})
+    assert plan2.scales["y"] == 0.25 and plan2.report["characters"]["y"]["scale_method"] == "override"
+
+
+def test_two_fused_pairs_move_the_source_smoothly():
+    x, y = biped("x"), biped("y")
+    shifted = toy(y.skeleton.names, y.skeleton.parents,
+                  y.skeleton.rest_worlds()[:, :3, 3] * [1.3, 1, 1] + [0, 0, 0.4], "y")
+    plan = plan_for({"x": x, "y": shifted}, [
+        {"op": "replace", "source": "y", "source_joint": "arm.L", "target": "x", "target_joint": "arm.L"},
+        {"op": "replace", "source": "y", "source_joint": "arm.R", "target": "x", "target_joint": "arm.R"}],
+        y={"scale": 1.0})
+    t = plan.translations["y"]
+    Px = x.skeleton.rest_worlds()[:, :3, 3]
+    Py = shifted.skeleton.rest_worlds()[:, :3, 3]
+    assert np.allclose(Py[5] + t[5], Px[5]) and np.allclose(Py[8] + t[8], Px[8])
+    assert not np.allclose(t[5], t[8])
+    A = skeleton_adjacency(shifted.skeleton.parents).toarray()[:-1, :-1]
+    for i in set(range(15)) - {5, 8}:
+        assert np.allclose(t[i], t[np.flatnonzero(A[i])].mean(axis=0))
+    # the mesh follows by skinning: each vertex moves by its joint's translation
+    V0, W = rest_world_mesh(shifted)
+    V1, _ = rest_world_mesh(plan.positioned["y"])
+    assert np.allclose(V1, V0 + W @ t)
+
+
+def test_structural_errors():
+    b = biped()
+    with pytest.raises(InputError, match="grafted onto itself"):
+        plan_for({"x": b}, [{"op": "attach", "source": "x", "source_joint": "arm.L", "target": "x",
+                             "target_joint": "hand.L"}])
+    with pytest.raises(InputError, match="twice"):
+        plan_for({"x": b}, [{"op": "attach", "source": "x", "source_joint": "arm.L", "target": "x",
+                             "target_joint": "head"}])
+    with pytest.raises(InputError, match=r"actions\[1\].target_joint.*removed"):
+        plan_for({"x": b, "y": b}, [
+            {"op": "remove", "target": "x", "target_joint": "arm.L"},
+            {"op": "attach", "source": "y", "source_joint": "head", "target": "x", "target_joint": "hand.L"}])
+    with pytest.raises(InputError, match="cycle"):
+        plan_for({"x": b, "y": b}, [
+            {"op": "attach", "source": "y", "source_joint": "hips", "target": "x", "target_joint": "hand.L"},
+            {"op": "attach", "source": "x", "source_joint": "hips", "target": "y", "target_joint": "hand.R"}])
+    with pytest.raises(InputError, match=r"no joint 'arm\.l'.*closest: arm\.L"):
+        plan_for({"x": b}, [{"op": "remove", "target": "x", "target_joint": "arm.l"}])
+    with pytest.raises(InputError, match=r"characters\.x\.rotations.*closest: neck"):
+        plan_for({"x": b}, [], x={"rotations": {"nek": [0, 0, 10]}})
+
+
+def test_user_rotation_poses_the_subtree():
+    b = biped()
+    plan = plan_for({"x": b}, [], x={"rotations": {"arm.L": [0, 0, -90]}})
+    P0 = b.skeleton.rest_worlds()[:, :3, 3]
+    P1 = plan.skeleton.rest_worlds()[:, :3, 3]
+    sub = b.skeleton.subtree(5)
+    assert np.allclose(P1[~sub], P0[~sub])
+    assert np.allclose(P1[7], P0[5] + [0, -0.5, 0])  # the arm now hangs down
+    V1, W = rest_world_mesh(plan.positioned["x"])
+    V0, _ = rest_world_mesh(b)
+    R = quat_to_matrix(plan.positioned["x"].skeleton.rotations[5])
+    moved = W[:, sub].sum(1) > 0.5
+    assert np.allclose(V1[moved], (V0[moved] - P0[5]) @ R.T + P0[5])
+    assert np.allclose(V1[~moved], V0[~moved])
+
+
+# --------------------------------------------------------------------------------------------
+# position_character on real characters: rebasing, scale, placement, clips
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["CesiumMan", "Horse", "Fox"])
+def test_positioning_scales_rest_and_animation(real, name):
+    ch = real[name]
+    s = 0.37
+    R = quat_to_matrix(np.array([0.0, np.sin(0.3), 0.0, np.cos(0.3)]))
+    G = np.eye(4)
+    G[:3, :3] = R
+    G[:3, 3] = [1.0, -2.0, 0.5]
+    pos = position_character(ch, scale=s, placement=G)
+    assert np.allclose(pos.skeleton.rest_worlds() @ pos.skeleton.inverse_binds, np.eye(4), atol=1e-8)
+    for before, after in zip(rest_pose(ch), rest_pose(pos)):
+        assert np.allclose(after, (s * before) @ R.T + G[:3, 3], atol=1e-6 * s * np.ptp(before))
+    clip = ch.clips[0]
+    times = np.linspace(clip.start, clip.end, 5)
+    M0 = skinning_matrices(ch.skeleton, *sample_clip(ch.skeleton, clip, times))
+    M1 = skinning_matrices(pos.skeleton, *sample_clip(pos.skeleton, pos.clips[0], times))
+    for m0, m1 in zip(ch.meshes, pos.meshes):
+        U0 = linear_blend_skinning(m0.positions, m0.joints, m0.weights, M0)
+        U1 = linear_blend_skinning(m1.positions, m1.joints, m1.weights, M1)
+        # exact up to the asset's own bind/rest mismatch (see position_character's notes)
+        assert np.allclose(U1, (s * U0) @ R.T + G[:3, 3], atol=3e-4 * s * np.ptp(U0))
+
+
+# --------------------------------------------------------------------------------------------
+# Real configs
+# --------------------------------------------------------------------------------------------
+
+
+def test_self_composition_real(real):
+    plan = plan_config("self_composition.toml", real)
+    cm = real["CesiumMan"].skeleton
+    sk = plan.skeleton
+    assert sk.names == cm.names
+    assert np.array_equal(sk.parents, cm.parents)
+    assert np.allclose(sk.translations, cm.translations, atol=1e-12)
+    assert np.allclose(sk.rotations, cm.rotations, atol=1e-12)
+    assert np.allclose(sk.scales, cm.scales, atol=1e-12)
+    assert np.allclose(sk.rest_worlds(), cm.rest_worlds(), atol=1e-9)
+    assert [a.name for a in sk.anchors] == [a.name for a in cm.anchors]
+    assert plan.scales == {"body": 1.0, "donor": 1.0}
+
+
+def test_centaur_real(real):
+    plan = plan_config("centaur.toml", real)
+    sk = plan.skeleton
+    assert_valid_skeleton(sk)
+    horse, knight = real["Horse"].skeleton, real["Knight"].skeleton
+    fused = plan.fused_pairs[0]
+    assert sk.names[fused.output] == "Neck1"
+    assert plan.provenance[fused.output] == (("horse", horse.index("Neck1")), ("knight", knight.index("Abdomen")))
+    used_h = dict(zip(horse.names, plan.used["horse"]))
+    assert used_h["Neck1"] and not used_h["Neck2"] and not used_h["Head"] and used_h["IKBackLeg.L"]
+    assert plan.used["knight"].sum() == knight.subtree(knight.index("Abdomen")).sum()
+    assert len(sk.roots) == 5  # the Horse's five roots survive
+    # the knight's torso sits on the horse's neck base, at a matched scale
+    Wr = sk.rest_worlds()
+    assert np.allclose(plan.positioned["knight"].skeleton.rest_worlds()[knight.index("Abdomen"), :3, 3],
+                       Wr[fused.output, :3, 3])
+    assert "Torso.001" in sk.names  # the knight's Torso after the horse's
+    s = plan.scales["knight"]
+    Ph, Pk = horse.rest_worlds()[:, :3, 3], knight.rest_worlds()[:, :3, 3]
+    ratio = chain_length(horse.parents, Ph, horse.index("Neck1")) / chain_length(knight.parents, Pk, knight.index("Abdomen"))
+    assert s == pytest.approx(ratio)
+
+
+def _limb(sk, names):
+    P = sk.rest_worlds()[:, :3, 3]
+    idx = [sk.index(n) for n in names]
+    return float(sum(np.linalg.norm(P[b] - P[a]) for a, b in zip(idx, idx[1:])))
+
+
+def test_fox_scale_matches_limb_lengths(real):
+    plan = plan_config("fox_arm.toml", real)
+    arm = _limb(real["CesiumMan"].skeleton, ["Skeleton_arm_joint_L__4_", "Skeleton_arm_joint_L__3_",
+                                             "Skeleton_arm_joint_L__2_"])
+    leg = _limb(real["Fox"].skeleton, ["b_LeftUpperArm_09", "b_LeftForeArm_010", "b_LeftHand_011"])
+    ratio = arm / leg
+    assert 0.75 * ratio <= plan.scales["fox"] <= 1.25 * ratio
+    assert 0.005 < plan.scales["fox"] < 0.03  # ~79 units tall -> about a metre
+    # one fused pair: a rigid translation of the whole (scaled) fox
+    t = plan.translations["fox"]
+    assert np.allclose(t, t[0])
+    V0, _ = rest_world_mesh(position_character(real["Fox"], scale=plan.scales["fox"]))
+    V1, _ = rest_world_mesh(plan.positioned["fox"])
+    assert np.allclose(V1, V0 + t[0], atol=1e-9)
+    # the override wins
+    cfg = load_config(CONFIGS / "fox_arm.toml")
+    chars = dict(cfg.characters)
+    chars["fox"] = chars["fox"].model_copy(update={"scale": 0.02})
+    cfg2 = cfg.model_copy(update={"characters": chars})
+    plan2 = plan_operations({"man": real["CesiumMan"], "fox": real["Fox"]}, cfg2)
+    assert plan2.scales["fox"] == 0.02
+    assert plan2.report["characters"]["fox"]["scale_method"] == "override"
+
+
+def test_limb_swap_two_pairs_real(real):
+    plan = plan_config("limb_swap.toml", real)
+    assert_valid_skeleton(plan.skeleton)
+    rf = real["RiggedFigure"].skeleton
+    t = plan.translations["figure"]
+    fixed = [rf.index("arm_joint_L_1"), rf.index("leg_joint_R_1")]
+    A = skeleton_adjacency(rf.parents).toarray()[:-1, :-1]
+    for i in set(range(rf.num_joints)) - set(fixed):
+        assert np.allclose(t[i], t[np.flatnonzero(A[i])].mean(axis=0), atol=1e-12)
+    out = plan.skeleton.rest_worlds()[:, :3, 3]
+    pos = plan.positioned["figure"].skeleton.rest_worlds()[:, :3, 3]
+    for f in plan.fused_pairs:
+        assert np.allclose(pos[f.source_joint], out[f.output])
+
+
+@pytest.mark.parametrize("name", ["tail_graft.toml", "three_characters.toml", "limb_swap.toml"])
+def test_real_configs_give_valid_skeletons(real, name):
+    plan = plan_config(name, real)
+    assert_valid_skeleton(plan.skeleton)
+    for cid, used in plan.used.items():
+        assert np.array_equal(plan.image[cid] >= 0, used)
+    counts = np.zeros(plan.skeleton.num_joints, int)
+    for prov in plan.provenance:
+        assert prov
+    for cid, im in plan.image.items():
+        np.add.at(counts, im[im >= 0], 1)
+    assert np.all(counts >= 1)
+    assert sum(len(p) - 1 for p in plan.provenance) == len([f for f in plan.fused_pairs if f.source != f.target or f.source_joint != f.target_joint])
