@@ -386,3 +386,46 @@ def test_real_configs_give_valid_skeletons(real, name):
         np.add.at(counts, im[im >= 0], 1)
     assert np.all(counts >= 1)
     assert sum(len(p) - 1 for p in plan.provenance) == len([f for f in plan.fused_pairs if f.source != f.target or f.source_joint != f.target_joint])
+
+
+# --------------------------------------------------------------------------------------------
+# The compose entry point
+# --------------------------------------------------------------------------------------------
+
+
+def test_compose_from_a_file_reports_and_progresses():
+    import rigmix
+    from rigmix.pipeline import mapping_table
+
+    asset("CesiumMan"), asset("RiggedFigure")
+    seen = []
+    comp = rigmix.compose(CONFIGS / "limb_swap.toml", progress=lambda s, k, n: seen.append((s, k)))
+    assert [s for s, _ in seen][:3] == ["load", "operations", "mapping"]
+    assert comp.skeleton is comp.plan.skeleton
+    assert set(comp.maps) == {"cesium", "figure"}
+    rep = comp.report
+    assert rep["name"] == "limb_swap" and rep["operations"]["characters"]["figure"]["scale_method"] == "limb-length"
+    assert set(rep["timings"]) >= {"load", "operations", "mapping"}
+    rows = mapping_table(comp)
+    assert len(rows) == 19 + 19 and all(0 <= r["confidence"] <= 1 for r in rows)
+    # a file listed twice is read once
+    comp2 = rigmix.compose(CONFIGS / "self_composition.toml", until="mapping")
+    assert comp2.inputs["body"] is comp2.inputs["donor"]
+
+
+def test_compose_builtin_config_in_code():
+    import rigmix
+    from rigmix.pipeline import load_characters
+
+    cfg = rigmix.Config(characters={"body": {"path": "builtin:humanoid"}, "donor": {"path": "builtin:humanoid"}},
+                        actions=[{"op": "replace", "source": "donor", "source_joint": "UpperArm.L",
+                                  "target": "body", "target_joint": "UpperArm.L"}])
+    comp = rigmix.compose(cfg)
+    h = comp.inputs["body"].skeleton
+    assert comp.skeleton.names == h.names and np.array_equal(comp.skeleton.parents, h.parents)
+    assert np.allclose(comp.skeleton.translations, h.translations)
+    for bm in comp.maps.values():
+        assert np.array_equal(bm.target, np.arange(h.num_joints)) and np.allclose(bm.confidence, 1)
+    bad = rigmix.Config(characters={"a": {"path": "builtin:dragon"}})
+    with pytest.raises(InputError, match="no built-in character 'dragon'.*humanoid"):
+        load_characters(bad)
