@@ -58,6 +58,7 @@ __all__ = [
     "Config",
     "load_config",
     "parse_config",
+    "check_files",
     "config_schema",
     "expand_path",
     "closest_names",

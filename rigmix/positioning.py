@@ -46,6 +46,7 @@ __all__ = [
     "size",
     "pair_scale",
     "pose_worlds",
+    "rebase",
     "position_character",
 ]
 
@@ -340,6 +341,23 @@ def _scale_clip(clip, skeleton, s, C):
     return replace(clip, tracks=tuple(tracks))
 
 
+def rebase(character, *, atol=1e-9):
+    """The same character with bind pose = rest pose: mesh positions at rest in world space.
+
+    The skeleton's rest transforms and the clips are kept exactly; only the inverse bind
+    matrices (now ``inv(rest_world)``), mesh positions and normals change. Returns
+    ``character`` itself when it is already so.
+    """
+    sk = character.skeleton
+    W = sk.rest_worlds()
+    M_old = W @ sk.inverse_binds
+    if np.allclose(M_old, np.eye(4), atol=atol):
+        return character
+    D = np.broadcast_to(np.eye(4), W.shape)
+    meshes = tuple(_move_mesh(m, M_old, D, sk.num_joints) for m in character.meshes)
+    return replace(character, skeleton=replace(sk, inverse_binds=np.linalg.inv(W)), meshes=meshes)
+
+
 def position_character(character, *, scale=1.0, placement=None, rotations=None, translations=None):
     """Scale, place, pose and translate a character; the rest mesh follows by skinning.
 
@@ -361,8 +379,8 @@ def position_character(character, *, scale=1.0, placement=None, rotations=None, 
     Character
         Rebased: bind pose = rest pose, mesh positions in world space. Clips are rescaled
         (non-root translation keys times ``scale``; root keys moved with the placement); the
-        rest-pose rotations and translations change the rest pose only. ``character`` itself
-        when nothing changes.
+        rest-pose rotations and translations change the rest pose only. When nothing moves,
+        :func:`rebase` (rest transforms and clips kept exactly).
 
     Notes
     -----
@@ -378,7 +396,7 @@ def position_character(character, *, scale=1.0, placement=None, rotations=None, 
     rotations = rotations or {}
     t = np.zeros((J, 3)) if translations is None else np.asarray(translations, dtype=np.float64)
     if scale == 1.0 and np.allclose(P, np.eye(4)) and not rotations and not np.any(t):
-        return character
+        return rebase(character)
     s = float(scale)
     G = P @ np.diag([s, s, s, 1.0])
     W = sk.rest_worlds()

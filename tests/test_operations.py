@@ -303,6 +303,10 @@ def test_self_composition_real(real):
     assert np.allclose(sk.rest_worlds(), cm.rest_worlds(), atol=1e-9)
     assert [a.name for a in sk.anchors] == [a.name for a in cm.anchors]
     assert plan.scales == {"body": 1.0, "donor": 1.0}
+    body = plan.positioned["body"]
+    assert np.array_equal(body.skeleton.rotations, cm.rotations)
+    for a, b in zip(rest_pose(real["CesiumMan"]), rest_pose(body)):
+        assert np.allclose(a, b, atol=1e-9)
 
 
 def test_centaur_real(real):
@@ -377,6 +381,11 @@ def test_limb_swap_two_pairs_real(real):
 def test_real_configs_give_valid_skeletons(real, name):
     plan = plan_config(name, real)
     assert_valid_skeleton(plan.skeleton)
+    for cid, ch in plan.positioned.items():  # every positioned input is rebased: bind = rest
+        W = ch.skeleton.rest_worlds()
+        assert np.allclose(W @ ch.skeleton.inverse_binds, np.eye(4), atol=1e-8)
+        V, _ = rest_world_mesh(ch)
+        assert np.allclose(V, np.concatenate([m.positions for m in ch.meshes]), atol=1e-9)
     for cid, used in plan.used.items():
         assert np.array_equal(plan.image[cid] >= 0, used)
     counts = np.zeros(plan.skeleton.num_joints, int)
