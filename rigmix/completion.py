@@ -129,6 +129,9 @@ class CompletionOptions:
         around seams (0: none).
     confidence_blend : bool
         Blend mapped rotations toward identity (rest) by ``1 - confidence``.
+    score_dtype : {"float32", "float64"}
+        Precision of the score matrices (float32: half the time and memory; features are
+        centred first, see :func:`keyframe_scores`).
     fixed_frames : tuple of FixedFrame
         User-pinned frame choices.
     """
@@ -145,6 +148,7 @@ class CompletionOptions:
     jump_penalty: float = 0.05
     smoothing: float = 1.5
     confidence_blend: bool = True
+    score_dtype: Literal["float32", "float64"] = "float32"
     fixed_frames: tuple[FixedFrame, ...] = field(default_factory=tuple)
 
     def __post_init__(self):
@@ -154,6 +158,8 @@ class CompletionOptions:
             raise InputError(f"completion: fps must be positive, got {self.fps}")
         if self.metric not in ("squared", "abs"):
             raise InputError(f"completion: metric must be 'squared' or 'abs', got {self.metric!r}")
+        if self.score_dtype not in ("float32", "float64"):
+            raise InputError(f"completion: score_dtype must be 'float32' or 'float64', got {self.score_dtype!r}")
         if self.hops_max < self.hops_full:
             raise InputError("completion: hops_max must be >= hops_full")
 
@@ -236,27 +242,34 @@ def map_pose(skeleton_out: Skeleton, skeleton_in: Skeleton, bone_map, T, R, S, *
     R_out = np.broadcast_to(rest_out, (F, J, 4)).copy()
     S_out = np.broadcast_to(skeleton_out.scales, (F, J, 3)).copy()
     mass = np.zeros(J)
-    for o, ins in enumerate(contributors):
-        if not ins:
-            continue
-        c = conf[ins]
-        mass[o] = min(1.0, float(c.sum()))
-        anim = R[:, ins[0]]
-        rest = rest_in[ins[0]]
+    outs = np.array([o for o, ins in enumerate(contributors) if ins], dtype=np.int64)
+    if outs.size == 0:
+        return T_out, R_out, S_out, mass
+    # per output joint: the delta of its chain of input joints (vectorized for single ones)
+    delta = np.empty((F, outs.size, 4))
+    single = np.array([len(contributors[o]) == 1 for o in outs])
+    first = np.array([contributors[o][0] for o in outs])
+    delta[:, single] = quat_multiply(quat_conjugate(rest_in[first[single]]), R[:, first[single]])
+    for k in np.flatnonzero(~single):
+        ins = contributors[outs[k]]
+        anim, rest = R[:, ins[0]], rest_in[ins[0]]
         for i in ins[1:]:
             anim = quat_multiply(anim, R[:, i])
             rest = quat_multiply(rest, rest_in[i])
-        delta = quat_multiply(quat_conjugate(rest), anim)  # (F, 4)
-        cmax = float(c.max())
-        if blend and cmax < 1.0:
-            delta = quat_slerp(delta, _IDENTITY, 1.0 - cmax)
-        R_out[:, o] = quat_multiply(rest_out[o], delta)
-        lead = ins[int(np.argmax(c))]
-        f = cmax if blend else 1.0
-        T_out[:, o] += f * k * (T[:, lead] - skeleton_in.translations[lead])
-        s_rest = np.where(np.abs(skeleton_in.scales[lead]) > 1e-12, skeleton_in.scales[lead], 1.0)
-        ratio = np.clip(S[:, lead] / s_rest, 1e-9, None)
-        S_out[:, o] *= ratio**f
+        delta[:, k] = quat_multiply(quat_conjugate(rest), anim)
+    cs = [conf[contributors[o]] for o in outs]
+    mass[outs] = [min(1.0, float(c.sum())) for c in cs]
+    cmax = np.array([float(c.max()) for c in cs])
+    lead = np.array([contributors[o][int(np.argmax(c))] for o, c in zip(outs, cs)])
+    f = cmax if blend else np.ones_like(cmax)
+    if blend and np.any(cmax < 1.0):
+        low = np.flatnonzero(cmax < 1.0)
+        delta[:, low] = quat_slerp(delta[:, low], _IDENTITY, np.broadcast_to(1.0 - cmax[low], (F, low.size)))
+    R_out[:, outs] = quat_multiply(rest_out[outs], delta)
+    T_out[:, outs] += (f * k)[:, None] * (T[:, lead] - skeleton_in.translations[lead])
+    s_rest = skeleton_in.scales[lead]
+    s_rest = np.where(np.abs(s_rest) > 1e-12, s_rest, 1.0)
+    S_out[:, outs] *= np.clip(S[:, lead] / s_rest, 1e-9, None) ** f[:, None]
     return T_out, quat_normalize(R_out), S_out, mass
 
 
@@ -281,9 +294,32 @@ def global_rotations(parents, R):
     return quat_normalize(G)
 
 
+def _quat_rotate(q, v):
+    """Rotate vectors ``v (..., 3)`` by unit quaternions ``q (..., 4)`` xyzw."""
+    u, w = q[..., :3], q[..., 3:4]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
 def _global_positions(skeleton, T, R, S):
-    """World joint positions ``(F, J, 3)`` by forward kinematics (anchors applied)."""
-    return skeleton.world_matrices(trs_to_matrix(T, R, S))[..., :3, 3]
+    """World joint positions ``(F, J, 3)`` by quaternion forward kinematics.
+
+    Scales accumulate per axis (exact for uniform scales, which is what rigs animate); the
+    roots' anchor matrices are applied.
+    """
+    F, J = T.shape[:2]
+    P = np.empty((F, J, 3))
+    G = np.empty((F, J, 4))
+    sw = np.empty((F, J, 3))
+    for j, p in enumerate(skeleton.parents):
+        if p < 0:
+            G[:, j], sw[:, j], P[:, j] = R[:, j], S[:, j], T[:, j]
+        else:
+            G[:, j] = quat_multiply(G[:, p], R[:, j])
+            sw[:, j] = sw[:, p] * S[:, j]
+            P[:, j] = P[:, p] + _quat_rotate(G[:, p], sw[:, p] * T[:, j])
+    A = skeleton.root_parent_worlds()  # (J, 4, 4), constant per joint
+    return np.einsum("jkl,fjl->fjk", A[:, :3, :3], P) + A[:, :3, 3]
 
 
 # --------------------------------------------------------------------------------------------
@@ -360,8 +396,26 @@ def rotation_features(Q, w=None) -> np.ndarray:
     return phi.reshape(Q.shape[0], -1)
 
 
+def _score_features(G, P, w, rotation_weight, translation_weight, length):
+    """Features ``X`` and offsets ``c`` with ``score[a, b] = X_a . X_b - c_a - c_b + tw``.
+
+    Rotation features of the kept joints (weight > 0) scaled by ``sqrt(rotation_weight w /
+    sum w)``, then weighted positions scaled by ``sqrt(2 ct)``; ``c = ct sum_j w_j |p_j|^2``
+    with ``ct = translation_weight / (sum w length^2)``.
+    """
+    keep = np.flatnonzero(w > 0)
+    wk = w[keep]
+    total = wk.sum()
+    cr = rotation_weight / total
+    ct = translation_weight / (total * max(length, 1e-12) ** 2)
+    p = (np.asarray(P, dtype=np.float64)[:, keep] * np.sqrt(wk)[:, None]).reshape(len(P), -1)
+    X = np.concatenate([np.sqrt(cr) * rotation_features(np.asarray(G)[:, keep], wk),
+                        np.sqrt(2 * ct) * p], axis=1)
+    return X, ct * np.einsum("ij,ij->i", p, p)
+
+
 def keyframe_scores(Ga, Pa, Gb, Pb, w, *, rotation_weight=0.8, translation_weight=0.2,
-                    length=1.0, metric="squared") -> np.ndarray:
+                    length=1.0, metric="squared", dtype=np.float64) -> np.ndarray:
     """Similarity of every pair of keyframes (higher is more alike), one matrix product.
 
     ``score[a, b] = rotation_weight * sum_j w_j r(Ga_aj, Gb_bj) / sum w
@@ -383,41 +437,68 @@ def keyframe_scores(Ga, Pa, Gb, Pb, w, *, rotation_weight=0.8, translation_weigh
     length : float
         Length scale of the positions (e.g. the skeleton's extent).
     metric : {"squared", "abs"}
+    dtype : numpy dtype
+        Of the matrix product and the result. ``float32`` halves time and memory: the features
+        are centred on the candidates' mean first, so rounding scales with the spread of the
+        poses rather than with the scores themselves (about 1e-7 absolute).
 
     Returns
     -------
-    (Fa, Fb) float64 scores, at most ``rotation_weight + translation_weight``.
+    (Fa, Fb) array of ``dtype``, at most ``rotation_weight + translation_weight``.
     """
     w = np.asarray(w, dtype=np.float64)
-    keep = np.flatnonzero(w > 0)
     Fa, Fb = len(Ga), len(Gb)
-    if keep.size == 0:
-        return np.full((Fa, Fb), float(rotation_weight + translation_weight))
-    wk = w[keep]
-    total = wk.sum()
-    Ga, Gb = quat_normalize(np.asarray(Ga)[:, keep]), quat_normalize(np.asarray(Gb)[:, keep])
-    Pa, Pb = np.asarray(Pa, dtype=np.float64)[:, keep], np.asarray(Pb, dtype=np.float64)[:, keep]
-    cr = rotation_weight / total
-    ct = translation_weight / (total * max(length, 1e-12) ** 2)
-    sw = np.sqrt(wk)[:, None]
-    pa = (Pa * sw).reshape(Fa, -1)  # (Fa, 3 Jk)
-    pb = (Pb * sw).reshape(Fb, -1)
-    na = np.einsum("ij,ij->i", pa, pa)
-    nb = np.einsum("ij,ij->i", pb, pb)
+    if not np.any(w > 0):
+        return np.full((Fa, Fb), rotation_weight + translation_weight, dtype=dtype)
+    Ga, Gb = quat_normalize(Ga), quat_normalize(Gb)
     if metric == "squared":
-        A = np.concatenate([np.sqrt(cr) * rotation_features(Ga, wk), np.sqrt(2 * ct) * pa], axis=1)
-        B = np.concatenate([np.sqrt(cr) * rotation_features(Gb, wk), np.sqrt(2 * ct) * pb], axis=1)
-        score = A @ B.T  # (Fa, Fb)
-    elif metric == "abs":
-        score = 2 * ct * (pa @ pb.T)
-        for j in range(len(keep)):  # one (Fa, 4) @ (4, Fb) product per joint, no loop on pairs
-            score += (cr * wk[j]) * np.abs(Ga[:, j] @ Gb[:, j].T)
-    else:
+        cand = _Candidates.build(Gb, Pb, w, rotation_weight, translation_weight, length, dtype)
+        return cand.scores(Ga, Pa)
+    if metric != "abs":
         raise InputError(f"completion: metric must be 'squared' or 'abs', got {metric!r}")
-    score -= ct * na[:, None]
-    score -= ct * nb[None, :]
+    # the paper's |<q_a, q_b>|: one (Fa, 4) @ (4, Fb) product per joint, no loop on pairs
+    Xa, ca = _score_features(Ga, Pa, w, 0.0, translation_weight, length)
+    Xb, cb = _score_features(Gb, Pb, w, 0.0, translation_weight, length)
+    score = Xa @ Xb.T
+    keep = np.flatnonzero(w > 0)
+    cr = rotation_weight / w[keep].sum()
+    for j in keep:
+        score += (cr * w[j]) * np.abs(Ga[:, j] @ Gb[:, j].T)
+    score -= ca[:, None]
+    score -= cb[None, :]
     score += translation_weight
-    return score
+    return score.astype(dtype, copy=False)
+
+
+@dataclass(frozen=True)
+class _Candidates:
+    """The candidate side of :func:`keyframe_scores` (``metric="squared"``), built once.
+
+    ``score = (X_a - m)(X_b - m)^T + (X_a m - c_a) + (X_b m - c_b - m.m + tw)``: the product
+    of centred features in ``dtype``, the rank-one terms in float64.
+    """
+
+    w: np.ndarray
+    weights: tuple
+    mean: np.ndarray  # (K,)
+    Xc: np.ndarray  # (Fb, K) centred, dtype
+    col: np.ndarray  # (Fb,) dtype
+
+    @classmethod
+    def build(cls, Gb, Pb, w, rotation_weight, translation_weight, length, dtype):
+        weights = (rotation_weight, translation_weight, length)
+        Xb, cb = _score_features(Gb, Pb, w, *weights)
+        m = Xb.mean(axis=0)
+        col = Xb @ m - cb - m @ m + translation_weight
+        return cls(w, weights, m, (Xb - m).astype(dtype), col.astype(dtype))
+
+    def scores(self, Ga, Pa):
+        Xa, ca = _score_features(Ga, Pa, self.w, *self.weights)
+        row = (Xa @ self.mean - ca).astype(self.Xc.dtype)
+        score = (Xa - self.mean).astype(self.Xc.dtype) @ self.Xc.T  # (Fa, Fb)
+        score += row[:, None]
+        score += self.col[None, :]
+        return score
 
 
 def _segments_next(segment):
@@ -451,11 +532,14 @@ def continuity_scores(score, segment_b, weights=(0.2, 0.1)) -> np.ndarray:
     -------
     (Fa, Fb) float64
     """
-    score = np.asarray(score, dtype=np.float64)
+    score = np.asarray(score)
+    if score.dtype not in (np.float32, np.float64):
+        score = score.astype(np.float64)
     seg = np.asarray(segment_b)
     Fa, Fb = score.shape
     out = score.copy()
-    norm = np.ones((Fa, Fb))
+    rows, cols = [], []  # the existence of each neighbour term is separable: row x column
+    buf = np.empty_like(score)
     for step, wk in enumerate(weights, start=1):
         if wk == 0:
             continue
@@ -464,10 +548,19 @@ def continuity_scores(score, segment_b, weights=(0.2, 0.1)) -> np.ndarray:
             b0, b1 = max(0, -k), min(Fb, Fb - k)
             if a1 <= a0 or b1 <= b0:
                 continue
-            same = (seg[b0 + k:b1 + k] == seg[b0:b1]).astype(np.float64)  # (b1 - b0,)
-            out[a0:a1, b0:b1] += wk * score[a0 + k:a1 + k, b0 + k:b1 + k] * same
-            norm[a0:a1, b0:b1] += wk * same
-    out /= norm
+            same = np.zeros(Fb, dtype=score.dtype)
+            same[b0:b1] = seg[b0 + k:b1 + k] == seg[b0:b1]
+            rv = np.zeros(Fa, dtype=score.dtype)
+            rv[a0:a1] = wk
+            rows.append(rv)
+            cols.append(same)
+            view = buf[a0:a1, b0:b1]
+            np.multiply(score[a0 + k:a1 + k, b0 + k:b1 + k], same[b0:b1] * score.dtype.type(wk), out=view)
+            out[a0:a1, b0:b1] += view
+    if rows:
+        norm = np.stack(rows, axis=1) @ np.stack(cols, axis=0)  # (Fa, Fb), rank <= 2 * steps
+        norm += 1.0
+        out /= norm
     return out
 
 
@@ -490,8 +583,10 @@ def choose_frames(score, segment_b, *, jump_penalty=0.0, fixed=None) -> np.ndarr
     -------
     (Fa,) int64 column per row.
     """
-    score = np.array(score, dtype=np.float64)
+    score = np.asarray(score)
     Fa, Fb = score.shape
+    if fixed:
+        score = score.copy()
     for a, b in (fixed or {}).items():
         if not (0 <= a < Fa and 0 <= b < Fb):
             raise InputError(f"completion: fixed frame {a} -> {b} outside ({Fa}, {Fb})")
@@ -501,18 +596,22 @@ def choose_frames(score, segment_b, *, jump_penalty=0.0, fixed=None) -> np.ndarr
     if jump_penalty <= 0:
         return np.argmax(score, axis=1).astype(np.int64)
     succ = _segments_next(segment_b)
-    pred = np.full(Fb, -1)
+    pred = np.full(Fb, Fb)  # index Fb reads the -inf padding: no predecessor
     has = succ >= 0
     pred[succ[has]] = np.flatnonzero(has)
     back = np.empty((Fa, Fb), dtype=np.int64)
-    V = score[0].copy()
+    Vp = np.empty(Fb + 1)
+    Vp[Fb] = -np.inf
+    Vp[:Fb] = score[0]
     for a in range(1, Fa):  # a loop over query frames; each step is vectorized over Fb
-        best = int(np.argmax(V))
-        jump = V[best] - jump_penalty
-        stay = np.where(pred >= 0, V[np.maximum(pred, 0)], -np.inf)
+        best = int(np.argmax(Vp[:Fb]))
+        jump = Vp[best] - jump_penalty
+        stay = Vp[pred]
         take_stay = stay >= jump
         back[a] = np.where(take_stay, pred, best)
-        V = score[a] + np.where(take_stay, stay, jump)
+        np.maximum(stay, jump, out=stay)
+        np.add(score[a], stay, out=Vp[:Fb])
+    V = Vp[:Fb]
     path = np.empty(Fa, dtype=np.int64)
     path[-1] = int(np.argmax(V))
     for a in range(Fa - 1, 0, -1):
@@ -702,6 +801,24 @@ def _merge_joints(parents, owners, x, y):
     return np.asarray(sorted(set(bound)) or np.flatnonzero(part)[:1], dtype=np.int64)
 
 
+def _pair(fx, fy, pool_rows, parents, owners, x, y, options, length):
+    """Joint weights, position anchor and (squared metric) candidate features of a pair."""
+    merge = _merge_joints(parents, owners, x, y)
+    hop = hop_weights(parents, merge, full=options.hops_full, cutoff=options.hops_max)
+    w = hop * fx.mass * fy.mass
+    if w.sum() <= 0:
+        logger.warning("completion: no joint of S_R is mapped from both %r and %r near the "
+                       "merge joint; scoring with hop weights only", x, y)
+        w = hop
+    anchor = int(merge[0])
+    cand = None
+    if options.metric == "squared" and np.any(w > 0):
+        Pb = fy.P[pool_rows] - fy.P[pool_rows][:, anchor:anchor + 1]
+        cand = _Candidates.build(fy.G[pool_rows], Pb, w, options.rotation_weight,
+                                 options.translation_weight, length, np.dtype(options.score_dtype))
+    return w, anchor, cand
+
+
 def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps: Mapping, *,
                    selection: Sequence[tuple[str, str]] | None = None,
                    options: CompletionOptions | None = None,
@@ -752,6 +869,7 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
     length = float(np.linalg.norm(rest_world.max(0) - rest_world.min(0))) if J else 1.0
     length = length if length > 1e-9 else 1.0
     names = _unique_names(keys)
+    pairs = {}  # (clip's input, completing input) -> joint weights, anchor, candidate features
     fixed_by_clip = {}
     for ff in options.fixed_frames:
         fixed_by_clip.setdefault((ff.character, ff.clip), []).append(ff)
@@ -780,20 +898,19 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
                 logger.warning("completion: character %r has no clip to complete %r of %r; "
                                "its joints stay at rest", y, clip_name, cid)
                 continue
-            merge = _merge_joints(parents, owners, cid, y)
-            hop = hop_weights(parents, merge, full=options.hops_full, cutoff=options.hops_max)
-            w = hop * fx.mass * fy.mass
-            if w.sum() <= 0:
-                logger.warning("completion: no joint of S_R is mapped from both %r and %r near the "
-                               "merge joint; scoring with hop weights only", cid, y)
-                w = hop
-            anchor = merge[0]
+            if (cid, y) not in pairs:
+                pairs[(cid, y)] = _pair(fx, fy, pool_rows, parents, owners, cid, y, options, length)
+            w, anchor, cand = pairs[(cid, y)]
             Pa = fx.P[rows] - fx.P[rows][:, anchor:anchor + 1]
-            Pb = fy.P[pool_rows] - fy.P[pool_rows][:, anchor:anchor + 1]
-            score = keyframe_scores(fx.G[rows], Pa, fy.G[pool_rows], Pb, w,
-                                    rotation_weight=options.rotation_weight,
-                                    translation_weight=options.translation_weight,
-                                    length=length, metric=options.metric)
+            if cand is None:  # the paper's |.| metric: exact, no precomputation
+                Pb = fy.P[pool_rows] - fy.P[pool_rows][:, anchor:anchor + 1]
+                score = keyframe_scores(fx.G[rows], Pa, fy.G[pool_rows], Pb, w,
+                                        rotation_weight=options.rotation_weight,
+                                        translation_weight=options.translation_weight,
+                                        length=length, metric=options.metric,
+                                        dtype=np.dtype(options.score_dtype))
+            else:
+                score = cand.scores(fx.G[rows], Pa)
             score = continuity_scores(score, seg, options.continuity)
             fixed = {}
             for ff in fixed_by_clip.get((cid, clip_name), ()):
@@ -811,9 +928,10 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
             choice = choose_frames(score, seg, jump_penalty=options.jump_penalty, fixed=fixed)
             src = pool_rows[choice]
             joints = np.asarray(joints)
-            T[:, joints] = fy.T[src][:, joints]
-            R[:, joints] = fy.R[src][:, joints]
-            S[:, joints] = fy.S[src][:, joints]
+            ix = np.ix_(src, joints)
+            T[:, joints] = fy.T[ix]
+            R[:, joints] = fy.R[ix]
+            S[:, joints] = fy.S[ix]
             succ = _segments_next(seg)
             jumps = np.flatnonzero(succ[choice[:-1]] != choice[1:])
             jumps = _discontinuities(R[:, joints], jumps)

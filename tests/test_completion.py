@@ -169,6 +169,10 @@ def test_keyframe_scores_match_slow_reference(metric):
     # sign of quaternions is irrelevant
     flip = keyframe_scores(-Ga, Pa, Gb, Pb, w, length=2.5, metric=metric)
     np.testing.assert_allclose(flip, fast, atol=1e-12)
+    # single precision (centred features): close to the reference
+    f32 = keyframe_scores(Ga, Pa, Gb, Pb, w, length=2.5, metric=metric, dtype=np.float32)
+    assert f32.dtype == np.float32
+    np.testing.assert_allclose(f32, slow, atol=2e-6)
 
 
 def test_rotation_features_give_squared_dots():
@@ -426,3 +430,14 @@ def test_centaur_horse_knight(centaur):
     figs = _check_centaur(skel, inputs, maps, prov, clips)
     for x, f in figs.items():
         assert f["mean_ratio"] <= 2.0, (x, f)
+
+
+def test_global_positions_match_matrix_forward_kinematics(fox):
+    from rigmix.completion import _global_positions
+    from rigmix.transforms import trs_to_matrix
+
+    clip = fox.clip("Run")
+    T, R, S = sample_clip(fox.skeleton, clip, clip_times(clip)[:10])
+    want = fox.skeleton.world_matrices(trs_to_matrix(T, R, S))[..., :3, 3]
+    got = _global_positions(fox.skeleton, T, R, S)
+    np.testing.assert_allclose(got, want, atol=1e-9 * np.abs(want).max())
