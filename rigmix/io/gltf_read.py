@@ -243,37 +243,35 @@ def _unique(names: list[str]) -> tuple[list[str], list[tuple[str, str]]]:
     return out, renamed
 
 
-def _skeleton(doc, graph: _Graph, skins: list[_Skin], log) -> tuple[Skeleton, dict]:
-    """Joints in topological order; returns the skeleton and ``{node index: joint index}``."""
-    if not skins:
-        empty = np.zeros((0, 3))
-        return Skeleton((), np.zeros(0), empty, np.zeros((0, 4)), empty, np.zeros((0, 4, 4))), {}
-    main = skins[0]
-    skin_pos = {int(n): k for k, n in enumerate(main.nodes)}
-    parent = graph.parent
+def _joint_members(graph: _Graph, skin_nodes, log) -> set[int]:
+    """The skin's joints plus the non-joint nodes lying on a path between two of them.
 
-    # Non-joint nodes on the path between two joints become joints (their transform animates
-    # the chain below them); they carry no weight.
-    members = set(skin_pos)
-    for j in skin_pos:
-        chain, k = [], parent[j]
-        while k >= 0 and k not in skin_pos:
+    Such a node's transform moves the chain below it, so it becomes a joint (without weight).
+    """
+    skin = {int(n) for n in skin_nodes}
+    members = set(skin)
+    for j in skin:
+        chain, k = [], graph.parent[j]
+        while k >= 0 and k not in skin:
             chain.append(int(k))
-            k = parent[k]
-        if k >= 0 and chain:
+            k = graph.parent[k]
+        if k >= 0:
             members.update(chain)
-    extra = sorted(members - skin_pos.keys())
-    for n in extra:
+    for n in sorted(members - skin):
         log(f"node '{graph.names[n] or n}' lies between joints but is not in the skin: added as a joint")
+    return members
 
-    def joint_parent(n):
-        k = parent[n]
-        return int(k) if k >= 0 and k in members else -1
 
-    # Stable topological order: each node keyed by the smallest skin position in its subtree
-    # (extra nodes have none of their own), so a skin already in parent-first order is kept as is.
+def _topological_order(graph: _Graph, members: set[int], skin_nodes, joint_parent) -> list[int]:
+    """Parents-first order of the joint nodes, as close to the skin's order as possible.
+
+    Each node is keyed by the smallest skin position in its subtree (added nodes have none of
+    their own) and a heap-ordered topological sort emits the forest: a skin already listed
+    parents-first keeps its order exactly.
+    """
+    skin_pos = {int(n): k for k, n in enumerate(skin_nodes)}
     key = {n: skin_pos.get(n, len(skin_pos) + n) for n in members}
-    for n in sorted(members, key=lambda n: -graph.depth[n]):
+    for n in sorted(members, key=lambda n: -graph.depth[n]):  # children before parents
         p = joint_parent(n)
         if p >= 0:
             key[p] = min(key[p], key[n])
@@ -292,51 +290,67 @@ def _skeleton(doc, graph: _Graph, skins: list[_Skin], log) -> tuple[Skeleton, di
         order.append(n)
         for c in kids.get(n, []):
             heapq.heappush(heap, (key[c], c))
+    return order
+
+
+def _anchors(graph: _Graph, root_nodes: list[int]) -> tuple[tuple[Anchor, ...], dict[int, int]]:
+    """The non-joint ancestors of the root joints as anchors (parents first, then node index);
+    returns them and ``{node index: anchor index}``."""
+    nodes = set()
+    for n in root_nodes:
+        k = graph.parent[n]
+        while k >= 0:
+            nodes.add(int(k))
+            k = graph.parent[k]
+    order = sorted(nodes, key=lambda n: (graph.depth[n], n))
+    index = {n: a for a, n in enumerate(order)}
+    names, _ = _unique([graph.names[n] or f"node_{n}" for n in order])
+    anchors = tuple(Anchor(names[a], graph.local[n], index.get(int(graph.parent[n]), -1)) for a, n in enumerate(order))
+    return anchors, index
+
+
+def _check_skeleton_root(doc, graph: _Graph, skin: _Skin, root_nodes: list[int], log) -> None:
+    """Report a ``skin.skeleton`` that is not a common root of the joints (it is never used)."""
+    sroot = doc.get("skins", skin.index).get("skeleton")
+    if sroot is None:
+        return
+    valid = isinstance(sroot, int) and 0 <= sroot < len(graph.parent)
+    if valid and all(_is_ancestor(graph.parent, sroot, n) for n in root_nodes):
+        return
+    label = f"'{graph.names[sroot] or sroot}'" if valid else repr(sroot)
+    log(f"skins[{skin.index}].skeleton ({label}) is not a common root of the joints: ignored")
+
+
+def _skeleton(doc, graph: _Graph, skins: list[_Skin], log) -> tuple[Skeleton, dict]:
+    """Joints in topological order; returns the skeleton and ``{node index: joint index}``."""
+    if not skins:
+        empty = np.zeros((0, 3))
+        return Skeleton((), np.zeros(0), empty, np.zeros((0, 4)), empty, np.zeros((0, 4, 4))), {}
+    main = skins[0]
+    members = _joint_members(graph, main.nodes, log)
+
+    def joint_parent(n):
+        k = graph.parent[n]
+        return int(k) if k >= 0 and k in members else -1
+
+    order = _topological_order(graph, members, main.nodes, joint_parent)
     joint_of_node = {n: j for j, n in enumerate(order)}
-    if order != [int(n) for n in main.nodes]:
-        logger.debug("%s: skin joints reordered parents-first", doc.name)
-
-    raw_names = [graph.names[n] or f"joint_{n}" for n in order]
-    names, renamed = _unique(raw_names)
-    for old, new in renamed:
-        log(f"joint name '{old}' is used twice: renamed '{new}'")
-
-    parents = np.array([joint_of_node[joint_parent(n)] if joint_parent(n) >= 0 else -1 for n in order])
-    t, r, s = matrix_to_trs(graph.local[order])
-    ibm = np.empty((len(order), 4, 4))
-    for j, n in enumerate(order):
-        ibm[j] = main.ibm[skin_pos[n]] if n in skin_pos else np.linalg.inv(graph.world[n])
     for sk in skins:
         sk.to_joint = np.array([joint_of_node[int(n)] for n in sk.nodes], dtype=np.int64)
-
-    if "skeleton" in doc.get("skins", main.index):
-        sroot = doc.get("skins", main.index)["skeleton"]
-        roots = [n for n in order if joint_parent(n) < 0]
-        ok = isinstance(sroot, int) and 0 <= sroot < len(parent) and all(_is_ancestor(parent, sroot, n) for n in roots)
-        if not ok:
-            log(f"skins[{main.index}].skeleton ({graph.names[sroot] if isinstance(sroot, int) and 0 <= sroot < len(parent) else sroot!r}) "
-                "is not a common root of the joints: ignored")
-
-    # Anchors: the non-joint ancestors of the root joints, parents first.
-    anchor_nodes = set()
-    for n in order:
-        if joint_parent(n) < 0:
-            k = parent[n]
-            while k >= 0:
-                anchor_nodes.add(int(k))
-                k = parent[k]
-    anchor_order = sorted(anchor_nodes, key=lambda n: (graph.depth[n], n))
-    anchor_index = {n: a for a, n in enumerate(anchor_order)}
-    anchor_names, _ = _unique([graph.names[n] or f"node_{n}" for n in anchor_order])
-    anchors = tuple(
-        Anchor(anchor_names[a], graph.local[n], anchor_index.get(int(parent[n]), -1))
-        for a, n in enumerate(anchor_order)
-    )
+    names, renamed = _unique([graph.names[n] or f"joint_{n}" for n in order])
+    for old, new in renamed:
+        log(f"joint name '{old}' is used twice: renamed '{new}'")
+    parents = np.array([joint_of_node.get(joint_parent(n), -1) for n in order])
+    t, r, s = matrix_to_trs(graph.local[order])
+    skin_pos = {int(n): k for k, n in enumerate(main.nodes)}
+    ibm = np.stack([main.ibm[skin_pos[n]] if n in skin_pos else np.linalg.inv(graph.world[n]) for n in order])
+    root_nodes = [n for n in order if joint_parent(n) < 0]
+    _check_skeleton_root(doc, graph, main, root_nodes, log)
+    anchors, anchor_index = _anchors(graph, root_nodes)
     root_anchor = np.array(
-        [anchor_index.get(int(parent[n]), -1) if joint_parent(n) < 0 else -1 for n in order], dtype=np.int64
+        [anchor_index.get(int(graph.parent[n]), -1) if joint_parent(n) < 0 else -1 for n in order], dtype=np.int64
     )
-    skeleton = Skeleton(tuple(names), parents, t, r, s, ibm, anchors, root_anchor)
-    return skeleton, joint_of_node
+    return Skeleton(tuple(names), parents, t, r, s, ibm, anchors, root_anchor), joint_of_node
 
 
 def _is_ancestor(parent, a: int, n: int) -> bool:
@@ -484,18 +498,7 @@ def _meshes(doc, graph: _Graph, skins, skeleton: Skeleton, joint_of_node, nmat, 
     all_names, _ = _unique(names_raw + [p[0] for p in props])
     for p, nm in zip(parts, all_names):
         p["name"] = nm
-        p["weights_raw"] = p["weights"]
-        J, W, empty, counts = repair_weights(p["joints"], p["weights"])
-        p["joints"], p["weights"], p["empty"] = J, W, empty
-        p["nonfinite"] = ~np.all(np.isfinite(p["weights_raw"]), axis=1)
-        label = f"mesh '{nm}'"
-        if counts["duplicate"]:
-            log(f"{label}: {counts['duplicate']} vertices with duplicate joint slots: their weights summed")
-        if counts["negative"]:
-            log(f"{label}: {counts['negative']} vertices with negative weights: clamped to 0")
-        if counts["unnormalized"]:
-            log(f"{label}: {counts['unnormalized']} vertices with weights not summing to 1: renormalized")
-    fill_empty_rows(parts, skeleton, log)
+    _repair_parts(parts, skeleton, log)
 
     def build(nm, d, skinned):
         return Mesh(
@@ -510,6 +513,21 @@ def _meshes(doc, graph: _Graph, skins, skeleton: Skeleton, joint_of_node, nmat, 
         for (_, d, joint, matrix), nm in zip(props, all_names[len(parts):])
     )
     return meshes, prop_objs
+
+
+def _repair_parts(parts: list[dict], skeleton: Skeleton, log) -> None:
+    """Apply the weight repairs to every skinned primitive (in place) and report them."""
+    for p in parts:
+        p["nonfinite"] = ~np.all(np.isfinite(p["weights"]), axis=1)
+        p["joints"], p["weights"], p["empty"], counts = repair_weights(p["joints"], p["weights"])
+        label = f"mesh '{p['name']}'"
+        if counts["duplicate"]:
+            log(f"{label}: {counts['duplicate']} vertices with duplicate joint slots: their weights summed")
+        if counts["negative"]:
+            log(f"{label}: {counts['negative']} vertices with negative weights: clamped to 0")
+        if counts["unnormalized"]:
+            log(f"{label}: {counts['unnormalized']} vertices with weights not summing to 1: renormalized")
+    fill_empty_rows(parts, skeleton, log)
 
 
 # --------------------------------------------------------------------------- 5. clips
