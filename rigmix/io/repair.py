@@ -67,8 +67,23 @@ def repair_weights(joints, weights):
 def fill_empty_rows(parts, skeleton: Skeleton, log):
     """Give rows without weight the weights of a co-located vertex, else the nearest joint.
 
-    ``parts``: list of dicts with ``name``, ``positions`` (bind space), ``joints``,
-    ``weights``, ``empty`` (modified in place).
+    Parameters
+    ----------
+    parts : list of dict
+        The skinned primitives of one skin, each with ``name``, ``positions`` (n, 3) in bind
+        space, ``joints`` (n, K) and ``weights`` (n, K) as returned by :func:`repair_weights`,
+        ``empty`` (n,) bool and ``nonfinite`` (n,) bool (for the messages). ``joints`` and
+        ``weights`` are filled in place.
+    skeleton : Skeleton
+        Its inverse binds give the joints' bind positions.
+    log : callable
+        Receives one message per mesh and kind of repair.
+
+    Notes
+    -----
+    A donor is a vertex with weights, of any primitive of the skin, within ``COLOCATED`` x the
+    bind bounding-box diagonal (seams split vertices, so a defective vertex often has a healthy
+    twin). Without one the row gets weight 1 on the joint whose bind position is nearest.
     """
     if not any(p["empty"].any() for p in parts):
         return
