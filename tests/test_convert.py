@@ -72,3 +72,23 @@ def test_bad_targets_are_clear_errors(tmp_path):
     with pytest.raises(RigmixError, match="cannot write format"):
         save_character(load_character(src), tmp_path / "x.fbx")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_usd_back_to_glb_is_valid_and_poses_the_same(tmp_path):
+    """glb -> usdc -> glb: the Khronos validator finds no error and every frame poses the same."""
+    from rigmix.animation import clip_times
+    from rigmix.io.validator import validate_gltf, validator_available
+
+    from test_usd import posed_error
+
+    usd = tmp_path / "knight.usdc"
+    original = convert(asset("Knight"), usd)
+    glb = tmp_path / "knight.glb"
+    convert(usd, glb)
+    back = load_character(glb)
+    assert back.skeleton.names == original.skeleton.names
+    assert [c.name for c in back.clips] == [c.name for c in original.clips]
+    assert posed_error(original, back, clip_times) < 1e-5
+    if validator_available():
+        report = validate_gltf(glb)
+        assert report["issues"]["numErrors"] == 0, report["issues"]["messages"][:5]

@@ -16,6 +16,10 @@ __all__ = ["load_character", "READERS"]
 READERS = {
     ".glb": "rigmix.io.gltf:read_gltf",
     ".gltf": "rigmix.io.gltf:read_gltf",
+    ".usda": "rigmix.io.usd_read:read_usd",
+    ".usdc": "rigmix.io.usd_read:read_usd",
+    ".usd": "rigmix.io.usd_read:read_usd",
+    ".usdz": "rigmix.io.usd_read:read_usd",
 }
 
 

@@ -64,7 +64,8 @@ def convert(source, target):
     Parameters
     ----------
     source : str or Path
-        Any file :func:`rigmix.io.load_character` reads (``.glb``, ``.gltf``).
+        Any file :func:`rigmix.io.load_character` reads (``.glb``, ``.gltf``, and the UsdSkel
+        files :mod:`rigmix.io.usd_read` reads: ``.usda``, ``.usdc``, ``.usd``, ``.usdz``).
     target : str or Path
         ``.usda``, ``.usdc``, ``.usd`` (crate), ``.usdz``, ``.glb`` or ``.gltf``.
 
