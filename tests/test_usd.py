@@ -553,6 +553,7 @@ def test_usdz_round_trip_keeps_props_textures_and_colours(tmp_path):
     back = load_character(tmp_path / "deco.usdz")
     assert back.materials[0].base_color_texture.data == ch.materials[0].base_color_texture.data  # inside the zip
     assert back.materials[0].alpha_mode == "BLEND" and back.materials[1].alpha_mode == "OPAQUE"
+    assert back.materials[0].double_sided and not back.materials[1].double_sided
     np.testing.assert_allclose(back.materials[0].base_color, ch.materials[0].base_color, atol=1e-7)
     assert [(p.mesh.name, p.joint) for p in back.props] == [("sword", 2), ("rock", -1)]
     np.testing.assert_allclose(back.meshes[0].colors, ch.meshes[0].colors, atol=1e-6)

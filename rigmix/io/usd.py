@@ -51,6 +51,9 @@ renamed over the target (textures likewise, before the layer), so an error never
 partial file. ``.usda`` (text), ``.usdc`` and ``.usd`` (crate) write textures into a
 ``textures/`` folder next to the file; ``.usdz`` packages the layer and its textures.
 
+:func:`rigmix.io.usd_read.read_usd` reads these files back (``tests/test_usd.py`` checks that
+every frame of every clip poses the same after the round trip).
+
 Not written: blend shapes (rigmix does not read morph targets), texture transforms, metallic /
 roughness / normal / occlusion / emissive textures (the model keeps only the base colour one).
 """

@@ -28,6 +28,7 @@ Reads what :func:`rigmix.io.usd.write_usd` writes, and ordinary UsdSkel assets o
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -117,6 +118,11 @@ def read_usd(path) -> Character:
         meshes.append(Mesh(mesh.name, mesh.positions, mesh.faces, mesh.normals, mesh.uvs, mesh.colors,
                            joints, weights, mesh.material))
     clips = _clips(path, prims, skeleton, skels[0], tcps) if skels else ()
+    # glTF keeps doubleSided on the material, USD on the mesh
+    for prim in prims:
+        i = mat_of.get(prim.GetPath(), -1)
+        if i >= 0 and UsdGeom.Mesh(prim).GetDoubleSidedAttr().Get():
+            materials[i] = replace(materials[i], double_sided=True)
     name = top.GetCustomDataByKey("rigmix:name") if top.IsValid() and top != stage.GetPseudoRoot() else None
     return Character(name or (top.GetName() if top != stage.GetPseudoRoot() else path.stem), skeleton,
                      tuple(meshes), clips, tuple(materials), tuple(props), str(path), tuple(warnings))
