@@ -12,8 +12,8 @@ frame, among all frames of all clips of the other input(s) Y:
 4. score all pairs (query frame of X, candidate frame of Y) with one matrix product
    (:func:`keyframe_scores`), add the temporal continuity terms as shifted-diagonal sums
    (:func:`continuity_scores`), pick the frames (:func:`choose_frames`);
-5. assemble, then smooth lightly around the seams where the chosen frames jump
-   (:func:`smooth_seams`).
+5. assemble; where the chosen frames jump (seams), fade the jump out over a few frames
+   (:func:`blend_seams`) and smooth lightly around it (:func:`smooth_seams`).
 
 The rotation term
 -----------------
@@ -38,8 +38,13 @@ Choices where the method leaves room (all options of :class:`CompletionOptions`)
 * Frame choice: the paper takes the best frame per output frame (``jump_penalty=0``); a
   positive ``jump_penalty`` runs a Viterbi pass where continuing to the next frame of the same
   clip is free and any other jump costs the penalty (fewer seams, smoother completed part).
-* Smoothing: Gaussian over the completed joints only, near seams; continuous playback of a
-  source clip is left exactly as it was (self-composition reproduces the clips exactly).
+  Default 0.2 (scores are in [0, 1] per frame), measured on the pipeline's Horse + Knight
+  centaur: mean angular acceleration of the completed joints over that of their source clips
+  4.5 with the paper's rule, 2.4 with a penalty of 0.05, 0.65 with 0.2.
+* Seams (jumps between non-consecutive source frames that make a real discontinuity): the jump
+  fades out over ``blend_frames`` (inertial blending), then a Gaussian smoothing acts near the
+  seam only, on the completed joints only; continuous playback of a source clip is left
+  exactly as it was (self-composition reproduces the clips exactly).
 """
 
 from __future__ import annotations
@@ -67,6 +72,7 @@ __all__ = [
     "keyframe_scores",
     "continuity_scores",
     "choose_frames",
+    "blend_seams",
     "smooth_seams",
     "angular_acceleration",
 ]
@@ -87,6 +93,8 @@ class FixedFrame:
     Output frame ``frame`` of the completion of clip ``clip`` of input ``character`` takes the
     completed part from frame ``source_frame`` of clip ``source_clip`` of input ``source``.
     Frames count at the completion rate (``CompletionOptions.fps``) from each clip's start.
+    The choice is pinned; the seam blending and smoothing still act around it (set
+    ``blend_frames=0`` and ``smoothing=0`` to get that source frame exactly).
     """
 
     character: str
@@ -127,6 +135,9 @@ class CompletionOptions:
     smoothing : float
         Standard deviation, in frames, of the Gaussian smoothing of the completed joints
         around seams (0: none).
+    blend_frames : int
+        Frames over which the jump at a seam fades out (inertial blending, 0: none) before the
+        smoothing.
     confidence_blend : bool
         Blend mapped rotations toward identity (rest) by ``1 - confidence``.
     score_dtype : {"float32", "float64"}
@@ -145,8 +156,9 @@ class CompletionOptions:
     hops_full: int = 2
     hops_max: int = 8
     metric: Literal["squared", "abs"] = "squared"
-    jump_penalty: float = 0.05
+    jump_penalty: float = 0.2
     smoothing: float = 1.5
+    blend_frames: int = 8
     confidence_blend: bool = True
     score_dtype: Literal["float32", "float64"] = "float32"
     fixed_frames: tuple[FixedFrame, ...] = field(default_factory=tuple)
@@ -619,6 +631,58 @@ def choose_frames(score, segment_b, *, jump_penalty=0.0, fixed=None) -> np.ndarr
     return path
 
 
+def blend_seams(R, T, seams, frames) -> tuple[np.ndarray, np.ndarray]:
+    """Remove the jumps at seams with offsets that fade out (inertial blending).
+
+    At a seam ``t -> t + 1`` the pose the old frames were heading to (constant-velocity
+    extrapolation of frames ``t - 1, t``) replaces frame ``t + 1``; the offset between the two
+    fades to zero over ``frames`` frames with a smoothstep (zero slope at both ends), so the
+    new frames take over without a jump. Seams are processed in order, each from the frames
+    already corrected.
+
+    Parameters
+    ----------
+    R : (F, J, 4) float array
+        Local rotations, xyzw.
+    T : (F, J, 3) float array
+        Local translations.
+    seams : (s,) int array
+        Frames ``t`` such that ``t -> t + 1`` jumps.
+    frames : int
+        Length of the fade (0: none).
+
+    Returns
+    -------
+    R : (F, J, 4) float64, T : (F, J, 3) float64
+    """
+    R = quat_normalize(R).copy()
+    T = np.asarray(T, dtype=np.float64).copy()
+    F = len(R)
+    if frames <= 0:
+        return R, T
+    for t in np.unique(np.asarray(seams, dtype=np.int64)):
+        if not 0 <= t < F - 1:
+            continue
+        if t >= 1:
+            vel = quat_multiply(quat_conjugate(R[t - 1]), R[t])
+            r_ext = quat_multiply(R[t], vel)
+            t_ext = 2 * T[t] - T[t - 1]
+        else:
+            r_ext, t_ext = R[t], T[t]
+        off_r = quat_multiply(r_ext, quat_conjugate(R[t + 1]))  # (J, 4), left offset
+        off_r = np.where(off_r[..., 3:4] < 0, -off_r, off_r)
+        off_t = t_ext - T[t + 1]
+        n = min(int(frames), F - 1 - t)
+        x = np.arange(n) / float(frames)
+        fade = 1.0 - (3 * x**2 - 2 * x**3)  # 1 at the seam, 0 after `frames`
+        span = slice(t + 1, t + 1 + n)
+        off = quat_slerp(np.broadcast_to(_IDENTITY, (n,) + off_r.shape),
+                         np.broadcast_to(off_r, (n,) + off_r.shape), fade[:, None])
+        R[span] = quat_multiply(off, R[span])
+        T[span] += fade[:, None, None] * off_t
+    return R, T
+
+
 def smooth_seams(R, T, seams, sigma) -> tuple[np.ndarray, np.ndarray]:
     """Gaussian smoothing of rotation and translation tracks near seams only.
 
@@ -939,7 +1003,8 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
             logger.debug("completion: %r of %r from %r: %d seams", clip_name, cid, y, jumps.size)
         if completed_joints.size and seams:
             s = np.unique(np.concatenate(seams))
-            Rc, Tc = smooth_seams(R[:, completed_joints], T[:, completed_joints], s, options.smoothing)
+            Rc, Tc = blend_seams(R[:, completed_joints], T[:, completed_joints], s, options.blend_frames)
+            Rc, Tc = smooth_seams(Rc, Tc, s, options.smoothing)
             R[:, completed_joints] = Rc
             T[:, completed_joints] = Tc
         out.append(_to_clip(out_name, fx.times[c], T, R, S))

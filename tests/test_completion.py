@@ -4,6 +4,7 @@ on the shared Fox, and a centaur (two different characters) for coverage and smo
 from __future__ import annotations
 
 import itertools
+from pathlib import Path
 from dataclasses import dataclass
 
 import numpy as np
@@ -97,6 +98,10 @@ def graft(base, base_id, onto, donor, donor_id, root, *, drop=None, extra=()):
     return skel, prov, maps
 
 
+#: Mean angular acceleration (rad/s^2) below which joints count as not animated.
+STATIC = 0.05
+
+
 def acceleration_figures(skeleton, inputs, maps, provenance, clips, keys):
     """Mean angular acceleration of the completed joints, output over source, per input.
 
@@ -123,9 +128,14 @@ def acceleration_figures(skeleton, inputs, maps, provenance, clips, keys):
                 _, Ro, _, _ = map_pose(skeleton, ch.skeleton, maps[y], T, R, S)
                 acc_src.append(angular_acceleration(Ro[:, comp]).ravel())
         a, b = np.concatenate(acc_out), np.concatenate(acc_src)
+        if b.mean() < STATIC:  # the source barely moves these joints: no meaningful ratio
+            out[x] = {"mean_ratio": None, "p95_ratio": None, "max_ratio": None,
+                      "mean_output": float(a.mean()), "mean_source": float(b.mean())}
+            continue
         out[x] = {"mean_ratio": float(a.mean() / b.mean()),
                   "p95_ratio": float(np.percentile(a, 95) / np.percentile(b, 95)),
-                  "max_ratio": float(a.max() / b.max())}
+                  "max_ratio": float(a.max() / b.max()),
+                  "mean_output": float(a.mean()), "mean_source": float(b.mean())}
     return out
 
 
@@ -245,6 +255,24 @@ def test_angular_acceleration_of_constant_and_accelerating_spin():
         np.testing.assert_allclose(acc, alpha, atol=1e-6)
 
 
+def test_blend_seams_removes_the_jump_and_fades_out():
+    from rigmix.completion import blend_seams
+
+    t = np.arange(40) / 30.0
+    angle = 1.5 * t
+    angle[20:] -= 0.6  # a jump of -0.6 rad between frames 19 and 20
+    q = np.stack([np.zeros_like(t), np.sin(angle / 2), np.zeros_like(t), np.cos(angle / 2)], -1)[:, None]
+    T = np.zeros((40, 1, 3))
+    T[20:, 0, 0] = 1.0
+    Rb, Tb = blend_seams(q, T, [19], 8)
+    step = quat_angle(Rb[1:], Rb[:-1])[:, 0]
+    assert step[19] == pytest.approx(1.5 / 30, abs=1e-9)  # the seam continues the motion
+    assert step.max() <= 1.5 / 30 + 0.6 * 1.5 / 8 + 1e-9  # the offset fades at most 1.5/8 per frame
+    np.testing.assert_allclose(quat_angle(Rb[28:], q[28:]), 0.0, atol=1e-12)  # faded out
+    np.testing.assert_allclose(Rb[:20], q[:20])
+    assert abs(Tb[20, 0, 0]) < 1e-12 and Tb[28, 0, 0] == 1.0
+
+
 def test_smooth_seams_leaves_frames_far_from_seams_untouched():
     rng = np.random.default_rng(2)
     R = random_quats(rng, (60, 2))
@@ -349,7 +377,7 @@ def test_fixed_frames_and_sources_are_honoured(fox):
     J = sk.num_joints
     tail = sk.index("b_Tail01_012")
     opts = CompletionOptions(
-        clips={"A": ["Survey"]}, sources={"B": ["Walk"]}, smoothing=0.0,
+        clips={"A": ["Survey"]}, sources={"B": ["Walk"]}, smoothing=0.0, blend_frames=0,
         fixed_frames=(FixedFrame("A", "Survey", 10, "B", "Walk", 3),))
     clips, part = _self_compose(fox, tail, opts)
     (clip,) = clips
@@ -407,7 +435,7 @@ def test_centaur_from_examples_completes_everything_smoothly():
     assert [c.name for c in clips] == ["quad:walk", "trot", "quad:idle", "human:walk", "human:idle"]
     figs = _check_centaur(skel, inputs, maps, prov, clips)
     for x, f in figs.items():
-        assert f["mean_ratio"] <= 2.0, (x, f)
+        assert f["mean_ratio"] is None or f["mean_ratio"] <= 2.0, (x, f)
 
 
 @pytest.fixture(scope="module")
@@ -429,7 +457,7 @@ def test_centaur_horse_knight(centaur):
     assert [c.name for c in clips] == [c.name for ch in inputs.values() for c in ch.clips]
     figs = _check_centaur(skel, inputs, maps, prov, clips)
     for x, f in figs.items():
-        assert f["mean_ratio"] <= 2.0, (x, f)
+        assert f["mean_ratio"] is None or f["mean_ratio"] <= 2.0, (x, f)
 
 
 def test_global_positions_match_matrix_forward_kinematics(fox):
@@ -441,3 +469,42 @@ def test_global_positions_match_matrix_forward_kinematics(fox):
     want = fox.skeleton.world_matrices(trs_to_matrix(T, R, S))[..., :3, 3]
     got = _global_positions(fox.skeleton, T, R, S)
     np.testing.assert_allclose(got, want, atol=1e-9 * np.abs(want).max())
+
+
+# --------------------------------------------------------------------------------------------
+# through the real pipeline: operations and mapping stages, then completion
+
+
+def _compose_until_mapping(config, *assets):
+    import rigmix
+
+    for name in assets:
+        asset(name)  # skip (or fail under CI) when an asset is missing
+    return rigmix.compose(Path(__file__).parent / "configs" / config, until="mapping")
+
+
+def test_pipeline_self_composition_reproduces_the_clip():
+    comp = _compose_until_mapping("self_composition.toml", "CesiumMan")
+    plan = comp.plan
+    clips = complete_clips(plan.skeleton, comp.inputs, comp.maps, provenance=plan.provenance)
+    keys = [(cid, c.name) for cid, ch in comp.inputs.items() for c in ch.clips]
+    assert len(clips) == len(keys) == 2
+    for clip, (cid, name) in zip(clips, keys):
+        src = comp.inputs[cid]
+        target = np.asarray(comp.maps[cid].target)
+        ok = np.flatnonzero(target >= 0)
+        assert ok.size == src.skeleton.num_joints  # every joint has its copy in S_R
+        err = _angles_to_source(plan.skeleton, clip, src, src.clip(name), target[ok], ok)
+        assert err.max() < 1e-3, (cid, name, float(err.max()))
+
+
+@pytest.mark.parametrize("config, assets", [("centaur.toml", ("Horse", "Knight")),
+                                            ("tail_graft.toml", ("CesiumMan", "Velociraptor"))])
+def test_pipeline_centaur_and_tail_graft(config, assets):
+    comp = _compose_until_mapping(config, *assets)
+    plan = comp.plan
+    clips = complete_clips(plan.skeleton, comp.inputs, comp.maps, provenance=plan.provenance)
+    figs = _check_centaur(plan.skeleton, comp.inputs, comp.maps, plan.provenance, clips)
+    assert any(f["mean_ratio"] is not None for f in figs.values())
+    for x, f in figs.items():
+        assert f["mean_ratio"] is None or f["mean_ratio"] <= 2.0, (config, x, f)
