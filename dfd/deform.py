@@ -1,0 +1,93 @@
+"""Deformation by linear blending of handle affine maps (PIPELINE.md section 6).
+
+Each vertex blends its handles' affine maps ``A_h p + t_h`` by its weights, plus a simulated
+control point that never moves and carries ``max(0, 1 - sum_h w_h)`` of the identity; the
+weights are then divided by their total ``max(1, sum_h w_h)``:
+
+    v' = v + sum_h w_h ((A_h - I) v + t_h) / max(1, sum_h w_h)
+
+Written as a displacement, zero motion reproduces the mesh bit for bit.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from dfd.errors import DfdInputError
+
+__all__ = ["deform", "deform_reference", "translations"]
+
+
+def _check(V, W, transforms):
+    V = np.asarray(V)
+    W = np.asarray(W)
+    T = np.asarray(transforms, dtype=np.float64)
+    if T.ndim == 3 and T.shape[1:] == (4, 4):
+        T = T[:, :3, :]
+    if V.ndim != 2 or V.shape[1] != 3:
+        raise DfdInputError(f"deform: V must be (n, 3), got {V.shape}")
+    if T.ndim != 3 or T.shape[1:] != (3, 4):
+        raise DfdInputError(f"deform: transforms must be (h, 3, 4) or (h, 4, 4), got {T.shape}")
+    if W.shape != (len(V), len(T)):
+        raise DfdInputError(f"deform: W must be (n, h) = ({len(V)}, {len(T)}), got {W.shape}")
+    return V, W, T
+
+
+def deform(V, W, transforms):
+    """Deform vertices by blending handle affine maps with a simulated control point.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+        Rest positions, mesh coordinates.
+    W : (n, h) float array
+        Handle weights, non-negative (e.g. :func:`dfd.weights.handle_weights`); rows may sum to
+        less than 1 (the simulated control point takes the rest) or more (then they are
+        normalized).
+    transforms : (h, 3, 4) or (h, 4, 4) float array
+        Affine map of each handle, acting on column vectors: ``p' = T[:, :3] @ p + T[:, 3]``.
+
+    Returns
+    -------
+    (n, 3) array of ``V``'s floating dtype
+        Deformed positions; exactly ``V`` when every transform is the identity.
+    """
+    V, W, T = _check(V, W, transforms)
+    out_dtype = V.dtype if np.issubdtype(V.dtype, np.floating) else np.float64
+    D = T.copy()
+    D[:, :, :3] -= np.eye(3)  # displacement maps: zero for a handle that does not move
+    # one pass over W gives both the blended displacement maps (12 columns) and the weight sums
+    work = np.float32 if W.dtype == np.float32 else np.float64
+    Dm = np.concatenate([D.reshape(len(T), 12), np.ones((len(T), 1))], axis=1).astype(work)
+    M = torch.from_numpy(np.ascontiguousarray(W, dtype=work)) @ torch.from_numpy(Dm)  # (n, 13)
+    M = M.numpy()
+    total = np.maximum(M[:, 12], 1.0)
+    M = M[:, :12] / total[:, None]
+    Vf = V.astype(work, copy=False)
+    disp = np.empty((len(V), 3), dtype=work)
+    for r in range(3):
+        row = M[:, 4 * r : 4 * r + 4]  # row r of each vertex's blended (A - I | t)
+        disp[:, r] = row[:, 0] * Vf[:, 0] + row[:, 1] * Vf[:, 1] + row[:, 2] * Vf[:, 2] + row[:, 3]
+    return (V.astype(out_dtype) + disp.astype(out_dtype)).astype(out_dtype)
+
+
+def deform_reference(V, W, transforms):
+    """Slow, literal version of :func:`deform` (per-handle loop), kept for tests."""
+    V, W, T = _check(V, W, transforms)
+    V = V.astype(np.float64)
+    W = W.astype(np.float64)
+    control = np.maximum(0.0, 1.0 - W.sum(axis=1))
+    out = control[:, None] * V
+    for h in range(len(T)):
+        out += W[:, h : h + 1] * (V @ T[h, :, :3].T + T[h, :, 3])
+    return out / (W.sum(axis=1) + control)[:, None]
+
+
+def translations(offsets):
+    """Pure translation maps ``(h, 3, 4)`` from offsets ``(h, 3)``."""
+    offsets = np.asarray(offsets, dtype=np.float64).reshape(-1, 3)
+    T = np.zeros((len(offsets), 3, 4))
+    T[:, :, :3] = np.eye(3)
+    T[:, :, 3] = offsets
+    return T
