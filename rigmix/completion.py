@@ -49,6 +49,7 @@ Choices where the method leaves room (all options of :class:`CompletionOptions`)
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 from typing import Literal, Mapping, Sequence
@@ -75,6 +76,8 @@ __all__ = [
     "blend_seams",
     "smooth_seams",
     "angular_acceleration",
+    "options_from_config",
+    "completion_stage",
 ]
 
 logger = logging.getLogger(__name__)
@@ -608,10 +611,11 @@ def choose_frames(score, segment_b, *, jump_penalty=0.0, fixed=None) -> np.ndarr
     if jump_penalty <= 0:
         return np.argmax(score, axis=1).astype(np.int64)
     succ = _segments_next(segment_b)
-    pred = np.full(Fb, Fb)  # index Fb reads the -inf padding: no predecessor
+    index = np.int32 if Fb < 2**31 - 1 else np.int64
+    pred = np.full(Fb, Fb, dtype=index)  # index Fb reads the -inf padding: no predecessor
     has = succ >= 0
     pred[succ[has]] = np.flatnonzero(has)
-    back = np.empty((Fa, Fb), dtype=np.int64)
+    back = np.empty((Fa, Fb), dtype=index)
     Vp = np.empty(Fb + 1)
     Vp[Fb] = -np.inf
     Vp[:Fb] = score[0]
@@ -620,7 +624,7 @@ def choose_frames(score, segment_b, *, jump_penalty=0.0, fixed=None) -> np.ndarr
         jump = Vp[best] - jump_penalty
         stay = Vp[pred]
         take_stay = stay >= jump
-        back[a] = np.where(take_stay, pred, best)
+        back[a] = np.where(take_stay, pred, index(best))
         np.maximum(stay, jump, out=stay)
         np.add(score[a], stay, out=Vp[:Fb])
     V = Vp[:Fb]
@@ -1040,3 +1044,51 @@ def _to_clip(name, times, T, R, S):
         tracks.append(Track(j, "rotation", times, R[:, j], "LINEAR"))
         tracks.append(Track(j, "scale", times, S[:, j], "LINEAR"))
     return Clip(name, tuple(tracks))
+
+
+def options_from_config(section) -> CompletionOptions:
+    """:class:`CompletionOptions` from a config section (pydantic model, mapping or None).
+
+    Unknown keys are an :class:`InputError` naming them and the known ones; fixed frames may
+    be given as mappings with the fields of :class:`FixedFrame`.
+    """
+    if section is None:
+        return CompletionOptions()
+    if isinstance(section, CompletionOptions):
+        return section
+    data = section.model_dump() if hasattr(section, "model_dump") else dict(section)
+    known = {f.name for f in dataclasses.fields(CompletionOptions)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise InputError(f"completion: unknown animation option(s) {unknown}; known: {sorted(known)}")
+    if "fixed_frames" in data:
+        data["fixed_frames"] = tuple(ff if isinstance(ff, FixedFrame) else FixedFrame(**dict(ff))
+                                     for ff in data["fixed_frames"] or ())
+    if "continuity" in data and data["continuity"] is not None:
+        data["continuity"] = tuple(data["continuity"])
+    return CompletionOptions(**{k: v for k, v in data.items() if v is not None or k in ("clips", "sources")})
+
+
+def completion_stage(composition, progress=None):
+    """The animation stage of :func:`rigmix.pipeline.compose`: A_R from the plan and the maps.
+
+    Reads the options from ``composition.config.animation`` when the config has that section;
+    completes the clips of the inputs as loaded (rest-relative deltas carry them onto S_R,
+    whatever scale and rest pose the positioning chose).
+
+    Returns
+    -------
+    Composition
+        With ``stages["clips"]`` (tuple of Clip on S_R) and ``report["animation"]``.
+    """
+    from dataclasses import replace
+
+    options = options_from_config(getattr(composition.config, "animation", None))
+    plan = composition.plan
+    clips = complete_clips(plan.skeleton, composition.inputs, composition.maps,
+                           options=options, provenance=plan.provenance)
+    report = {"clips": [c.name for c in clips], "fps": options.fps,
+              "frames": [int(len(c.tracks[0].times)) if c.tracks else 0 for c in clips],
+              "jump_penalty": options.jump_penalty, "metric": options.metric}
+    return replace(composition, stages={**composition.stages, "clips": clips},
+                   report={**composition.report, "animation": report})

@@ -508,3 +508,28 @@ def test_pipeline_centaur_and_tail_graft(config, assets):
     assert any(f["mean_ratio"] is not None for f in figs.values())
     for x, f in figs.items():
         assert f["mean_ratio"] is None or f["mean_ratio"] <= 2.0, (config, x, f)
+
+
+def test_completion_stage_on_the_builtin_centaur():
+    """The stage as the pipeline runs it, on examples/centaur.toml (built-in characters)."""
+    import dataclasses
+
+    import rigmix
+    from rigmix.completion import completion_stage, options_from_config
+
+    comp = rigmix.compose(Path(__file__).parent.parent / "examples" / "centaur.toml", until="mapping")
+    out = completion_stage(comp)
+    clips = out.stages["clips"]
+    assert [c.name for c in clips] == ["body:walk", "trot", "body:idle", "rider:walk", "rider:idle"]
+    assert out.report["animation"]["clips"] == [c.name for c in clips]
+    figs = _check_centaur(comp.plan.skeleton, comp.inputs, comp.maps, comp.plan.provenance, clips)
+    for x, f in figs.items():
+        assert f["mean_ratio"] is None or f["mean_ratio"] <= 2.0, (x, f)
+    # options from a config section
+    opts = options_from_config({"jump_penalty": 0.1, "fixed_frames": [
+        {"character": "body", "clip": "walk", "frame": 0, "source": "rider", "source_clip": "idle",
+         "source_frame": 0}]})
+    assert opts.jump_penalty == 0.1 and isinstance(opts.fixed_frames[0], FixedFrame)
+    with pytest.raises(InputError, match="unknown animation option"):
+        options_from_config({"jump": 1})
+    assert dataclasses.asdict(options_from_config(None)) == dataclasses.asdict(CompletionOptions())
