@@ -1,0 +1,208 @@
+"""Topology and quality helpers for the fusion stage (welded triangle meshes).
+
+All functions take plain arrays: ``V`` (n, 3) positions, ``F`` (m, 3) triangles. Faces with a
+repeated corner (collapsed by welding) are "degenerate" and ignored by the topology helpers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+__all__ = [
+    "nondegenerate",
+    "undirected_edges",
+    "face_adjacency",
+    "vertex_adjacency",
+    "vertex_components",
+    "boundary_halfedges",
+    "edges_to_loops",
+    "triangle_min_angles",
+    "edge_counts",
+    "average_edge_length",
+]
+
+
+def nondegenerate(F):
+    """``(m,)`` bool: faces whose three corners are distinct."""
+    F = np.asarray(F, dtype=np.int64).reshape(-1, 3)
+    return (F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 0] != F[:, 2])
+
+
+def undirected_edges(F):
+    """Edges of every face corner.
+
+    Returns
+    -------
+    E : (3m, 2) int64
+        Directed half-edges ``F[f, c] -> F[f, c+1]`` in corner order (face ``f`` at rows
+        ``f, m+f, 2m+f``).
+    uE : (k, 2) int64
+        Unique undirected edges (sorted pairs).
+    emap : (3m,) int64
+        ``uE[emap[i]]`` is the undirected edge of half-edge ``i``.
+    """
+    F = np.asarray(F, dtype=np.int64).reshape(-1, 3)
+    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    S = np.sort(E, axis=1)
+    uE, emap = np.unique(S, axis=0, return_inverse=True)
+    return E, uE.reshape(-1, 2), emap.reshape(-1)
+
+
+def edge_counts(F):
+    """Unique undirected edges of the non-degenerate faces and how many faces use each.
+
+    Returns
+    -------
+    uE : (k, 2) int64
+    count : (k,) int64
+    """
+    F = np.asarray(F, dtype=np.int64).reshape(-1, 3)
+    F = F[nondegenerate(F)]
+    if len(F) == 0:
+        return np.zeros((0, 2), np.int64), np.zeros(0, np.int64)
+    _, uE, emap = undirected_edges(F)
+    return uE, np.bincount(emap, minlength=len(uE))
+
+
+def face_adjacency(F):
+    """Faces sharing an edge (non-degenerate faces only).
+
+    Returns
+    -------
+    A : (m, m) scipy.sparse.csr_matrix of bool
+        Symmetric, no diagonal.
+    """
+    F = np.asarray(F, dtype=np.int64).reshape(-1, 3)
+    m = len(F)
+    ok = nondegenerate(F)
+    idx = np.flatnonzero(ok)
+    if len(idx) == 0:
+        return sp.csr_matrix((m, m), dtype=bool)
+    _, uE, emap = undirected_edges(F[idx])
+    face = np.tile(idx, 3)
+    # incidence edge x face, then face x face through shared edges
+    Inc = sp.csr_matrix((np.ones(len(emap)), (emap, face)), shape=(len(uE), m))
+    A = (Inc.T @ Inc).tocsr()
+    A.setdiag(0)
+    A.eliminate_zeros()
+    return (A > 0).tocsr()
+
+
+def vertex_adjacency(F, n):
+    """Vertices sharing an edge, ``(n, n)`` symmetric sparse bool matrix."""
+    F = np.asarray(F, dtype=np.int64).reshape(-1, 3)
+    F = F[nondegenerate(F)]
+    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    A = sp.csr_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(n, n))
+    A = ((A + A.T) > 0).tocsr()
+    return A
+
+
+def vertex_components(F, n):
+    """Connected components of the vertices through the faces.
+
+    Returns
+    -------
+    labels : (n,) int64
+        Component of each vertex (isolated vertices get their own).
+    """
+    _, labels = connected_components(vertex_adjacency(F, n), directed=False)
+    return labels.astype(np.int64)
+
+
+def boundary_halfedges(F):
+    """Half-edges of the faces whose undirected edge has exactly one incident face.
+
+    Returns
+    -------
+    B : (b, 2) int64
+        Directed as in their face (the face lies to the left when walking ``B[i,0] -> B[i,1]``
+        on a counter-clockwise face).
+    """
+    F = np.asarray(F, dtype=np.int64).reshape(-1, 3)
+    F = F[nondegenerate(F)]
+    if len(F) == 0:
+        return np.zeros((0, 2), np.int64)
+    E, uE, emap = undirected_edges(F)
+    count = np.bincount(emap, minlength=len(uE))
+    return E[count[emap] == 1]
+
+
+def edges_to_loops(B):
+    """Chain directed edges into closed loops (or open chains where they do not close).
+
+    Parameters
+    ----------
+    B : (b, 2) int
+        Directed edges, each used once.
+
+    Returns
+    -------
+    loops : list of (k,) int64 arrays
+        Vertex sequences; ``loops[i][-1] -> loops[i][0]`` closes the loop when ``closed[i]``.
+    closed : list of bool
+    """
+    B = np.asarray(B, dtype=np.int64).reshape(-1, 2)
+    out: dict[int, list[int]] = {}
+    for e, (a, _) in enumerate(B):
+        out.setdefault(int(a), []).append(e)
+    indeg: dict[int, int] = {}
+    for b in B[:, 1]:
+        indeg[int(b)] = indeg.get(int(b), 0) + 1
+    used = np.zeros(len(B), dtype=bool)
+    loops, closed = [], []
+    # start open chains at vertices with no incoming edge, then close the rest
+    starts = [e for e in range(len(B)) if indeg.get(int(B[e, 0]), 0) == 0]
+    order = starts + list(range(len(B)))
+    for e0 in order:
+        if used[e0]:
+            continue
+        seq = [int(B[e0, 0])]
+        e = e0
+        while True:
+            used[e] = True
+            v = int(B[e, 1])
+            if v == seq[0]:
+                loops.append(np.array(seq, np.int64))
+                closed.append(True)
+                break
+            cand = [c for c in out.get(v, []) if not used[c]]
+            if not cand:
+                seq.append(v)
+                loops.append(np.array(seq, np.int64))
+                closed.append(False)
+                break
+            seq.append(v)
+            e = cand[0]
+    return loops, closed
+
+
+def triangle_min_angles(V, F):
+    """Smallest interior angle of each triangle, ``(m,)`` degrees (0 for degenerate ones)."""
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64).reshape(-1, 3)
+    if len(F) == 0:
+        return np.zeros(0)
+    P = V[F]  # (m, 3, 3)
+    ang = []
+    for c in range(3):
+        u = P[:, (c + 1) % 3] - P[:, c]
+        w = P[:, (c + 2) % 3] - P[:, c]
+        nu = np.linalg.norm(u, axis=1)
+        nw = np.linalg.norm(w, axis=1)
+        cos = np.einsum("ij,ij->i", u, w) / np.maximum(nu * nw, 1e-300)
+        a = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+        a[(nu == 0) | (nw == 0)] = 0.0
+        ang.append(a)
+    return np.min(np.stack(ang, axis=1), axis=1)
+
+
+def average_edge_length(V, F):
+    """Mean length of the unique edges of the non-degenerate faces (0 if none)."""
+    uE, _ = edge_counts(F)
+    if len(uE) == 0:
+        return 0.0
+    V = np.asarray(V, dtype=np.float64)
+    return float(np.linalg.norm(V[uE[:, 0]] - V[uE[:, 1]], axis=1).mean())

@@ -1,0 +1,82 @@
+"""Isosurface, cut and loop-to-loop bridging (PIPELINE.md section 3)."""
+
+import numpy as np
+import pytest
+
+from rigmix.fusion.junction import boundary_loops, bridge_loops, clip_mesh, isosurface
+from rigmix.fusion.meshutil import boundary_halfedges, edge_counts
+from rigmix.fusion.remesh import flip_to_improve_angles
+from rigmix.fusion.meshutil import triangle_min_angles
+
+from fusion_shapes import sphere
+
+
+def signed_volume(V, F):
+    P = V[F]
+    return np.einsum("ij,ij->i", P[:, 0], np.cross(P[:, 1], P[:, 2])).sum() / 6
+
+
+def test_isosurface_of_a_sphere_is_closed_and_outward():
+    h = 0.05
+    x = np.arange(-1, 1 + h / 2, h)
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+    field = np.sqrt(X**2 + Y**2 + Z**2) - 0.7
+    V, F = isosurface(field, np.array([-1.0, -1.0, -1.0]), h)
+    _, cnt = edge_counts(F)
+    assert np.all(cnt == 2)
+    assert np.abs(np.linalg.norm(V, axis=1) - 0.7).max() < 0.01
+    assert np.isclose(signed_volume(V, F), 4 / 3 * np.pi * 0.7**3, rtol=0.02)
+
+
+def test_clip_mesh_cuts_exactly_on_the_level_set():
+    V, F = sphere(3)
+    s = V[:, 2] - 0.3
+    Vc, Fc, old = clip_mesh(V, F, s)
+    assert np.all(Vc[:, 2] >= 0.3 - 1e-12)
+    loops, chains = boundary_loops(Vc, Fc)
+    assert len(loops) == 1 and not chains
+    assert np.allclose(loops[0].positions[:, 2], 0.3)
+    # kept old vertices are untouched, new ones lie on the sphere's edges
+    assert np.array_equal(Vc[old >= 0], V[old[old >= 0]])
+    # area of the cap: 2 pi r h on the unit sphere (chords make it slightly smaller)
+    P = Vc[Fc]
+    area = 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1).sum()
+    assert np.isclose(area, 2 * np.pi * 0.7, rtol=0.03)
+    assert signed_volume(np.vstack([Vc]), Fc) > 0  # orientation kept (outward)
+
+
+@pytest.mark.parametrize("n,m,twist", [(12, 12, 0.0), (7, 23, 0.3), (40, 9, 2.0)])
+def test_bridge_two_circles_gives_a_closed_consistent_tube(n, m, twist):
+    # two caps of a cylinder facing each other; bridging must close the tube without gaps
+    a = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    b = np.linspace(0, 2 * np.pi, m, endpoint=False) + twist
+    # boundary of a bottom cap facing -z (clockwise seen from +z) and of a top cap facing +z
+    P = np.stack([np.cos(a), np.sin(a), np.zeros(n)], axis=1)[::-1]
+    Q = np.stack([np.cos(b), np.sin(b), np.full(m, 0.5)], axis=1)
+    T = bridge_loops(P, Q)
+    assert len(T) == n + m
+    V = np.concatenate([P, Q])
+    # with the two caps (fans), the result is a closed oriented surface of positive volume
+    cb = np.array([[n + m, i, (i + 1) % n] for i in range(n)])
+    V2 = np.concatenate([V, [[0, 0, 0], [0, 0, 0.5]]])
+    ct = np.array([[n + m + 1, n + j, n + (j + 1) % m] for j in range(m)])
+    F = np.concatenate([T, cb, ct])
+    _, cnt = edge_counts(F)
+    assert np.all(cnt == 2)
+    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    assert len(np.unique(E, axis=0)) == len(E)  # every directed edge once: consistent
+    assert signed_volume(V2, F) > 0.75 * np.pi * 0.5
+
+
+def test_flips_raise_the_minimum_angle_and_keep_the_border():
+    rng = np.random.default_rng(3)
+    V, F = sphere(2)
+    keep = V[F].mean(axis=1)[:, 2] > 0
+    V2 = V + 0.03 * rng.standard_normal(V.shape)
+    F2 = F[keep][:, [0, 1, 2]]
+    G = flip_to_improve_angles(V2, F2)
+    assert len(G) == len(F2)
+    b0 = {tuple(e) for e in boundary_halfedges(F2)}
+    b1 = {tuple(e) for e in boundary_halfedges(G)}
+    assert b0 == b1
+    assert triangle_min_angles(V2, G).min() >= triangle_min_angles(V2, F2).min()
