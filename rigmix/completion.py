@@ -15,19 +15,8 @@ frame, among all frames of all clips of the other input(s) Y:
 5. assemble; where the chosen frames jump (seams), fade the jump out over a few frames
    (:func:`blend_seams`) and smooth lightly around it (:func:`smooth_seams`).
 
-The rotation term
------------------
-The paper sums ``c_j |<q_a_j, q_b_j>|`` over joints (``|.|`` makes ``q`` and ``-q`` equal).
-The absolute value does not factor into one matrix product, its square does:
-``<q_a, q_b>^2 = <vec(q_a q_a^T), vec(q_b q_b^T)>``, with the 10 unique entries of the
-symmetric outer product as features (off-diagonal ones scaled by sqrt 2). So
-``sum_j w_j <q_a_j, q_b_j>^2`` over all pairs of frames is a single GEMM
-``(F_a, 10 J) @ (10 J, F_b)``, and the translation term (weighted squared distances of joint
-positions, expanded as ``|a|^2 + |b|^2 - 2 a.b``) joins the same GEMM. ``<q_a, q_b>^2 =
-cos^2(theta / 2) = (1 + cos theta) / 2`` is the chordal distance between rotation matrices,
-as sign-invariant as ``|.|`` and, per joint, a monotone function of it. That is the default
-(``metric="squared"``); ``metric="abs"`` computes the paper's ``|.|`` exactly with one small
-GEMM per joint (about ``J`` times the memory traffic; still no loop over pairs).
+The kernels live in :mod:`rigmix.keyframes` (mapping onto S_R, scoring, with the choice of
+the rotation term explained there) and :mod:`rigmix.transitions` (frame choice, seams).
 
 Choices where the method leaves room (all options of :class:`CompletionOptions`)
 -------------------------------------------------------------------------------
@@ -59,13 +48,19 @@ import numpy as np
 from .animation import clip_times, sample_clip
 from .character import Character, Clip, Skeleton, Track
 from .errors import InputError
-from .transforms import (quat_angle, quat_conjugate, quat_multiply, quat_normalize, quat_slerp,
-                         trs_to_matrix)
+from .keyframes import (Candidates, continuity_scores, global_positions, global_rotations,
+                        hop_weights, keyframe_scores, map_pose, rotation_features)
+from .transforms import quat_normalize
+from .transitions import (angular_acceleration, blend_seams, choose_frames, discontinuities,
+                          segments_next, smooth_seams)
 
 __all__ = [
     "FixedFrame",
     "CompletionOptions",
     "complete_clips",
+    "options_from_config",
+    "completion_stage",
+    # the kernels, re-exported
     "map_pose",
     "global_rotations",
     "hop_weights",
@@ -76,14 +71,9 @@ __all__ = [
     "blend_seams",
     "smooth_seams",
     "angular_acceleration",
-    "options_from_config",
-    "completion_stage",
 ]
 
 logger = logging.getLogger(__name__)
-
-_IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])
-
 
 # --------------------------------------------------------------------------------------------
 # options
@@ -180,583 +170,6 @@ class CompletionOptions:
 
 
 # --------------------------------------------------------------------------------------------
-# mapping keyframes onto S_R
-
-
-def _contributors(bone_map, num_out):
-    """For each output joint, the input joints mapped onto it (ascending = topological)."""
-    target = np.asarray(bone_map.target, dtype=np.int64)
-    out = [[] for _ in range(num_out)]
-    for i, o in enumerate(target):
-        if 0 <= o < num_out:
-            out[o].append(i)
-    return out
-
-
-def _map_scale(skeleton_out, skeleton_in, contributors, confidence):
-    """Ratio of output to input bone lengths over the confidence-1 copies (1 if none)."""
-    ratios = []
-    for o, ins in enumerate(contributors):
-        for i in ins:
-            a = np.linalg.norm(skeleton_in.translations[i])
-            b = np.linalg.norm(skeleton_out.translations[o])
-            if confidence[i] >= 1.0 - 1e-9 and a > 1e-9 and b > 1e-9:
-                ratios.append(b / a)
-    return float(np.median(ratios)) if ratios else 1.0
-
-
-def map_pose(skeleton_out: Skeleton, skeleton_in: Skeleton, bone_map, T, R, S, *, blend=True):
-    """Keyframes of one input expressed as local transforms of the output skeleton S_R.
-
-    Rotations move as rest-relative deltas in the joint frame: an output joint ``o`` reached
-    by input joints ``i_1 < ... < i_k`` gets ``R_o = rest_o * D`` with
-    ``D = (rest_i1 ... rest_ik)^-1 (R_i1 ... R_ik)`` (exact for a chain), blended toward
-    identity by ``1 - c`` (``c``: the largest confidence among them). Translations and scales
-    come from the first of them with that confidence, as deltas from its rest value
-    (translations rescaled by the bone-length ratio of the confidence-1 copies). Output joints
-    reached by nothing stay at rest.
-
-    Parameters
-    ----------
-    skeleton_out : Skeleton
-        S_R, ``J`` joints.
-    skeleton_in : Skeleton
-        The input's skeleton, ``J_in`` joints.
-    bone_map : BoneMap
-        ``target (J_in,)`` output joint or -1, ``confidence (J_in,)``.
-    T : (F, J_in, 3) float array
-        Local translations of the input.
-    R : (F, J_in, 4) float array
-        Local rotations, xyzw.
-    S : (F, J_in, 3) float array
-        Local scales.
-    blend : bool
-        Apply the confidence blend toward identity.
-
-    Returns
-    -------
-    T_out : (F, J, 3) float64
-    R_out : (F, J, 4) float64
-    S_out : (F, J, 3) float64
-        Local transforms of S_R.
-    mass : (J,) float64
-        Confidence mass per output joint, ``min(1, sum of confidences)``, 0 where unreached.
-    """
-    J = skeleton_out.num_joints
-    T = np.asarray(T, dtype=np.float64)
-    R = quat_normalize(R)
-    S = np.asarray(S, dtype=np.float64)
-    F = T.shape[0]
-    conf = np.clip(np.asarray(bone_map.confidence, dtype=np.float64), 0.0, 1.0)
-    contributors = _contributors(bone_map, J)
-    k = _map_scale(skeleton_out, skeleton_in, contributors, conf)
-    rest_in = quat_normalize(skeleton_in.rotations)
-    rest_out = quat_normalize(skeleton_out.rotations)
-
-    T_out = np.broadcast_to(skeleton_out.translations, (F, J, 3)).copy()
-    R_out = np.broadcast_to(rest_out, (F, J, 4)).copy()
-    S_out = np.broadcast_to(skeleton_out.scales, (F, J, 3)).copy()
-    mass = np.zeros(J)
-    outs = np.array([o for o, ins in enumerate(contributors) if ins], dtype=np.int64)
-    if outs.size == 0:
-        return T_out, R_out, S_out, mass
-    # per output joint: the delta of its chain of input joints (vectorized for single ones)
-    delta = np.empty((F, outs.size, 4))
-    single = np.array([len(contributors[o]) == 1 for o in outs])
-    first = np.array([contributors[o][0] for o in outs])
-    delta[:, single] = quat_multiply(quat_conjugate(rest_in[first[single]]), R[:, first[single]])
-    for k in np.flatnonzero(~single):
-        ins = contributors[outs[k]]
-        anim, rest = R[:, ins[0]], rest_in[ins[0]]
-        for i in ins[1:]:
-            anim = quat_multiply(anim, R[:, i])
-            rest = quat_multiply(rest, rest_in[i])
-        delta[:, k] = quat_multiply(quat_conjugate(rest), anim)
-    cs = [conf[contributors[o]] for o in outs]
-    mass[outs] = [min(1.0, float(c.sum())) for c in cs]
-    cmax = np.array([float(c.max()) for c in cs])
-    lead = np.array([contributors[o][int(np.argmax(c))] for o, c in zip(outs, cs)])
-    f = cmax if blend else np.ones_like(cmax)
-    if blend and np.any(cmax < 1.0):
-        low = np.flatnonzero(cmax < 1.0)
-        delta[:, low] = quat_slerp(delta[:, low], _IDENTITY, np.broadcast_to(1.0 - cmax[low], (F, low.size)))
-    R_out[:, outs] = quat_multiply(rest_out[outs], delta)
-    T_out[:, outs] += (f * k)[:, None] * (T[:, lead] - skeleton_in.translations[lead])
-    s_rest = skeleton_in.scales[lead]
-    s_rest = np.where(np.abs(s_rest) > 1e-12, s_rest, 1.0)
-    S_out[:, outs] *= np.clip(S[:, lead] / s_rest, 1e-9, None) ** f[:, None]
-    return T_out, quat_normalize(R_out), S_out, mass
-
-
-def global_rotations(parents, R):
-    """Global joint rotations by forward kinematics (anchors ignored: a constant left factor).
-
-    Parameters
-    ----------
-    parents : (J,) int array
-        Topological order, roots -1.
-    R : (F, J, 4) float array
-        Local rotations, xyzw.
-
-    Returns
-    -------
-    (F, J, 4) float64 global rotations.
-    """
-    R = np.asarray(R, dtype=np.float64)
-    G = np.empty_like(R)
-    for j, p in enumerate(parents):
-        G[:, j] = R[:, j] if p < 0 else quat_multiply(G[:, p], R[:, j])
-    return quat_normalize(G)
-
-
-def _quat_rotate(q, v):
-    """Rotate vectors ``v (..., 3)`` by unit quaternions ``q (..., 4)`` xyzw."""
-    u, w = q[..., :3], q[..., 3:4]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
-
-
-def _global_positions(skeleton, T, R, S):
-    """World joint positions ``(F, J, 3)`` by quaternion forward kinematics.
-
-    Scales accumulate per axis (exact for uniform scales, which is what rigs animate); the
-    roots' anchor matrices are applied.
-    """
-    F, J = T.shape[:2]
-    P = np.empty((F, J, 3))
-    G = np.empty((F, J, 4))
-    sw = np.empty((F, J, 3))
-    for j, p in enumerate(skeleton.parents):
-        if p < 0:
-            G[:, j], sw[:, j], P[:, j] = R[:, j], S[:, j], T[:, j]
-        else:
-            G[:, j] = quat_multiply(G[:, p], R[:, j])
-            sw[:, j] = sw[:, p] * S[:, j]
-            P[:, j] = P[:, p] + _quat_rotate(G[:, p], sw[:, p] * T[:, j])
-    A = skeleton.root_parent_worlds()  # (J, 4, 4), constant per joint
-    return np.einsum("jkl,fjl->fjk", A[:, :3, :3], P) + A[:, :3, 3]
-
-
-# --------------------------------------------------------------------------------------------
-# scoring
-
-
-def hop_weights(parents, seeds, *, full=2, cutoff=8) -> np.ndarray:
-    """Prototype joint weights by hops from the merge joint(s).
-
-    Parameters
-    ----------
-    parents : (J,) int array
-        Joint forest (roots -1).
-    seeds : (s,) int array
-        Merge joints (hop 0).
-    full, cutoff : int
-        Weight 1 up to ``full`` hops, ``2 ** -(d - full)`` up to ``cutoff``, 0 beyond (and for
-        joints not connected to any seed).
-
-    Returns
-    -------
-    (J,) float64 weights.
-    """
-    parents = np.asarray(parents, dtype=np.int64)
-    J = len(parents)
-    adj = [[] for _ in range(J)]
-    for j, p in enumerate(parents):
-        if p >= 0:
-            adj[j].append(int(p))
-            adj[int(p)].append(j)
-    hops = np.full(J, -1)
-    frontier = [int(s) for s in np.unique(np.asarray(seeds, dtype=np.int64))]
-    for s in frontier:
-        hops[s] = 0
-    while frontier:
-        nxt = []
-        for u in frontier:
-            for v in adj[u]:
-                if hops[v] < 0:
-                    hops[v] = hops[u] + 1
-                    nxt.append(v)
-        frontier = nxt
-    d = hops.astype(np.float64)
-    w = np.where(d <= full, 1.0, 2.0 ** -(d - full))
-    w[(hops < 0) | (d > cutoff)] = 0.0
-    return w
-
-
-_IU = np.triu_indices(4)
-_SCALE10 = np.where(_IU[0] == _IU[1], 1.0, np.sqrt(2.0))
-
-
-def rotation_features(Q, w=None) -> np.ndarray:
-    """Features whose inner products are weighted squared quaternion dot products.
-
-    ``rotation_features(Qa, w) @ rotation_features(Qb, w).T == sum_j w_j <Qa_j, Qb_j>^2``,
-    via the 10 unique entries of the outer products ``q q^T`` (off-diagonals times sqrt 2).
-
-    Parameters
-    ----------
-    Q : (F, J, 4) float array
-        Unit quaternions (sign irrelevant).
-    w : (J,) float array, optional
-        Non-negative joint weights (default 1).
-
-    Returns
-    -------
-    (F, 10 J) float64
-    """
-    Q = np.asarray(Q, dtype=np.float64)
-    phi = Q[..., _IU[0]] * Q[..., _IU[1]] * _SCALE10  # (F, J, 10)
-    if w is not None:
-        phi = phi * np.sqrt(np.asarray(w, dtype=np.float64))[:, None]
-    return phi.reshape(Q.shape[0], -1)
-
-
-def _score_features(G, P, w, rotation_weight, translation_weight, length):
-    """Features ``X`` and offsets ``c`` with ``score[a, b] = X_a . X_b - c_a - c_b + tw``.
-
-    Rotation features of the kept joints (weight > 0) scaled by ``sqrt(rotation_weight w /
-    sum w)``, then weighted positions scaled by ``sqrt(2 ct)``; ``c = ct sum_j w_j |p_j|^2``
-    with ``ct = translation_weight / (sum w length^2)``.
-    """
-    keep = np.flatnonzero(w > 0)
-    wk = w[keep]
-    total = wk.sum()
-    cr = rotation_weight / total
-    ct = translation_weight / (total * max(length, 1e-12) ** 2)
-    p = (np.asarray(P, dtype=np.float64)[:, keep] * np.sqrt(wk)[:, None]).reshape(len(P), -1)
-    X = np.concatenate([np.sqrt(cr) * rotation_features(np.asarray(G)[:, keep], wk),
-                        np.sqrt(2 * ct) * p], axis=1)
-    return X, ct * np.einsum("ij,ij->i", p, p)
-
-
-def keyframe_scores(Ga, Pa, Gb, Pb, w, *, rotation_weight=0.8, translation_weight=0.2,
-                    length=1.0, metric="squared", dtype=np.float64) -> np.ndarray:
-    """Similarity of every pair of keyframes (higher is more alike), one matrix product.
-
-    ``score[a, b] = rotation_weight * sum_j w_j r(Ga_aj, Gb_bj) / sum w
-    + translation_weight * (1 - sum_j w_j |Pa_aj - Pb_bj|^2 / (sum w * length^2))``, with
-    ``r = <q_a, q_b>^2`` (``metric="squared"``) or ``|<q_a, q_b>|`` (``"abs"``).
-
-    Parameters
-    ----------
-    Ga : (Fa, J, 4) float array
-        Global rotations of the query keyframes on S_R.
-    Pa : (Fa, J, 3) float array
-        Joint positions (relative to the merge joint) of the query keyframes.
-    Gb : (Fb, J, 4) float array
-    Pb : (Fb, J, 3) float array
-        The same for the candidate keyframes.
-    w : (J,) float array
-        Non-negative joint weights (zero-weight joints are skipped).
-    rotation_weight, translation_weight : float
-    length : float
-        Length scale of the positions (e.g. the skeleton's extent).
-    metric : {"squared", "abs"}
-    dtype : numpy dtype
-        Of the matrix product and the result. ``float32`` halves time and memory: the features
-        are centred on the candidates' mean first, so rounding scales with the spread of the
-        poses rather than with the scores themselves (about 1e-7 absolute).
-
-    Returns
-    -------
-    (Fa, Fb) array of ``dtype``, at most ``rotation_weight + translation_weight``.
-    """
-    w = np.asarray(w, dtype=np.float64)
-    Fa, Fb = len(Ga), len(Gb)
-    if not np.any(w > 0):
-        return np.full((Fa, Fb), rotation_weight + translation_weight, dtype=dtype)
-    Ga, Gb = quat_normalize(Ga), quat_normalize(Gb)
-    if metric == "squared":
-        cand = _Candidates.build(Gb, Pb, w, rotation_weight, translation_weight, length, dtype)
-        return cand.scores(Ga, Pa)
-    if metric != "abs":
-        raise InputError(f"completion: metric must be 'squared' or 'abs', got {metric!r}")
-    # the paper's |<q_a, q_b>|: one (Fa, 4) @ (4, Fb) product per joint, no loop on pairs
-    Xa, ca = _score_features(Ga, Pa, w, 0.0, translation_weight, length)
-    Xb, cb = _score_features(Gb, Pb, w, 0.0, translation_weight, length)
-    score = Xa @ Xb.T
-    keep = np.flatnonzero(w > 0)
-    cr = rotation_weight / w[keep].sum()
-    for j in keep:
-        score += (cr * w[j]) * np.abs(Ga[:, j] @ Gb[:, j].T)
-    score -= ca[:, None]
-    score -= cb[None, :]
-    score += translation_weight
-    return score.astype(dtype, copy=False)
-
-
-@dataclass(frozen=True)
-class _Candidates:
-    """The candidate side of :func:`keyframe_scores` (``metric="squared"``), built once.
-
-    ``score = (X_a - m)(X_b - m)^T + (X_a m - c_a) + (X_b m - c_b - m.m + tw)``: the product
-    of centred features in ``dtype``, the rank-one terms in float64.
-    """
-
-    w: np.ndarray
-    weights: tuple
-    mean: np.ndarray  # (K,)
-    Xc: np.ndarray  # (Fb, K) centred, dtype
-    col: np.ndarray  # (Fb,) dtype
-
-    @classmethod
-    def build(cls, Gb, Pb, w, rotation_weight, translation_weight, length, dtype):
-        weights = (rotation_weight, translation_weight, length)
-        Xb, cb = _score_features(Gb, Pb, w, *weights)
-        m = Xb.mean(axis=0)
-        col = Xb @ m - cb - m @ m + translation_weight
-        return cls(w, weights, m, (Xb - m).astype(dtype), col.astype(dtype))
-
-    def scores(self, Ga, Pa):
-        Xa, ca = _score_features(Ga, Pa, self.w, *self.weights)
-        row = (Xa @ self.mean - ca).astype(self.Xc.dtype)
-        score = (Xa - self.mean).astype(self.Xc.dtype) @ self.Xc.T  # (Fa, Fb)
-        score += row[:, None]
-        score += self.col[None, :]
-        return score
-
-
-def _segments_next(segment):
-    """``succ[b]``: the next frame of the same clip, -1 at a clip's last frame."""
-    segment = np.asarray(segment)
-    succ = np.arange(1, len(segment) + 1)
-    last = np.ones(len(segment), dtype=bool)
-    last[:-1] = segment[1:] != segment[:-1]
-    succ[last] = -1
-    return succ
-
-
-def continuity_scores(score, segment_b, weights=(0.2, 0.1)) -> np.ndarray:
-    """Add the scores of neighbouring pairs: shifted-diagonal sums of the score matrix.
-
-    ``out[a, b] = (score[a, b] + sum_k weights[k-1] * (score[a-k, b-k] + score[a+k, b+k]))
-    / (1 + sum of the weights of the terms that exist)``: a neighbour exists when ``a +- k``
-    is a frame of the query clip and ``b +- k`` a frame of the same candidate clip as ``b``.
-
-    Parameters
-    ----------
-    score : (Fa, Fb) float array
-        Keyframe scores of one query clip (rows: its consecutive frames) against candidate
-        frames (columns), candidate clips concatenated.
-    segment_b : (Fb,) int array
-        Candidate clip of each column (consecutive columns of one clip are consecutive frames).
-    weights : sequence of float
-        Weight of the neighbours at +-1, +-2, ... steps.
-
-    Returns
-    -------
-    (Fa, Fb) float64
-    """
-    score = np.asarray(score)
-    if score.dtype not in (np.float32, np.float64):
-        score = score.astype(np.float64)
-    seg = np.asarray(segment_b)
-    Fa, Fb = score.shape
-    out = score.copy()
-    rows, cols = [], []  # the existence of each neighbour term is separable: row x column
-    buf = np.empty_like(score)
-    for step, wk in enumerate(weights, start=1):
-        if wk == 0:
-            continue
-        for k in (-step, step):
-            a0, a1 = max(0, -k), min(Fa, Fa - k)
-            b0, b1 = max(0, -k), min(Fb, Fb - k)
-            if a1 <= a0 or b1 <= b0:
-                continue
-            same = np.zeros(Fb, dtype=score.dtype)
-            same[b0:b1] = seg[b0 + k:b1 + k] == seg[b0:b1]
-            rv = np.zeros(Fa, dtype=score.dtype)
-            rv[a0:a1] = wk
-            rows.append(rv)
-            cols.append(same)
-            view = buf[a0:a1, b0:b1]
-            np.multiply(score[a0 + k:a1 + k, b0 + k:b1 + k], same[b0:b1] * score.dtype.type(wk), out=view)
-            out[a0:a1, b0:b1] += view
-    if rows:
-        norm = np.stack(rows, axis=1) @ np.stack(cols, axis=0)  # (Fa, Fb), rank <= 2 * steps
-        norm += 1.0
-        out /= norm
-    return out
-
-
-def choose_frames(score, segment_b, *, jump_penalty=0.0, fixed=None) -> np.ndarray:
-    """Candidate frame per query frame, maximizing the total score (Viterbi over frames).
-
-    Continuing from candidate ``b`` to ``b + 1`` of the same clip is free; any other step
-    costs ``jump_penalty``. With ``jump_penalty=0`` this is the best frame per row.
-
-    Parameters
-    ----------
-    score : (Fa, Fb) float array
-    segment_b : (Fb,) int array
-        Candidate clip of each column.
-    jump_penalty : float
-    fixed : mapping of int to int, optional
-        Query frame -> pinned candidate frame.
-
-    Returns
-    -------
-    (Fa,) int64 column per row.
-    """
-    score = np.asarray(score)
-    Fa, Fb = score.shape
-    if fixed:
-        score = score.copy()
-    for a, b in (fixed or {}).items():
-        if not (0 <= a < Fa and 0 <= b < Fb):
-            raise InputError(f"completion: fixed frame {a} -> {b} outside ({Fa}, {Fb})")
-        row = np.full(Fb, -np.inf)
-        row[b] = score[a, b]
-        score[a] = row
-    if jump_penalty <= 0:
-        return np.argmax(score, axis=1).astype(np.int64)
-    succ = _segments_next(segment_b)
-    index = np.int32 if Fb < 2**31 - 1 else np.int64
-    pred = np.full(Fb, Fb, dtype=index)  # index Fb reads the -inf padding: no predecessor
-    has = succ >= 0
-    pred[succ[has]] = np.flatnonzero(has)
-    back = np.empty((Fa, Fb), dtype=index)
-    Vp = np.empty(Fb + 1)
-    Vp[Fb] = -np.inf
-    Vp[:Fb] = score[0]
-    for a in range(1, Fa):  # a loop over query frames; each step is vectorized over Fb
-        best = int(np.argmax(Vp[:Fb]))
-        jump = Vp[best] - jump_penalty
-        stay = Vp[pred]
-        take_stay = stay >= jump
-        back[a] = np.where(take_stay, pred, index(best))
-        np.maximum(stay, jump, out=stay)
-        np.add(score[a], stay, out=Vp[:Fb])
-    V = Vp[:Fb]
-    path = np.empty(Fa, dtype=np.int64)
-    path[-1] = int(np.argmax(V))
-    for a in range(Fa - 1, 0, -1):
-        path[a - 1] = back[a, path[a]]
-    return path
-
-
-def blend_seams(R, T, seams, frames) -> tuple[np.ndarray, np.ndarray]:
-    """Remove the jumps at seams with offsets that fade out (inertial blending).
-
-    At a seam ``t -> t + 1`` the pose the old frames were heading to (constant-velocity
-    extrapolation of frames ``t - 1, t``) replaces frame ``t + 1``; the offset between the two
-    fades to zero over ``frames`` frames with a smoothstep (zero slope at both ends), so the
-    new frames take over without a jump. Seams are processed in order, each from the frames
-    already corrected.
-
-    Parameters
-    ----------
-    R : (F, J, 4) float array
-        Local rotations, xyzw.
-    T : (F, J, 3) float array
-        Local translations.
-    seams : (s,) int array
-        Frames ``t`` such that ``t -> t + 1`` jumps.
-    frames : int
-        Length of the fade (0: none).
-
-    Returns
-    -------
-    R : (F, J, 4) float64, T : (F, J, 3) float64
-    """
-    R = quat_normalize(R).copy()
-    T = np.asarray(T, dtype=np.float64).copy()
-    F = len(R)
-    if frames <= 0:
-        return R, T
-    for t in np.unique(np.asarray(seams, dtype=np.int64)):
-        if not 0 <= t < F - 1:
-            continue
-        if t >= 1:
-            vel = quat_multiply(quat_conjugate(R[t - 1]), R[t])
-            r_ext = quat_multiply(R[t], vel)
-            t_ext = 2 * T[t] - T[t - 1]
-        else:
-            r_ext, t_ext = R[t], T[t]
-        off_r = quat_multiply(r_ext, quat_conjugate(R[t + 1]))  # (J, 4), left offset
-        off_r = np.where(off_r[..., 3:4] < 0, -off_r, off_r)
-        off_t = t_ext - T[t + 1]
-        n = min(int(frames), F - 1 - t)
-        x = np.arange(n) / float(frames)
-        fade = 1.0 - (3 * x**2 - 2 * x**3)  # 1 at the seam, 0 after `frames`
-        span = slice(t + 1, t + 1 + n)
-        off = quat_slerp(np.broadcast_to(_IDENTITY, (n,) + off_r.shape),
-                         np.broadcast_to(off_r, (n,) + off_r.shape), fade[:, None])
-        R[span] = quat_multiply(off, R[span])
-        T[span] += fade[:, None, None] * off_t
-    return R, T
-
-
-def smooth_seams(R, T, seams, sigma) -> tuple[np.ndarray, np.ndarray]:
-    """Gaussian smoothing of rotation and translation tracks near seams only.
-
-    Each frame is blended toward its Gaussian-smoothed value with weight
-    ``exp(-d^2 / (2 (2 sigma)^2))``, ``d`` its distance to the nearest seam: far from seams
-    the tracks are unchanged.
-
-    Parameters
-    ----------
-    R : (F, J, 4) float array
-        Local rotations, xyzw.
-    T : (F, J, 3) float array
-        Local translations.
-    seams : (s,) int array
-        Frames ``t`` such that ``t -> t + 1`` jumps.
-    sigma : float
-        Standard deviation in frames (0: no smoothing).
-
-    Returns
-    -------
-    R : (F, J, 4) float64, T : (F, J, 3) float64
-    """
-    from scipy.ndimage import gaussian_filter1d
-
-    R = quat_normalize(R)
-    T = np.asarray(T, dtype=np.float64).copy()
-    seams = np.asarray(seams, dtype=np.float64).reshape(-1)
-    F = len(R)
-    if sigma <= 0 or seams.size == 0 or F < 3:
-        return R, T
-    dots = np.sum(R[1:] * R[:-1], axis=-1)
-    flips = np.cumprod(np.where(dots < 0, -1.0, 1.0), axis=0)
-    R = R.copy()
-    R[1:] *= flips[..., None]  # hemisphere-continuous before averaging
-    Rs = quat_normalize(gaussian_filter1d(R, sigma, axis=0, mode="nearest"))
-    Ts = gaussian_filter1d(T, sigma, axis=0, mode="nearest")
-    d = np.min(np.abs(np.arange(F)[:, None] - (seams[None, :] + 0.5)), axis=1) - 0.5
-    alpha = np.exp(-0.5 * (d / (2.0 * sigma)) ** 2)[:, None, None]
-    R = quat_normalize((1 - alpha) * R + alpha * Rs)
-    T = (1 - alpha) * T + alpha * Ts
-    return R, T
-
-
-def angular_acceleration(R, fps=30.0) -> np.ndarray:
-    """Magnitude of the angular acceleration of local rotation tracks.
-
-    Angular velocity between consecutive frames is the rotation vector of
-    ``q_t^-1 q_{t+1}`` times ``fps``; acceleration is its finite difference times ``fps``.
-
-    Parameters
-    ----------
-    R : (F, J, 4) float array
-        Rotations at a fixed rate, xyzw.
-    fps : float
-
-    Returns
-    -------
-    (F - 2, J) float64, radians per second squared.
-    """
-    R = quat_normalize(R)
-    rel = quat_multiply(quat_conjugate(R[:-1]), R[1:])  # (F-1, J, 4)
-    rel = np.where(rel[..., 3:4] < 0, -rel, rel)
-    s = np.linalg.norm(rel[..., :3], axis=-1, keepdims=True)
-    angle = 2.0 * np.arctan2(s, rel[..., 3:4])
-    omega = np.where(s > 1e-12, rel[..., :3] / np.where(s > 1e-12, s, 1.0) * angle, 2 * rel[..., :3])
-    omega = omega * fps
-    return np.linalg.norm(np.diff(omega, axis=0), axis=-1) * fps
-
-
-# --------------------------------------------------------------------------------------------
 # the stage
 
 
@@ -798,7 +211,7 @@ def _sample_input(skeleton_out, character, bone_map, fps, blend):
     T, R, S = np.concatenate(Ts), np.concatenate(Rs), np.concatenate(Ss)
     start = np.concatenate([[0], np.cumsum([len(t) for t in times])]).astype(np.int64)
     G = global_rotations(skeleton_out.parents, R)
-    P = _global_positions(skeleton_out, T, R, S)
+    P = global_positions(skeleton_out, T, R, S)
     return _Frames(tuple(names), start, tuple(times), T, R, S, G, P, mass)
 
 
@@ -882,7 +295,7 @@ def _pair(fx, fy, pool_rows, parents, owners, x, y, options, length):
     cand = None
     if options.metric == "squared" and np.any(w > 0):
         Pb = fy.P[pool_rows] - fy.P[pool_rows][:, anchor:anchor + 1]
-        cand = _Candidates.build(fy.G[pool_rows], Pb, w, options.rotation_weight,
+        cand = Candidates.build(fy.G[pool_rows], Pb, w, options.rotation_weight,
                                  options.translation_weight, length, np.dtype(options.score_dtype))
     return w, anchor, cand
 
@@ -1000,9 +413,9 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
             T[:, joints] = fy.T[ix]
             R[:, joints] = fy.R[ix]
             S[:, joints] = fy.S[ix]
-            succ = _segments_next(seg)
+            succ = segments_next(seg)
             jumps = np.flatnonzero(succ[choice[:-1]] != choice[1:])
-            jumps = _discontinuities(R[:, joints], jumps)
+            jumps = discontinuities(R[:, joints], jumps)
             seams.append(jumps)
             logger.debug("completion: %r of %r from %r: %d seams", clip_name, cid, y, jumps.size)
         if completed_joints.size and seams:
@@ -1013,22 +426,6 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
             T[:, completed_joints] = Tc
         out.append(_to_clip(out_name, fx.times[c], T, R, S))
     return tuple(out)
-
-
-def _discontinuities(R, jumps, *, ratio=2.0, floor=1e-3):
-    """The jumps that are real discontinuities of the rotation tracks ``R (F, J, 4)``.
-
-    A jump ``t -> t + 1`` between non-consecutive source frames (e.g. the end of a looping
-    clip back to its start) is a seam only if its largest joint rotation step exceeds
-    ``floor`` radians and ``ratio`` times the steps just before and after it.
-    """
-    if len(jumps) == 0 or len(R) < 2:
-        return np.asarray(jumps, dtype=np.int64)
-    step = np.max(quat_angle(R[:-1], R[1:]), axis=1)  # (F - 1,)
-    before = np.where(jumps > 0, step[np.maximum(jumps - 1, 0)], 0.0)
-    after = np.where(jumps + 1 < len(step), step[np.minimum(jumps + 1, len(step) - 1)], 0.0)
-    real = step[jumps] > np.maximum(floor, ratio * np.maximum(before, after))
-    return np.asarray(jumps, dtype=np.int64)[real]
 
 
 def _to_clip(name, times, T, R, S):

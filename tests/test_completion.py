@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import itertools
 from pathlib import Path
-from dataclasses import dataclass
 
 import numpy as np
 import pytest
 
 from rigmix.animation import clip_times, sample_clip
-from rigmix.character import Character, Clip, Skeleton, Track
+from rigmix.character import Skeleton
 from rigmix.completion import (
     CompletionOptions,
     FixedFrame,
@@ -27,23 +26,13 @@ from rigmix.completion import (
     smooth_seams,
 )
 from rigmix.errors import InputError
+from rigmix.mapping import BoneMap
 from rigmix.transforms import quat_angle, quat_multiply, quat_normalize
 
 from conftest import asset
 
-try:
-    from rigmix.mapping import BoneMap
-except ImportError:  # the mapping stage is written in parallel: a stand-in with its fields
-
-    @dataclass(frozen=True)
-    class BoneMap:
-        source: str
-        target: np.ndarray
-        confidence: np.ndarray
-
-
 # --------------------------------------------------------------------------------------------
-# helpers (also used by benchmarks/completion_bench.py)
+# helpers (acceleration_figures is also used by benchmarks/completion_bench.py)
 
 
 def random_quats(rng, shape):
@@ -256,7 +245,7 @@ def test_angular_acceleration_of_constant_and_accelerating_spin():
 
 
 def test_blend_seams_removes_the_jump_and_fades_out():
-    from rigmix.completion import blend_seams
+    from rigmix.transitions import blend_seams
 
     t = np.arange(40) / 30.0
     angle = 1.5 * t
@@ -461,7 +450,7 @@ def test_centaur_horse_knight(centaur):
 
 
 def test_global_positions_match_matrix_forward_kinematics(fox):
-    from rigmix.completion import _global_positions
+    from rigmix.keyframes import global_positions as _global_positions
     from rigmix.transforms import trs_to_matrix
 
     clip = fox.clip("Run")
