@@ -27,9 +27,11 @@ Choices where the method leaves room (all options of :class:`CompletionOptions`)
 * Frame choice: the paper takes the best frame per output frame (``jump_penalty=0``); a
   positive ``jump_penalty`` runs a Viterbi pass where continuing to the next frame of the same
   clip is free and any other jump costs the penalty (fewer seams, smoother completed part).
-  Default 0.2 (scores are in [0, 1] per frame), measured on the pipeline's Horse + Knight
-  centaur: mean angular acceleration of the completed joints over that of their source clips
-  4.5 with the paper's rule, 2.4 with a penalty of 0.05, 0.65 with 0.2.
+  Default 0.2 (scores are in [0, 1] per frame). Measured (``benchmarks/completion_bench.py``:
+  mean angular acceleration of the completed joints over that of their source clips) on the
+  pipeline's Horse + Knight centaur, horse clips: 1.25 with the paper's rule, 2.41 with a
+  penalty of 0.05, 0.65 with 0.2; the other configs stay under 2 with 0.2 except CesiumMan +
+  Fox arm (confidences down to 0.06), where the path loops over a few frames (about 20).
 * Seams (jumps between non-consecutive source frames that make a real discontinuity): the jump
   fades out over ``blend_frames`` (inertial blending), then a Gaussian smoothing acts near the
   seam only, on the completed joints only; continuous playback of a source clip is left
@@ -361,71 +363,73 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
         c = fx.names.index(clip_name)
         rows = fx.rows(c)
         T, R, S = fx.T[rows].copy(), fx.R[rows].copy(), fx.S[rows].copy()
-        Fa = len(T)
-        completed = np.array([bool(ow) and cid not in ow for ow in owners])
-        completed_joints = np.flatnonzero(completed)
+        completed = np.flatnonzero([bool(ow) and cid not in ow for ow in owners])
         seams = []
-        # each other input completes the joints it owns (the first owner listed)
-        by_owner = {}
-        for o in completed_joints:
-            ow = owners[o]
-            best = max(ow, key=lambda y: frames[y].mass[o])
-            by_owner.setdefault(best, []).append(o)
-        for y, joints in by_owner.items():
+        for y, joints in _completing_inputs(completed, owners, frames).items():
             fy = frames[y]
-            src_names = None if options.sources is None else options.sources.get(y)
-            pool_rows, seg = _pool(fy, src_names)
+            pool_rows, seg = _pool(fy, None if options.sources is None else options.sources.get(y))
             if pool_rows.size == 0:
                 logger.warning("completion: character %r has no clip to complete %r of %r; "
                                "its joints stay at rest", y, clip_name, cid)
                 continue
             if (cid, y) not in pairs:
                 pairs[(cid, y)] = _pair(fx, fy, pool_rows, parents, owners, cid, y, options, length)
-            w, anchor, cand = pairs[(cid, y)]
-            Pa = fx.P[rows] - fx.P[rows][:, anchor:anchor + 1]
-            if cand is None:  # the paper's |.| metric: exact, no precomputation
-                Pb = fy.P[pool_rows] - fy.P[pool_rows][:, anchor:anchor + 1]
-                score = keyframe_scores(fx.G[rows], Pa, fy.G[pool_rows], Pb, w,
-                                        rotation_weight=options.rotation_weight,
-                                        translation_weight=options.translation_weight,
-                                        length=length, metric=options.metric,
-                                        dtype=np.dtype(options.score_dtype))
-            else:
-                score = cand.scores(fx.G[rows], Pa)
-            score = continuity_scores(score, seg, options.continuity)
-            fixed = {}
-            for ff in fixed_by_clip.get((cid, clip_name), ()):
-                if ff.source != y:
-                    continue
-                if ff.source_clip not in fy.names:
-                    raise InputError(f"completion: fixed frame names clip {ff.source_clip!r}, "
-                                     f"character {y!r} has {list(fy.names)}")
-                sc = fy.names.index(ff.source_clip)
-                hit = np.flatnonzero((seg == sc))
-                if not 0 <= ff.source_frame < hit.size:
-                    raise InputError(f"completion: fixed frame {ff.source_frame} outside clip "
-                                     f"{ff.source_clip!r} ({hit.size} frames at {options.fps} fps)")
-                fixed[int(ff.frame)] = int(hit[ff.source_frame])
-            choice = choose_frames(score, seg, jump_penalty=options.jump_penalty, fixed=fixed)
-            src = pool_rows[choice]
-            joints = np.asarray(joints)
-            ix = np.ix_(src, joints)
-            T[:, joints] = fy.T[ix]
-            R[:, joints] = fy.R[ix]
-            S[:, joints] = fy.S[ix]
-            succ = segments_next(seg)
-            jumps = np.flatnonzero(succ[choice[:-1]] != choice[1:])
-            jumps = discontinuities(R[:, joints], jumps)
-            seams.append(jumps)
-            logger.debug("completion: %r of %r from %r: %d seams", clip_name, cid, y, jumps.size)
-        if completed_joints.size and seams:
+            fixed = _fixed_rows(fixed_by_clip.get((cid, clip_name), ()), y, fy, seg, options.fps)
+            choice = _choose(fx, rows, fy, pool_rows, seg, pairs[(cid, y)], options, length, fixed)
+            ix = np.ix_(pool_rows[choice], joints)
+            T[:, joints], R[:, joints], S[:, joints] = fy.T[ix], fy.R[ix], fy.S[ix]
+            jumps = np.flatnonzero(segments_next(seg)[choice[:-1]] != choice[1:])
+            seams.append(discontinuities(R[:, joints], jumps))
+            logger.debug("completion: %r of %r from %r: %d seams", clip_name, cid, y, seams[-1].size)
+        if seams:
             s = np.unique(np.concatenate(seams))
-            Rc, Tc = blend_seams(R[:, completed_joints], T[:, completed_joints], s, options.blend_frames)
-            Rc, Tc = smooth_seams(Rc, Tc, s, options.smoothing)
-            R[:, completed_joints] = Rc
-            T[:, completed_joints] = Tc
+            Rc, Tc = blend_seams(R[:, completed], T[:, completed], s, options.blend_frames)
+            R[:, completed], T[:, completed] = smooth_seams(Rc, Tc, s, options.smoothing)
         out.append(_to_clip(out_name, fx.times[c], T, R, S))
     return tuple(out)
+
+
+def _completing_inputs(completed, owners, frames):
+    """Completed joints by the input that completes them (the owner with the most mass)."""
+    by_owner = {}
+    for o in completed:
+        best = max(owners[o], key=lambda y: frames[y].mass[o])
+        by_owner.setdefault(best, []).append(int(o))
+    return {y: np.asarray(j, dtype=np.int64) for y, j in by_owner.items()}
+
+
+def _fixed_rows(fixed_frames, y, fy, seg, fps):
+    """Pinned frames of one completion by input ``y``: output frame -> candidate column."""
+    fixed = {}
+    for ff in fixed_frames:
+        if ff.source != y:
+            continue
+        if ff.source_clip not in fy.names:
+            raise InputError(f"completion: fixed frame names clip {ff.source_clip!r}, "
+                             f"character {y!r} has {list(fy.names)}")
+        cols = np.flatnonzero(seg == fy.names.index(ff.source_clip))
+        if not 0 <= ff.source_frame < cols.size:
+            raise InputError(f"completion: fixed frame {ff.source_frame} outside clip "
+                             f"{ff.source_clip!r} ({cols.size} frames at {fps} fps)")
+        fixed[int(ff.frame)] = int(cols[ff.source_frame])
+    return fixed
+
+
+def _choose(fx, rows, fy, pool_rows, seg, pair, options, length, fixed):
+    """Candidate column per frame of the query clip: scores, continuity, frame choice."""
+    w, anchor, cand = pair
+    Pa = fx.P[rows] - fx.P[rows][:, anchor:anchor + 1]  # positions relative to the merge joint
+    if cand is None:  # the paper's |.| metric: exact, no precomputation
+        Pb = fy.P[pool_rows] - fy.P[pool_rows][:, anchor:anchor + 1]
+        score = keyframe_scores(fx.G[rows], Pa, fy.G[pool_rows], Pb, w,
+                                rotation_weight=options.rotation_weight,
+                                translation_weight=options.translation_weight,
+                                length=length, metric=options.metric,
+                                dtype=np.dtype(options.score_dtype))
+    else:
+        score = cand.scores(fx.G[rows], Pa)
+    score = continuity_scores(score, seg, options.continuity)
+    return choose_frames(score, seg, jump_penalty=options.jump_penalty, fixed=fixed)
 
 
 def _to_clip(name, times, T, R, S):
