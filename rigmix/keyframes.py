@@ -356,30 +356,47 @@ def keyframe_scores(Ga, Pa, Gb, Pb, w, *, rotation_weight=0.8, translation_weigh
 
 @dataclass(frozen=True)
 class Candidates:
-    """The candidate side of :func:`keyframe_scores` (``metric="squared"``), built once.
+    """The candidate side of :func:`keyframe_scores` (``metric="squared"``), built once and
+    scored against any number of query clips.
 
-    ``score = (X_a - m)(X_b - m)^T + (X_a m - c_a) + (X_b m - c_b - m.m + tw)``: the product
-    of centred features in ``dtype``, the rank-one terms in float64.
+    ``score = (X_a - m)(X_b - m)^T + (X_a m - c_a) + (X_b m - c_b - m.m + tw)``: the product of
+    features centred on the candidates' mean ``m`` in ``dtype``, the rank-one terms in float64.
+
+    Attributes
+    ----------
+    w : (J,) float64
+        Joint weights.
+    weights : tuple of float
+        ``(rotation_weight, translation_weight, length)``.
+    mean : (K,) float64
+        Mean candidate feature.
+    Xc : (Fb, K) array of ``dtype``
+        Centred candidate features.
+    col : (Fb,) array of ``dtype``
+        Per-candidate constant term.
     """
 
     w: np.ndarray
     weights: tuple
-    mean: np.ndarray  # (K,)
-    Xc: np.ndarray  # (Fb, K) centred, dtype
-    col: np.ndarray  # (Fb,) dtype
+    mean: np.ndarray
+    Xc: np.ndarray
+    col: np.ndarray
 
     @classmethod
-    def build(cls, Gb, Pb, w, rotation_weight, translation_weight, length, dtype):
+    def build(cls, Gb, Pb, w, rotation_weight, translation_weight, length, dtype) -> "Candidates":
+        """From global rotations ``Gb (Fb, J, 4)`` and positions ``Pb (Fb, J, 3)`` of the
+        candidate keyframes (the other arguments as :func:`keyframe_scores`)."""
         weights = (rotation_weight, translation_weight, length)
-        Xb, cb = _score_features(Gb, Pb, w, *weights)
+        Xb, cb = _score_features(Gb, Pb, np.asarray(w, dtype=np.float64), *weights)
         m = Xb.mean(axis=0)
         col = Xb @ m - cb - m @ m + translation_weight
-        return cls(w, weights, m, (Xb - m).astype(dtype), col.astype(dtype))
+        return cls(np.asarray(w, dtype=np.float64), weights, m, (Xb - m).astype(dtype), col.astype(dtype))
 
-    def scores(self, Ga, Pa):
+    def scores(self, Ga, Pa) -> np.ndarray:
+        """``(Fa, Fb)`` scores of query keyframes ``Ga (Fa, J, 4)``, ``Pa (Fa, J, 3)``."""
         Xa, ca = _score_features(Ga, Pa, self.w, *self.weights)
         row = (Xa @ self.mean - ca).astype(self.Xc.dtype)
-        score = (Xa - self.mean).astype(self.Xc.dtype) @ self.Xc.T  # (Fa, Fb)
+        score = (Xa - self.mean).astype(self.Xc.dtype) @ self.Xc.T  # (Fa, Fb), one GEMM
         score += row[:, None]
         score += self.col[None, :]
         return score
