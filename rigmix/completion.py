@@ -50,7 +50,7 @@ import numpy as np
 from .animation import clip_times, sample_clip
 from .character import Character, Clip, Skeleton, Track
 from .errors import InputError
-from .keyframes import (Candidates, continuity_scores, global_positions, global_rotations,
+from .keyframes import (Candidates, continuity_scores, forward_kinematics, global_rotations,
                         hop_weights, keyframe_scores, map_pose, rotation_features)
 from .transforms import quat_normalize
 from .transitions import (angular_acceleration, blend_seams, choose_frames, discontinuities,
@@ -212,8 +212,7 @@ def _sample_input(skeleton_out, character, bone_map, fps, blend):
                        np.zeros((0, J, 4)), empty, mass)
     T, R, S = np.concatenate(Ts), np.concatenate(Rs), np.concatenate(Ss)
     start = np.concatenate([[0], np.cumsum([len(t) for t in times])]).astype(np.int64)
-    G = global_rotations(skeleton_out.parents, R)
-    P = global_positions(skeleton_out, T, R, S)
+    G, P = forward_kinematics(skeleton_out, T, R, S)
     return _Frames(tuple(names), start, tuple(times), T, R, S, G, P, mass)
 
 

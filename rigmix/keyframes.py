@@ -34,6 +34,7 @@ from .transforms import quat_conjugate, quat_multiply, quat_normalize, quat_sler
 
 __all__ = [
     "map_pose",
+    "forward_kinematics",
     "global_rotations",
     "global_positions",
     "hop_weights",
@@ -157,6 +158,68 @@ def map_pose(skeleton_out: Skeleton, skeleton_in: Skeleton, bone_map, T, R, S, *
     return T_out, quat_normalize(R_out), S_out, mass
 
 
+def _qmul(a, b):
+    """Hamilton product of quaternions stored component-first, ``(4, ...)`` xyzw."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return np.stack([aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw,
+                     aw * bw - ax * bx - ay * by - az * bz])
+
+
+def _qrot(q, v):
+    """Rotate vectors ``v (3, ...)`` by unit quaternions ``q (4, ...)``, component-first."""
+    x, y, z, w = q
+    vx, vy, vz = v
+    tx, ty, tz = 2 * (y * vz - z * vy), 2 * (z * vx - x * vz), 2 * (x * vy - y * vx)
+    return np.stack([vx + w * tx + y * tz - z * ty,
+                     vy + w * ty + z * tx - x * tz,
+                     vz + w * tz + x * ty - y * tx])
+
+
+def forward_kinematics(skeleton, T, R, S):
+    """Global rotations and world positions of every joint, by quaternion forward kinematics.
+
+    Scales accumulate per axis (exact for uniform scales, which is what rigs animate). Global
+    rotations leave out the anchors (a constant left factor that no score sees); positions
+    include them.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+        ``J`` joints (parents and anchors are used).
+    T : (F, J, 3) float array
+        Local translations.
+    R : (F, J, 4) float array
+        Local rotations, unit quaternions xyzw.
+    S : (F, J, 3) float array
+        Local scales.
+
+    Returns
+    -------
+    G : (F, J, 4) float64
+        Global rotations (without anchors).
+    P : (F, J, 3) float64
+        World positions.
+    """
+    # component-first, joint-major copies: each joint's frames are contiguous
+    Tc = np.ascontiguousarray(np.transpose(T, (2, 1, 0)), dtype=np.float64)  # (3, J, F)
+    Rc = np.ascontiguousarray(np.transpose(R, (2, 1, 0)), dtype=np.float64)  # (4, J, F)
+    Sc = np.ascontiguousarray(np.transpose(S, (2, 1, 0)), dtype=np.float64)
+    G, P, W = np.empty_like(Rc), np.empty_like(Tc), np.empty_like(Sc)
+    for j, p in enumerate(skeleton.parents):
+        if p < 0:
+            G[:, j], W[:, j], P[:, j] = Rc[:, j], Sc[:, j], Tc[:, j]
+        else:
+            G[:, j] = _qmul(G[:, p], Rc[:, j])
+            W[:, j] = W[:, p] * Sc[:, j]
+            P[:, j] = P[:, p] + _qrot(G[:, p], W[:, p] * Tc[:, j])
+    A = skeleton.root_parent_worlds()  # (J, 4, 4), constant per joint
+    P = np.einsum("jkl,ljf->fjk", A[:, :3, :3], P) + A[:, :3, 3]
+    return quat_normalize(np.transpose(G, (2, 1, 0))), P
+
+
 def global_rotations(parents, R):
     """Global joint rotations by forward kinematics (anchors ignored: a constant left factor).
 
@@ -171,39 +234,16 @@ def global_rotations(parents, R):
     -------
     (F, J, 4) float64 global rotations.
     """
-    R = np.asarray(R, dtype=np.float64)
-    G = np.empty_like(R)
+    Rc = np.ascontiguousarray(np.transpose(np.asarray(R, dtype=np.float64), (2, 1, 0)))
+    G = np.empty_like(Rc)
     for j, p in enumerate(parents):
-        G[:, j] = R[:, j] if p < 0 else quat_multiply(G[:, p], R[:, j])
-    return quat_normalize(G)
-
-
-def _quat_rotate(q, v):
-    """Rotate vectors ``v (..., 3)`` by unit quaternions ``q (..., 4)`` xyzw."""
-    u, w = q[..., :3], q[..., 3:4]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
+        G[:, j] = Rc[:, j] if p < 0 else _qmul(G[:, p], Rc[:, j])
+    return quat_normalize(np.transpose(G, (2, 1, 0)))
 
 
 def global_positions(skeleton, T, R, S):
-    """World joint positions ``(F, J, 3)`` by quaternion forward kinematics.
-
-    Scales accumulate per axis (exact for uniform scales, which is what rigs animate); the
-    roots' anchor matrices are applied.
-    """
-    F, J = T.shape[:2]
-    P = np.empty((F, J, 3))
-    G = np.empty((F, J, 4))
-    sw = np.empty((F, J, 3))
-    for j, p in enumerate(skeleton.parents):
-        if p < 0:
-            G[:, j], sw[:, j], P[:, j] = R[:, j], S[:, j], T[:, j]
-        else:
-            G[:, j] = quat_multiply(G[:, p], R[:, j])
-            sw[:, j] = sw[:, p] * S[:, j]
-            P[:, j] = P[:, p] + _quat_rotate(G[:, p], sw[:, p] * T[:, j])
-    A = skeleton.root_parent_worlds()  # (J, 4, 4), constant per joint
-    return np.einsum("jkl,fjl->fjk", A[:, :3, :3], P) + A[:, :3, 3]
+    """World joint positions ``(F, J, 3)`` (see :func:`forward_kinematics`)."""
+    return forward_kinematics(skeleton, T, R, S)[1]
 
 
 # --------------------------------------------------------------------------------------------
