@@ -193,3 +193,17 @@ def test_viewer_in_headless_chromium(composed_glb, tmp_path):
         changed = np.abs(a - b).max(axis=2) > 8
         assert changed.mean() > 0.002, (name, changed.mean())  # the pose differs between the two times
         assert info["shots"][0]["clock"] != info["shots"][1]["clock"]
+
+
+def test_composed_clips_round_trip_through_gltf(composed_glb):
+    """The completed clips, written with the character: 0 validator errors, names and keys kept."""
+    from rigmix.io import load_character
+    from rigmix.io.validator import validate_gltf, validator_available
+
+    glb, names = composed_glb
+    back = load_character(glb)
+    assert [c.name for c in back.clips] == names
+    assert all(c.duration > 0 for c in back.clips)
+    _need("the Khronos glTF-Validator (npm ci)", validator_available())
+    report = validate_gltf(glb)
+    assert report["issues"]["numErrors"] == 0, [m for m in report["issues"]["messages"] if m["severity"] == 0][:5]
