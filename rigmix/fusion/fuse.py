@@ -239,6 +239,74 @@ def _attach_conflicts(pres: list[Presence], actions, h):
     return out
 
 
+def _seam_components(P: Presence, preserved):
+    """Face-connected components of the preserved faces that border the junction.
+
+    Returns
+    -------
+    list of (k,) int64 arrays of face indices.
+    """
+    from scipy.sparse.csgraph import connected_components
+
+    idx = np.flatnonzero(preserved & ~P.secondary)
+    if len(idx) == 0:
+        return []
+    A = face_adjacency(P.welded.F)[idx][:, idx]
+    _, lab = connected_components(A, directed=False)
+    B = boundary_halfedges(P.welded.F[idx])
+    if len(B) == 0:
+        return []
+    uE, cnt = edge_counts(P.welded.F)
+    n = len(P.welded.V) + 1
+    key_all = uE[:, 0] * n + uE[:, 1]
+    Bs = np.sort(B, axis=1)
+    pos = np.clip(np.searchsorted(key_all, Bs[:, 0] * n + Bs[:, 1]), 0, len(cnt) - 1)
+    seam_v = np.unique(B[cnt[pos] >= 2].ravel())
+    on_seam = np.zeros(len(P.welded.V), bool)
+    on_seam[seam_v] = True
+    comps = []
+    for c in range(lab.max() + 1):
+        f = idx[lab == c]
+        if on_seam[P.welded.F[f]].any():
+            comps.append(f)
+    return comps
+
+
+def _separate_seams(pres: list[Presence], preserved, delta):
+    """Un-preserve faces closer than ``delta`` to another preserved part bordering a junction.
+
+    Where two preserved parts (of two inputs, or two parts of one input on either side of a
+    junction) come closer than the isosurface cut leaves room for (the underside of a limb
+    against the body), the cut isosurface would pinch there and its boundary loops merge,
+    which no loop-to-loop bridge can close; widening the junction keeps every seam its own loop.
+    """
+    import igl
+
+    comps = [(i, f) for i, P in enumerate(pres) for f in _seam_components(P, preserved[i])]
+    out = [m.copy() for m in preserved]
+    if len(comps) < 2:
+        return out
+    for k, (i, fa) in enumerate(comps):
+        Pi = pres[i]
+        Pt = Pi.welded.V[Pi.welded.F[fa]]  # (a, 3, 3)
+        hit = np.zeros(len(fa), bool)
+        for j in range(len(pres)):
+            other = [f for (jj, f), kk in zip(comps, range(len(comps))) if jj == j and kk != k]
+            if not other:
+                continue
+            Fj = pres[j].welded.F[np.concatenate(other)]
+            Vj = pres[j].welded.V
+            lo = Vj[Fj].reshape(-1, 3).min(axis=0) - delta
+            hi = Vj[Fj].reshape(-1, 3).max(axis=0) + delta
+            near = np.all((Pt.max(axis=1) >= lo) & (Pt.min(axis=1) <= hi), axis=1) & ~hit
+            if not near.any():
+                continue
+            d2, _, _ = igl.point_mesh_squared_distance(Pt[near].reshape(-1, 3), Vj, Fj)
+            hit[np.flatnonzero(near)[(d2.reshape(-1, 3) < delta * delta).any(axis=1)]] = True
+        out[i][fa[hit]] = False
+    return out
+
+
 def _open_notches(P: Presence, preserved, *, min_wedge=60.0, rounds=3):
     """Un-preserve the faces around seam vertices where the junction would be a thin wedge.
 
@@ -343,6 +411,23 @@ def _preserved_loops(P: Presence, preserved, source):
     return loops, int(sum(len(c) - 1 for c in chains))
 
 
+def _select_faces(pres, junction, grid):
+    """Fallback junction: each input's junction faces in ``grid`` where it is the most present.
+
+    A face is kept from input ``i`` when its mean presence is above 0.5 (exactly 0.5: only for
+    the first input), so a character composed with itself gets each face exactly once.
+    """
+    out = []
+    for i, P in enumerate(pres):
+        T = P.welded.F
+        c = P.welded.V[T].mean(axis=1)
+        inside = np.all((c >= grid.origin) & (c <= grid.upper), axis=1)
+        fp = P.p_welded[T].mean(axis=1)
+        keep = (fp > 0.5) | ((fp == 0.5) & (i == 0))
+        out.append(junction[i] & inside & keep)
+    return out
+
+
 def _local_edge(pres, junction, grid):
     """Mean edge length of the input faces replaced by the junction inside ``grid``."""
     lens = []
@@ -442,7 +527,7 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
     if len(Vi):
         dmin = np.full(len(Vi), np.inf)
         for i, P in enumerate(pres):
-            Fp = P.welded.F[preserved[i]]
+            Fp = P.welded.F[preserved[i] & ~P.secondary]
             if len(Fp) == 0:
                 continue
             d2, _, _ = igl.point_mesh_squared_distance(Vi, P.welded.V, Fp)
@@ -585,6 +670,14 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     if params.min_seam_wedge > 0:
         preserved = [_open_notches(P, preserved[i], min_wedge=params.min_seam_wedge) for i, P in enumerate(pres)]
     junction = [~preserved[i] & ~(P.absent & ~P.preserved) for i, P in enumerate(pres)]
+    if len(pres) > 1 and any(j.any() for j in junction):
+        # the finest voxel any junction will get bounds the room the cut needs between seams
+        boxes0 = _clusters(pres, junction, params.margin_voxels * h0)
+        h_est = min(_grid_for(lo, hi, h0, params).voxel for lo, hi in boxes0)
+        preserved = _separate_seams(pres, preserved, (2.0 * params.cut_voxels + 1.5) * h_est)
+        if params.min_seam_wedge > 0:
+            preserved = [_open_notches(P, preserved[i], min_wedge=params.min_seam_wedge) for i, P in enumerate(pres)]
+        junction = [~preserved[i] & ~(P.absent & ~P.preserved) for i, P in enumerate(pres)]
     timings["presence"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -595,10 +688,12 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
         open_chain_edges += c
     boxes = _clusters(pres, junction, params.margin_voxels * h0)
     backend = get_backend(params.backend)
-    surfaces = [prepare_surface(P.welded.V, P.welded.F) for P in pres]
+    # secondary components are kept whole or dropped, never blended: not in the fields
+    surfaces = [prepare_surface(P.welded.V, P.welded.F[~P.secondary]) for P in pres]
     timings["setup"] = time.perf_counter() - t0
 
     juncs, grids_info, kept_fields, infos = [], [], [], []
+    selected = [np.zeros(len(P.welded.F), bool) for P in pres]
     for ci, (lo, hi) in enumerate(boxes):
         grid = _grid_for(lo, hi, h0, params)
         band = params.band_voxels * grid.voxel
@@ -626,6 +721,16 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
         JV, JF, fkeys, info, field3 = _junction_for_cluster(grid, pres, surfaces, preserved, cl, fields, actions, params,
                                                             band, timings, _local_edge(pres, junction, grid))
         info.update(voxel_size=grid.voxel, voxels=grid.size, shape=list(grid.shape), loops=len(cl))
+        if info["unmatched_preserved_loops"] > 0 or len(JF) == 0:
+            # no closed junction (open sheets have no inside; loops left unmatched): keep the
+            # input faces of the cluster from the input that is most present on each
+            sel = _select_faces(pres, junction, grid)
+            for i in range(len(pres)):
+                selected[i] |= sel[i]
+            info["fallback"] = "face-selection"
+            log.warning("fusion: junction %d could not be closed by the isosurface (%d loops left); "
+                        "kept the most present input faces instead", ci, info["unmatched_preserved_loops"])
+            JV, JF, fkeys = np.zeros((0, 3)), np.zeros((0, 3), np.int64), []
         infos.append(info)
         juncs.append((JV, JF, fkeys))
         if params.keep_fields:
@@ -639,8 +744,11 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     has_n = all(x.normals is not None for x in inputs)
     has_c = any(x.colors is not None for x in inputs)
     base = 0
+    nsel, sel_ranges = 0, []
     for i, x in enumerate(inputs):
-        fidx = np.flatnonzero(preserved[i])
+        fidx = np.concatenate([np.flatnonzero(preserved[i]), np.flatnonzero(selected[i] & ~preserved[i])])
+        nsel += int(np.count_nonzero(selected[i] & ~preserved[i]))
+        sel_ranges.append((sum(len(f) for f in fof) + int(np.count_nonzero(preserved[i])), len(fidx) - int(np.count_nonzero(preserved[i]))))
         Fi = np.asarray(x.F, np.int64)[fidx]
         vidx = np.unique(Fi.ravel())
         remap = np.full(len(x.V), -1, np.int64)
@@ -670,6 +778,8 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     F_out = np.concatenate(Fs_out).astype(np.int64) if Fs_out else np.zeros((0, 3), np.int64)
     junction_faces = np.zeros(len(F_out), bool)
     junction_faces[n_pres_faces:] = True
+    for start, count in sel_ranges:
+        junction_faces[start:start + count] = True
     JVall = V_out[jstart:]
     JFall = F_out[n_pres_faces:] - jstart
 

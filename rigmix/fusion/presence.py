@@ -190,6 +190,8 @@ class Presence:
         Faces neither preserved nor absent: replaced by the junction surface.
     component_decision : (c,) int8
         See :func:`classify_components`.
+    secondary : (m,) bool
+        Faces of secondary components (kept whole or dropped, never blended).
     """
 
     welded: WeldedMesh
@@ -199,6 +201,7 @@ class Presence:
     absent: np.ndarray
     junction: np.ndarray
     component_decision: np.ndarray
+    secondary: np.ndarray
 
 
 def compute_presence(V, F, W, used, *, snap=0.02, iterations=10, alpha=0.8, preserve_threshold=0.999,
@@ -241,4 +244,4 @@ def compute_presence(V, F, W, used, *, snap=0.02, iterations=10, alpha=0.8, pres
     absent |= ~ok
     absent |= fsec & (fp < 0.5)
     junction = ~pres & ~absent
-    return Presence(wm, pw, pw[wm.index], pres, absent, junction, decision)
+    return Presence(wm, pw, pw[wm.index], pres, absent, junction, decision, fsec)
