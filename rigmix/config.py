@@ -39,7 +39,7 @@ import os
 import re
 import tomllib
 from pathlib import Path
-from typing import Annotated, Literal, Union
+from typing import Annotated, Any, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, model_validator
 
@@ -230,6 +230,10 @@ class Config(BaseModel):
     actions: list[Action] = Field(default_factory=list, description="Actions, applied together.")
     mapping: MappingOptions = Field(default_factory=MappingOptions)
     positioning: PositioningOptions = Field(default_factory=PositioningOptions)
+    # Options of the later stages, validated (unknown keys rejected) by the stage that reads them.
+    fusion: dict[str, Any] | None = Field(None, description="Surface fusion options (rigmix.fusion).")
+    weights: dict[str, Any] | None = Field(None, description="Skin weight options (rigmix.weights).")
+    animation: dict[str, Any] | None = Field(None, description="Animation completion options (rigmix.completion).")
 
     _base_dir: Path | None = PrivateAttr(default=None)
     _source: str = PrivateAttr(default="")

@@ -482,7 +482,9 @@ def _position_all(inputs, actions, config, structure):
         }
         if method != "override" and s != 1.0:
             logger.info("operations: %s scaled by %.4g (%s)", cid, s, method)
-    return positioned, scales, translations, info
+    ids = list(config.characters)  # report in the config's order
+    return ({c: positioned[c] for c in ids}, {c: scales[c] for c in ids},
+            {c: translations[c] for c in ids}, {c: info[c] for c in ids})
 
 
 # --------------------------------------------------------------------------------------------

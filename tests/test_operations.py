@@ -438,3 +438,12 @@ def test_compose_builtin_config_in_code():
     bad = rigmix.Config(characters={"a": {"path": "builtin:dragon"}})
     with pytest.raises(InputError, match="no built-in character 'dragon'.*humanoid"):
         load_characters(bad)
+
+
+def test_plan_dicts_follow_the_config_order():
+    x, y = biped("x"), biped("y")
+    plan = plan_for({"y": y, "x": x}, [  # the source listed first: positioned after its target
+        {"op": "attach", "source": "y", "source_joint": "head", "target": "x", "target_joint": "hand.L"}])
+    for d in (plan.positioned, plan.scales, plan.translations, plan.used, plan.image,
+              plan.report["characters"]):
+        assert list(d) == ["y", "x"]
