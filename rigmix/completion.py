@@ -194,26 +194,18 @@ class _Frames:
 
 
 def _sample_input(skeleton_out, character, bone_map, fps, blend):
-    names, times, Ts, Rs, Ss = [], [], [], [], []
-    J = skeleton_out.num_joints
-    mass = np.zeros(J)
-    for clip in character.clips:
-        t = clip_times(clip, fps)
-        T, R, S = sample_clip(character.skeleton, clip, t)
-        To, Ro, So, mass = map_pose(skeleton_out, character.skeleton, bone_map, T, R, S, blend=blend)
-        names.append(clip.name)
-        times.append(t)
-        Ts.append(To)
-        Rs.append(Ro)
-        Ss.append(So)
-    if not names:
-        empty = np.zeros((0, J, 3))
-        return _Frames((), np.zeros(1, dtype=np.int64), (), empty, np.zeros((0, J, 4)), empty,
-                       np.zeros((0, J, 4)), empty, mass)
-    T, R, S = np.concatenate(Ts), np.concatenate(Rs), np.concatenate(Ss)
+    """All clips of one input resampled at ``fps``, mapped onto S_R, with forward kinematics."""
+    n = character.skeleton.num_joints
+    times = tuple(clip_times(clip, fps) for clip in character.clips)
+    sampled = [sample_clip(character.skeleton, clip, t) for clip, t in zip(character.clips, times)]
+    if sampled:
+        T, R, S = (np.concatenate([x[k] for x in sampled]) for k in range(3))
+    else:
+        T, R, S = np.zeros((0, n, 3)), np.zeros((0, n, 4)), np.zeros((0, n, 3))
+    T, R, S, mass = map_pose(skeleton_out, character.skeleton, bone_map, T, R, S, blend=blend)
     start = np.concatenate([[0], np.cumsum([len(t) for t in times])]).astype(np.int64)
     G, P = forward_kinematics(skeleton_out, T, R, S)
-    return _Frames(tuple(names), start, tuple(times), T, R, S, G, P, mass)
+    return _Frames(tuple(c.name for c in character.clips), start, times, T, R, S, G, P, mass)
 
 
 def _owners(skeleton_out, maps, ids, provenance):
@@ -368,8 +360,8 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
             fy = frames[y]
             pool_rows, seg = _pool(fy, None if options.sources is None else options.sources.get(y))
             if pool_rows.size == 0:
-                logger.warning("completion: character %r has no clip to complete %r of %r; "
-                               "its joints stay at rest", y, clip_name, cid)
+                logger.warning("completion: character %r has no clip to complete %r of %r; its "
+                               "joints keep that clip's mapped pose (rest where unmapped)", y, clip_name, cid)
                 continue
             if (cid, y) not in pairs:
                 pairs[(cid, y)] = _pair(fx, fy, pool_rows, parents, owners, cid, y, options, length)

@@ -68,27 +68,27 @@ def choose_frames(score, segment_b, *, jump_penalty=0.0, fixed=None) -> np.ndarr
     if jump_penalty <= 0:
         return np.argmax(score, axis=1).astype(np.int64)
     succ = segments_next(segment_b)
-    index = np.int32 if Fb < 2**31 - 1 else np.int64
-    pred = np.full(Fb, Fb, dtype=index)  # index Fb reads the -inf padding: no predecessor
+    pred = np.full(Fb, Fb, dtype=np.int64)  # index Fb reads the -inf padding: no predecessor
     has = succ >= 0
     pred[succ[has]] = np.flatnonzero(has)
-    back = np.empty((Fa, Fb), dtype=index)
+    stayed = np.empty((Fa, Fb), dtype=bool)  # back-pointers: pred[b] if stayed, else best[a]
+    best = np.zeros(Fa, dtype=np.int64)
     Vp = np.empty(Fb + 1)
     Vp[Fb] = -np.inf
     Vp[:Fb] = score[0]
+    stay = np.empty(Fb)
     for a in range(1, Fa):  # a loop over query frames; each step is vectorized over Fb
-        best = int(np.argmax(Vp[:Fb]))
-        jump = Vp[best] - jump_penalty
-        stay = Vp[pred]
-        take_stay = stay >= jump
-        back[a] = np.where(take_stay, pred, index(best))
+        best[a] = np.argmax(Vp[:Fb])
+        jump = Vp[best[a]] - jump_penalty
+        np.take(Vp, pred, out=stay)
+        np.greater_equal(stay, jump, out=stayed[a])
         np.maximum(stay, jump, out=stay)
         np.add(score[a], stay, out=Vp[:Fb])
-    V = Vp[:Fb]
     path = np.empty(Fa, dtype=np.int64)
-    path[-1] = int(np.argmax(V))
+    path[-1] = int(np.argmax(Vp[:Fb]))
     for a in range(Fa - 1, 0, -1):
-        path[a - 1] = back[a, path[a]]
+        b = path[a]
+        path[a - 1] = pred[b] if stayed[a, b] else best[a]
     return path
 
 

@@ -522,3 +522,30 @@ def test_completion_stage_on_the_builtin_centaur():
     with pytest.raises(InputError, match="unknown animation option"):
         options_from_config({"jump": 1})
     assert dataclasses.asdict(options_from_config(None)) == dataclasses.asdict(CompletionOptions())
+
+
+def test_a_static_input_leaves_the_clips_own_mapped_pose(fox, caplog):
+    import dataclasses
+
+    sk = fox.skeleton
+    J = sk.num_joints
+    tail = sk.index("b_Tail01_012")
+    part = sk.subtree(tail)
+    prov = [[("B", j)] if part[j] else [("A", j)] for j in range(J)]
+    prov[tail] = [("A", tail), ("B", tail)]
+    maps = {k: BoneMap(k, np.arange(J), np.ones(J)) for k in "AB"}
+    static = dataclasses.replace(fox, clips=())
+    with caplog.at_level("WARNING", logger="rigmix.completion"):
+        (clip,) = complete_clips(sk, {"A": fox, "B": static}, maps, provenance=prov,
+                                 selection=[("A", "Walk")])
+    assert "no clip to complete" in caplog.text
+    # A maps its own tail onto those joints: the tail keeps A's animation
+    err = _angles_to_source(sk, clip, fox, fox.clip("Walk"), np.arange(J), np.arange(J))
+    assert err.max() < 1e-6
+    # a tail A does not map stays at rest
+    cut = np.where(part & (np.arange(J) != tail), -1, np.arange(J))
+    maps["A"] = BoneMap("A", cut, np.ones(J))
+    (clip,) = complete_clips(sk, {"A": fox, "B": static}, maps, provenance=prov, selection=[("A", "Walk")])
+    _, R, _ = sample_clip(sk, clip, clip_times(clip))
+    kids = np.flatnonzero(cut < 0)
+    np.testing.assert_allclose(quat_angle(R[:, kids], sk.rotations[kids]), 0.0, atol=1e-7)
