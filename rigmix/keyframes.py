@@ -320,31 +320,29 @@ def rotation_features(Q, w=None) -> np.ndarray:
     return phi.reshape(Q.shape[0], -1)
 
 
-def _score_features(G, P, w, rotation_weight, translation_weight, length):
-    """Features ``X`` and offsets ``c`` with ``score[a, b] = X_a . X_b - c_a - c_b + tw``.
+def _score_features(G, P, w, length):
+    """Weighted rotation and position features of keyframes (kept joints: weight > 0).
 
-    Rotation features of the kept joints (weight > 0) scaled by ``sqrt(rotation_weight w /
-    sum w)``, then weighted positions scaled by ``sqrt(2 ct)``; ``c = ct sum_j w_j |p_j|^2``
-    with ``ct = translation_weight / (sum w length^2)``.
+    Returns ``Xr (F, 10 Jk)`` with ``Xr_a . Xr_b = sum_j w_j <q_a, q_b>^2 / sum w`` and
+    ``Xp (F, 3 Jk)`` with ``|Xp_a - Xp_b|^2 = sum_j w_j |p_a - p_b|^2 / (sum w length^2)``.
     """
     keep = np.flatnonzero(w > 0)
-    wk = w[keep]
-    total = wk.sum()
-    cr = rotation_weight / total
-    ct = translation_weight / (total * max(length, 1e-12) ** 2)
-    p = (np.asarray(P, dtype=np.float64)[:, keep] * np.sqrt(wk)[:, None]).reshape(len(P), -1)
-    X = np.concatenate([np.sqrt(cr) * rotation_features(np.asarray(G)[:, keep], wk),
-                        np.sqrt(2 * ct) * p], axis=1)
-    return X, ct * np.einsum("ij,ij->i", p, p)
+    wk = w[keep] / w[keep].sum()
+    Xr = rotation_features(np.asarray(G)[:, keep], wk)
+    scale = np.sqrt(wk)[:, None] / max(length, 1e-12)
+    Xp = (np.asarray(P, dtype=np.float64)[:, keep] * scale).reshape(len(P), -1)
+    return Xr, Xp
 
 
 def keyframe_scores(Ga, Pa, Gb, Pb, w, *, rotation_weight=0.8, translation_weight=0.2,
                     length=1.0, metric="squared", dtype=np.float64) -> np.ndarray:
-    """Similarity of every pair of keyframes (higher is more alike), one matrix product.
+    """Similarity of every pair of keyframes (higher is more alike) by matrix products.
 
     ``score[a, b] = rotation_weight * sum_j w_j r(Ga_aj, Gb_bj) / sum w
-    + translation_weight * (1 - sum_j w_j |Pa_aj - Pb_bj|^2 / (sum w * length^2))``, with
-    ``r = <q_a, q_b>^2`` (``metric="squared"``) or ``|<q_a, q_b>|`` (``"abs"``).
+    + translation_weight * exp(-sum_j w_j |Pa_aj - Pb_bj|^2 / (sum w * length^2))``, with
+    ``r = <q_a, q_b>^2`` (``metric="squared"``) or ``|<q_a, q_b>|`` (``"abs"``). Both terms
+    lie in [0, 1]: the exponential keeps a far-off translation (e.g. a root moved through a
+    weak mapping) from outweighing the rotations.
 
     Parameters
     ----------
@@ -362,9 +360,9 @@ def keyframe_scores(Ga, Pa, Gb, Pb, w, *, rotation_weight=0.8, translation_weigh
         Length scale of the positions (e.g. the skeleton's extent).
     metric : {"squared", "abs"}
     dtype : numpy dtype
-        Of the matrix product and the result. ``float32`` halves time and memory: the features
-        are centred on the candidates' mean first, so rounding scales with the spread of the
-        poses rather than with the scores themselves (about 1e-7 absolute).
+        Of the matrix products and the result. ``float32`` halves time and memory: the
+        features are centred on the candidates' mean first, so rounding scales with the
+        spread of the poses rather than with the scores themselves (about 1e-7 absolute).
 
     Returns
     -------
@@ -375,32 +373,28 @@ def keyframe_scores(Ga, Pa, Gb, Pb, w, *, rotation_weight=0.8, translation_weigh
     if not np.any(w > 0):
         return np.full((Fa, Fb), rotation_weight + translation_weight, dtype=dtype)
     Ga, Gb = quat_normalize(Ga), quat_normalize(Gb)
-    if metric == "squared":
-        cand = Candidates.build(Gb, Pb, w, rotation_weight, translation_weight, length, dtype)
-        return cand.scores(Ga, Pa)
-    if metric != "abs":
+    if metric not in ("squared", "abs"):
         raise InputError(f"completion: metric must be 'squared' or 'abs', got {metric!r}")
-    # the paper's |<q_a, q_b>|: one (Fa, 4) @ (4, Fb) product per joint, no loop on pairs
-    Xa, ca = _score_features(Ga, Pa, w, 0.0, translation_weight, length)
-    Xb, cb = _score_features(Gb, Pb, w, 0.0, translation_weight, length)
-    score = Xa @ Xb.T
-    keep = np.flatnonzero(w > 0)
-    cr = rotation_weight / w[keep].sum()
-    for j in keep:
-        score += (cr * w[j]) * np.abs(Ga[:, j] @ Gb[:, j].T)
-    score -= ca[:, None]
-    score -= cb[None, :]
-    score += translation_weight
-    return score.astype(dtype, copy=False)
+    cand = Candidates.build(Gb, Pb, w, 0.0 if metric == "abs" else rotation_weight,
+                            translation_weight, length, dtype)
+    score = cand.scores(Ga, Pa)
+    if metric == "abs":  # the paper's |<q_a, q_b>|: one (Fa, 4) @ (4, Fb) product per joint
+        keep = np.flatnonzero(w > 0)
+        cr = rotation_weight / w[keep].sum()
+        for j in keep:
+            score += (cr * w[j]) * np.abs(Ga[:, j] @ Gb[:, j].T)
+    return score
 
 
 @dataclass(frozen=True)
 class Candidates:
-    """The candidate side of :func:`keyframe_scores` (``metric="squared"``), built once and
-    scored against any number of query clips.
+    """The candidate side of :func:`keyframe_scores`, built once and scored against any
+    number of query clips.
 
-    ``score = (X_a - m)(X_b - m)^T + (X_a m - c_a) + (X_b m - c_b - m.m + tw)``: the product of
-    features centred on the candidates' mean ``m`` in ``dtype``, the rank-one terms in float64.
+    Rotation term: ``rotation_weight * (Xr_a - m)(Xr_b - m)^T + row_a + col_b`` (the rank-one
+    terms put the centring back). Translation term: ``translation_weight * exp(-|Xp_a - Xp_b|^2)``
+    with ``|Xp_a - Xp_b|^2`` expanded around the candidates' mean position feature. Products
+    of centred features in ``dtype``, rank-one terms in float64.
 
     Attributes
     ----------
@@ -408,37 +402,54 @@ class Candidates:
         Joint weights.
     weights : tuple of float
         ``(rotation_weight, translation_weight, length)``.
-    mean : (K,) float64
-        Mean candidate feature.
-    Xc : (Fb, K) array of ``dtype``
-        Centred candidate features.
-    col : (Fb,) array of ``dtype``
-        Per-candidate constant term.
+    mean_r, mean_p : (Kr,), (Kp,) float64
+        Mean candidate rotation and position features.
+    Xr, Xp : (Fb, Kr), (Fb, Kp) arrays of ``dtype``
+        Centred candidate features (rotation ones scaled by ``rotation_weight``, position ones
+        by -2).
+    col_r, col_p : (Fb,) arrays of ``dtype``
+        Per-candidate terms: ``rotation_weight (Xr_b . m - m . m)`` and ``|Xp_b - m|^2``.
     """
 
     w: np.ndarray
     weights: tuple
-    mean: np.ndarray
-    Xc: np.ndarray
-    col: np.ndarray
+    mean_r: np.ndarray
+    mean_p: np.ndarray
+    Xr: np.ndarray
+    Xp: np.ndarray
+    col_r: np.ndarray
+    col_p: np.ndarray
 
     @classmethod
     def build(cls, Gb, Pb, w, rotation_weight, translation_weight, length, dtype) -> "Candidates":
         """From global rotations ``Gb (Fb, J, 4)`` and positions ``Pb (Fb, J, 3)`` of the
         candidate keyframes (the other arguments as :func:`keyframe_scores`)."""
-        weights = (rotation_weight, translation_weight, length)
-        Xb, cb = _score_features(Gb, Pb, np.asarray(w, dtype=np.float64), *weights)
-        m = Xb.mean(axis=0)
-        col = Xb @ m - cb - m @ m + translation_weight
-        return cls(np.asarray(w, dtype=np.float64), weights, m, (Xb - m).astype(dtype), col.astype(dtype))
+        w = np.asarray(w, dtype=np.float64)
+        Xr, Xp = _score_features(Gb, Pb, w, length)
+        mr, mp = Xr.mean(axis=0), Xp.mean(axis=0)
+        Xp = Xp - mp
+        col_r = rotation_weight * (Xr @ mr - mr @ mr)
+        col_p = np.einsum("ij,ij->i", Xp, Xp)
+        return cls(w, (rotation_weight, translation_weight, length), mr, mp,
+                   (rotation_weight * (Xr - mr)).astype(dtype), (-2.0 * Xp).astype(dtype),
+                   col_r.astype(dtype), col_p.astype(dtype))
 
     def scores(self, Ga, Pa) -> np.ndarray:
         """``(Fa, Fb)`` scores of query keyframes ``Ga (Fa, J, 4)``, ``Pa (Fa, J, 3)``."""
-        Xa, ca = _score_features(Ga, Pa, self.w, *self.weights)
-        row = (Xa @ self.mean - ca).astype(self.Xc.dtype)
-        score = (Xa - self.mean).astype(self.Xc.dtype) @ self.Xc.T  # (Fa, Fb), one GEMM
-        score += row[:, None]
-        score += self.col[None, :]
+        rw, tw, length = self.weights
+        dtype = self.Xr.dtype
+        Xr, Xp = _score_features(Ga, Pa, self.w, length)
+        score = (Xr - self.mean_r).astype(dtype) @ self.Xr.T  # (Fa, Fb), one GEMM
+        score += (rw * (Xr @ self.mean_r)).astype(dtype)[:, None]
+        score += self.col_r[None, :]
+        if tw > 0:
+            Xp = Xp - self.mean_p
+            d = Xp.astype(dtype) @ self.Xp.T  # -2 pa.pb, then + |pa|^2 + |pb|^2 - log tw
+            d += (np.einsum("ij,ij->i", Xp, Xp) - np.log(tw)).astype(dtype)[:, None]
+            d += self.col_p[None, :]
+            np.negative(d, out=d)
+            np.exp(d, out=d)  # tw exp(-distance)
+            score += d
         return score
 
 

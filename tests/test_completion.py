@@ -149,7 +149,7 @@ def _scores_reference(Ga, Pa, Gb, Pb, w, rw, tw, length, metric):
                 dot = float(np.dot(Ga[a, j], Gb[b, j]))
                 r += w[j] * (dot * dot if metric == "squared" else abs(dot))
                 d += w[j] * float(np.sum((Pa[a, j] - Pb[b, j]) ** 2))
-            out[a, b] = rw * r / w.sum() + tw * (1 - d / (w.sum() * length**2))
+            out[a, b] = rw * r / w.sum() + tw * np.exp(-d / (w.sum() * length**2))
     return out
 
 
