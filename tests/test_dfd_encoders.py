@@ -90,6 +90,9 @@ def test_dinov2_checkpoint_from_environment(tmp_path, monkeypatch):
     torch.save(_tiny_vit().state_dict(), path)
     monkeypatch.setenv(ENV_CHECKPOINT, str(path))
     assert DinoV2Encoder().checkpoint == path
+    from dfd import encoders
+
+    assert encoders.DinoV2Encoder is DinoV2Encoder  # the protocol's module exposes it too
 
 
 def test_dinov2_missing_checkpoint_says_where(tmp_path, monkeypatch):

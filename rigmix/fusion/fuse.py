@@ -502,6 +502,30 @@ def _project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels):
     return out
 
 
+def _preserved_edges_between(pres, preserved, keys, fid_to_final):
+    """Edges of preserved faces whose two ends are junction border vertices, in final indices.
+
+    The junction must not contain them too (three faces on one edge).
+    """
+    nf = max(keys.values(), default=-1) + 1
+    final = np.full(nf, -1, np.int64)
+    for k, v in fid_to_final.items():
+        final[k] = v
+    out = []
+    for i, P in enumerate(pres):
+        T = P.welded.F[preserved[i]]
+        mine = [(w, k) for (src, w), k in keys.items() if src == i]
+        if len(T) == 0 or not mine:
+            continue
+        look = np.full(len(P.welded.V), -1, np.int64)
+        ws, ks = np.array(mine, np.int64).T
+        look[ws] = final[ks]
+        E = np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]])
+        L = look[E]
+        out.append(L[(L >= 0).all(axis=1)])
+    return np.concatenate(out) if out else np.zeros((0, 2), np.int64)
+
+
 def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields, actions, params, band, timings,
                           local_edge=0.0):
     """Isosurface, cut, bridges and remesh of one cluster.
@@ -605,9 +629,11 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
             U, G = remesh_junction(JV, JF, fx, target=target, iterations=params.remesh_iterations)
             U = smooth_interior(U, G, np.arange(len(fx)), iterations=params.taubin_iterations)
             U = _project_to_inputs(U, len(fx), pres, surfaces, inputs_fields, h, params.project_voxels)
-            G = flip_to_improve_angles(U, G)
+            fid_to_final = {int(old[v] - nI): k for k, v in enumerate(fx)}
+            forb = _preserved_edges_between(pres, preserved, keys, fid_to_final)
+            G = flip_to_improve_angles(U, G, forbidden=forb)
             U = relocate_poor_vertices(U, G, len(fx), surface=(JV, JF))
-            G = flip_to_improve_angles(U, G)
+            G = flip_to_improve_angles(U, G, forbidden=forb)
             fkeys = [fixed_keys[int(old[v] - nI)] for v in fx]
             JV, JF = U, G
             info["remeshed"] = True

@@ -117,8 +117,9 @@ def classify_components(p, F, *, max_variance=0.04, keep_largest=True):
         A component whose presence variance is below this is secondary (paper: 0.04).
     keep_largest : bool
         Never treat the component with the most faces as secondary. The paper's rule alone
-        drops a whole body whose kept part is small (a finger replaced: variance < 0.04);
-        the body is the one part that must be blended.
+        drops a whole body whose kept part is small (a finger replaced: variance < 0.04), and
+        takes a receiving body that keeps every joint (attach) out of the blend; the body is
+        the one part that must be blended.
 
     Returns
     -------
@@ -137,9 +138,7 @@ def classify_components(p, F, *, max_variance=0.04, keep_largest=True):
     if keep_largest and c:
         ok = nondegenerate(F)
         fc = np.bincount(labels[np.asarray(F)[ok, 0]], minlength=c)
-        big = int(np.argmax(fc))
-        if var[big] >= 1e-12:  # a body with a real transition is blended
-            decision[big] = -1
+        decision[int(np.argmax(fc))] = -1
     return labels, decision
 
 

@@ -90,35 +90,39 @@ def smooth_interior(V, F, fixed, *, iterations=3, lam=0.5, mu=-0.53):
     return V
 
 
-def _tri_min_angle(a, b, c):
-    """Smallest angle (radians) of triangle ``a, b, c`` (3-vectors)."""
+def _min_angles(A, B, C):
+    """Smallest angle (radians) of triangles ``(A[i], B[i], C[i])``, each ``(k, 3)``."""
     def ang(p, q, r):
         u, w = q - p, r - p
-        nu, nw = np.linalg.norm(u), np.linalg.norm(w)
-        if nu == 0 or nw == 0:
-            return 0.0
-        return float(np.arccos(np.clip(u @ w / (nu * nw), -1.0, 1.0)))
-    return min(ang(a, b, c), ang(b, c, a), ang(c, a, b))
+        nu = np.linalg.norm(u, axis=1)
+        nw = np.linalg.norm(w, axis=1)
+        cos = np.einsum("ij,ij->i", u, w) / np.maximum(nu * nw, 1e-300)
+        return np.where((nu > 0) & (nw > 0), np.arccos(np.clip(cos, -1.0, 1.0)), 0.0)
+    return np.minimum(np.minimum(ang(A, B, C), ang(B, C, A)), ang(C, A, B))
 
 
-def _normal(a, b, c):
-    n = np.cross(b - a, c - a)
-    ln = np.linalg.norm(n)
-    return n / ln if ln > 0 else n
+def _unit_normals(A, B, C):
+    n = np.cross(B - A, C - A)
+    ln = np.linalg.norm(n, axis=1, keepdims=True)
+    return n / np.maximum(ln, 1e-300), ln[:, 0]
 
 
-def flip_to_improve_angles(V, F, *, max_passes=10, min_normal_dot=0.7):
+def flip_to_improve_angles(V, F, *, max_passes=10, min_normal_dot=0.7, forbidden=None):
     """Flip interior edges where it raises the smaller of the two triangles' minimum angles.
 
     Boundary edges are never flipped, so a fixed border stays exactly as it is. A flip is
     refused when it would create an existing edge or fold the surface (the new triangles'
-    normals must agree with the old ones within ``min_normal_dot``).
+    normals must agree with the old ones within ``min_normal_dot``). Vectorized per pass; the
+    best flips that share no triangle are applied together.
 
     Parameters
     ----------
     V : (n, 3) float array
     F : (m, 3) int array
         An edge-manifold, consistently oriented triangle mesh.
+    forbidden : (k, 2) int array, optional
+        Edges that must not exist (they exist elsewhere, e.g. inside the preserved faces around
+        a junction): flipped away when present, never created.
 
     Returns
     -------
@@ -127,42 +131,65 @@ def flip_to_improve_angles(V, F, *, max_passes=10, min_normal_dot=0.7):
     """
     V = np.asarray(V, dtype=np.float64)
     G = np.asarray(F, dtype=np.int64).copy()
+    n = len(V) + 1
+    fkey = np.zeros(0, np.int64)
+    if forbidden is not None and len(forbidden):
+        fb = np.sort(np.asarray(forbidden, np.int64).reshape(-1, 2), axis=1)
+        fkey = np.unique(fb[:, 0] * n + fb[:, 1])
+    m = len(G)
+    if m == 0:
+        return G
     for _ in range(max_passes):
-        he = {}
-        for f, (a, b, c) in enumerate(G):
-            he[(a, b)] = (f, c)
-            he[(b, c)] = (f, a)
-            he[(c, a)] = (f, b)
-        edges = {(min(a, b), max(a, b)) for (a, b) in he}
-        changed = False
-        done = set()
-        for (a, b), (f, c) in list(he.items()):
-            if a > b or (b, a) not in he:
+        a = G.ravel()
+        b = np.roll(G, -1, axis=1).ravel()
+        c = np.roll(G, -2, axis=1).ravel()
+        f = np.repeat(np.arange(m), 3)
+        key = a * n + b
+        order = np.argsort(key)
+        skey = key[order]
+        tw = np.searchsorted(skey, b * n + a)
+        tw = np.clip(tw, 0, len(skey) - 1)
+        has = skey[tw] == b * n + a
+        twin = np.where(has, order[tw], -1)
+        h = np.flatnonzero(has & (a < b))
+        if len(h) == 0:
+            break
+        t = twin[h]
+        A, B, C, D = V[a[h]], V[b[h]], V[c[h]], V[c[t]]
+        old = np.minimum(_min_angles(A, B, C), _min_angles(B, A, D))
+        new = np.minimum(_min_angles(D, C, A), _min_angles(C, D, B))
+        n0, l0 = _unit_normals(A, B, C)
+        n1, l1 = _unit_normals(B, A, D)
+        navg = n0 + n1
+        navg /= np.maximum(np.linalg.norm(navg, axis=1, keepdims=True), 1e-300)
+        m0, k0 = _unit_normals(D, C, A)
+        m1, k1 = _unit_normals(C, D, B)
+        abk = np.minimum(a[h], b[h]) * n + np.maximum(a[h], b[h])
+        must = np.isin(abk, fkey)
+        ok = ((new > old + 1e-9) | must) & (c[h] != c[t]) & (k0 > 0) & (k1 > 0)
+        ok &= (np.einsum("ij,ij->i", m0, navg) >= min_normal_dot) & (np.einsum("ij,ij->i", m1, navg) >= min_normal_dot)
+        ukey = np.unique(np.minimum(a, b) * n + np.maximum(a, b))
+        cd = np.minimum(c[h], c[t]) * n + np.maximum(c[h], c[t])
+        pos = np.clip(np.searchsorted(ukey, cd), 0, len(ukey) - 1)
+        ok &= (ukey[pos] != cd) & ~np.isin(cd, fkey)
+        cand = np.flatnonzero(ok)
+        if len(cand) == 0:
+            break
+        cand = cand[np.argsort(-(new[cand] - old[cand] + 10.0 * must[cand]))]
+        used = np.zeros(m, bool)
+        taken_cd = set()
+        applied = 0
+        for k in cand:
+            fa, fb = f[h[k]], f[t[k]]
+            if used[fa] or used[fb] or cd[k] in taken_cd:
                 continue
-            g, d = he[(b, a)]
-            if f in done or g in done or c == d:
-                continue
-            if (min(c, d), max(c, d)) in edges:
-                continue
-            # current triangles (a, b, c) and (b, a, d); flipped: (c, d, b)... keep orientation
-            old = min(_tri_min_angle(V[a], V[b], V[c]), _tri_min_angle(V[b], V[a], V[d]))
-            new = min(_tri_min_angle(V[d], V[c], V[a]), _tri_min_angle(V[c], V[d], V[b]))
-            if new <= old + 1e-9:
-                continue
-            n_old = _normal(V[a], V[b], V[c]) + _normal(V[b], V[a], V[d])
-            ln = np.linalg.norm(n_old)
-            if ln == 0:
-                continue
-            n_old /= ln
-            if _normal(V[d], V[c], V[a]) @ n_old < min_normal_dot or _normal(V[c], V[d], V[b]) @ n_old < min_normal_dot:
-                continue
-            G[f] = (d, c, a)
-            G[g] = (c, d, b)
-            edges.discard((min(a, b), max(a, b)))
-            edges.add((min(c, d), max(c, d)))
-            done.update((f, g))
-            changed = True
-        if not changed:
+            used[fa] = used[fb] = True
+            taken_cd.add(int(cd[k]))
+            va, vb, vc, vd = a[h[k]], b[h[k]], c[h[k]], c[t[k]]
+            G[fa] = (vd, vc, va)
+            G[fb] = (vc, vd, vb)
+            applied += 1
+        if applied == 0:
             break
     return G
 
@@ -217,6 +244,12 @@ def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterat
     for f, tri in enumerate(F):
         for v in tri:
             VF[v].append(f)
+    tree = None
+    if surface is not None:
+        tree = igl.AABB()
+        SV = np.ascontiguousarray(surface[0], dtype=np.float64)
+        SF = np.ascontiguousarray(surface[1], dtype=np.int64)
+        tree.init(SV, SF)
     for _ in range(iterations):
         ang = triangle_min_angles(V, F)
         bad = np.flatnonzero(ang < threshold)
@@ -224,12 +257,10 @@ def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterat
         verts = verts[verts >= nfixed]
         if len(verts) == 0:
             break
-        moved = False
+        # candidates of every vertex first, projected in one call
+        cand_lists = []
         for v in verts:
             ring = F[VF[v]]
-            P = V[ring]
-            n0 = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
-            n0 /= np.maximum(np.linalg.norm(n0, axis=1, keepdims=True), 1e-300)
             nbr = np.unique(ring.ravel())
             nbr = nbr[nbr != v]
             cands = [V[nbr].mean(axis=0)]
@@ -240,18 +271,26 @@ def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterat
                     mid = 0.5 * (a + b)
                     e = b - a
                     L = np.linalg.norm(e)
+                    off = V[v] - mid
                     if L == 0:
                         continue
-                    off = V[v] - mid
                     off -= (off @ e) / (L * L) * e
                     lo = np.linalg.norm(off)
                     if lo == 0:
                         continue
                     cands.append(mid + off / lo * (np.sqrt(3) / 2) * L)
             C = np.asarray(cands)
-            C = np.concatenate([C, 0.5 * (C + V[v])])
-            if surface is not None:
-                C = np.asarray(igl.point_mesh_squared_distance(C, surface[0], surface[1])[2])
+            cand_lists.append(np.concatenate([C, 0.5 * (C + V[v])]))
+        allC = np.concatenate(cand_lists)
+        if tree is not None:
+            allC = np.asarray(tree.squared_distance(SV, SF, allC)[2])
+        splits = np.cumsum([len(c) for c in cand_lists])[:-1]
+        moved = False
+        for v, C in zip(verts, np.split(allC, splits)):
+            ring = F[VF[v]]
+            P = V[ring]
+            n0 = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+            n0 /= np.maximum(np.linalg.norm(n0, axis=1, keepdims=True), 1e-300)
             cur = _ring_min_angle(V, ring)
             best, best_pos = cur, None
             old = V[v].copy()
