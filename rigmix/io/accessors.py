@@ -25,6 +25,7 @@ from __future__ import annotations
 import base64
 import binascii
 import json
+import math
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -241,7 +242,8 @@ def _int(doc: Document, obj: dict, key: str, label: str, default=None) -> int:
             raise doc.error(f"{label} has no '{key}'")
         return default
     v = obj[key]
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or v != int(v):
+    # json reads NaN and Infinity as floats: int() of them would raise ValueError/OverflowError
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v != int(v):
         raise doc.error(f"{label}: '{key}' must be an integer, got {v!r}")
     return int(v)
 
@@ -299,6 +301,8 @@ def _parse_json(text: bytes, name: str, where: str) -> dict:
         doc = json.loads(text.decode("utf-8-sig"))
     except (UnicodeDecodeError, ValueError) as exc:
         raise InputError(f"{name}: corrupted {where}: not valid UTF-8 JSON ({exc})") from None
+    except RecursionError:  # arrays or objects nested thousands deep
+        raise InputError(f"{name}: corrupted {where}: JSON nested too deeply to be glTF") from None
     if not isinstance(doc, dict) or not isinstance(doc.get("asset"), dict):
         raise InputError(f"{name}: {where} is not a glTF document (no 'asset' object)")
     version = str(doc["asset"].get("version", ""))

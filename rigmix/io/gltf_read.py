@@ -75,7 +75,7 @@ def read_gltf(path) -> Character:
         return _read(doc, log)
     except RigmixError:
         raise
-    except (TypeError, ValueError, KeyError, AttributeError, IndexError) as exc:
+    except (TypeError, ValueError, KeyError, AttributeError, IndexError, OverflowError) as exc:
         # A JSON value of the wrong type somewhere we did not check explicitly.
         raise doc.error(f"malformed glTF ({type(exc).__name__}: {exc})") from None
 
@@ -131,6 +131,26 @@ def _node_local(doc: Document, i: int, node: dict) -> np.ndarray:
     return trs_to_matrix(t, r, s)
 
 
+def _node_locals(doc: Document, nodes: list) -> np.ndarray:
+    """Local matrices ``(N, 4, 4)`` of all nodes, in one vectorized pass when every node is
+    well-formed (a 100k-joint file in well under a second); else node by node, which names the
+    first malformed node."""
+    try:
+        is_m = np.array(["matrix" in n for n in nodes], dtype=bool)
+        t = np.array([n.get("translation", (0, 0, 0)) for n in nodes], dtype=np.float64).reshape(-1, 3)
+        r = np.array([n.get("rotation", (0, 0, 0, 1)) for n in nodes], dtype=np.float64).reshape(-1, 4)
+        s = np.array([n.get("scale", (1, 1, 1)) for n in nodes], dtype=np.float64).reshape(-1, 3)
+        m = np.array([n["matrix"] for n in nodes if "matrix" in n], dtype=np.float64).reshape(-1, 16)
+        ok = len(t) == len(r) == len(s) == len(nodes) and all(np.all(np.isfinite(a)) for a in (t, r, s, m))
+    except (TypeError, ValueError, AttributeError):
+        ok = False
+    if not ok:
+        return np.stack([_node_local(doc, i, n) for i, n in enumerate(nodes)]) if nodes else np.zeros((0, 4, 4))
+    local = trs_to_matrix(t, r, s)
+    local[is_m] = m.reshape(-1, 4, 4).transpose(0, 2, 1)  # column-major in the file
+    return local
+
+
 def _node_graph(doc: Document) -> _Graph:
     nodes = doc.items("nodes")
     N = len(nodes)
@@ -155,7 +175,7 @@ def _node_graph(doc: Document) -> _Graph:
         for c in reversed(chain):
             d += 1
             depth[c] = d
-    local = np.stack([_node_local(doc, i, nodes[i]) for i in range(N)]) if N else np.zeros((0, 4, 4))
+    local = _node_locals(doc, nodes)
     world = np.empty_like(local)
     for i in np.argsort(depth, kind="stable"):
         world[i] = local[i] if parent[i] < 0 else world[parent[i]] @ local[i]
@@ -232,10 +252,12 @@ def _unique(names: list[str]) -> tuple[list[str], list[tuple[str, str]]]:
     """Make names unique: later duplicates get ``.1``, ``.2``... (never a name already in the
     list); returns the new names and the ``(old, new)`` renames."""
     taken, used, out, renamed = set(names), set(), [], []
+    next_k: dict[str, int] = {}  # suffixes below it are taken for good: linear in len(names)
     for n in names:
-        new, k = n, 1
+        new, k = n, next_k.get(n, 1)
         while new in used or (new != n and new in taken):
             new, k = f"{n}.{k}", k + 1
+        next_k[n] = k
         used.add(new)
         out.append(new)
         if new != n:
@@ -250,12 +272,15 @@ def _joint_members(graph: _Graph, skin_nodes, log) -> set[int]:
     """
     skin = {int(n) for n in skin_nodes}
     members = set(skin)
+    below_joint: dict[int, bool] = {}  # non-joint node -> has a skin joint above it (memo: linear time)
     for j in skin:
-        chain, k = [], graph.parent[j]
-        while k >= 0 and k not in skin:
-            chain.append(int(k))
-            k = graph.parent[k]
-        if k >= 0:
+        chain, k = [], int(graph.parent[j])
+        while k >= 0 and k not in skin and k not in below_joint:
+            chain.append(k)
+            k = int(graph.parent[k])
+        above = k >= 0 and (k in skin or below_joint[k])
+        below_joint.update(dict.fromkeys(chain, above))
+        if above:
             members.update(chain)
     for n in sorted(members - skin):
         log(f"node '{graph.names[n] or n}' lies between joints but is not in the skin: added as a joint")
@@ -298,10 +323,10 @@ def _anchors(graph: _Graph, root_nodes: list[int]) -> tuple[tuple[Anchor, ...], 
     returns them and ``{node index: anchor index}``."""
     nodes = set()
     for n in root_nodes:
-        k = graph.parent[n]
-        while k >= 0:
-            nodes.add(int(k))
-            k = graph.parent[k]
+        k = int(graph.parent[n])
+        while k >= 0 and k not in nodes:  # a node already seen has its ancestors in too
+            nodes.add(k)
+            k = int(graph.parent[k])
     order = sorted(nodes, key=lambda n: (graph.depth[n], n))
     index = {n: a for a, n in enumerate(order)}
     names, _ = _unique([graph.names[n] or f"node_{n}" for n in order])

@@ -11,15 +11,14 @@ from __future__ import annotations
 import base64
 import json
 import logging
-import os
 import struct
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from ..character import Character, Material, Mesh
 from ..errors import InputError, UnsupportedError
+from ..safety import atomic_write_bytes
 from ..transforms import quat_normalize
 
 __all__ = ["write_gltf", "sparsify_weights"]
@@ -368,15 +367,4 @@ def write_gltf(character: Character, path) -> None:
         raise InputError(f"write_gltf: {path.name}: unknown suffix {path.suffix!r}, expected .glb or .gltf")
     gl, data = _document(character)
     payload = _glb(gl, data) if suffix == ".glb" else _gltf(gl, data)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(payload)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the usual file mode
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write_bytes(path, payload)  # temporary file beside path, renamed over it

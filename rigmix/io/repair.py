@@ -114,7 +114,8 @@ def fill_empty_rows(parts, skeleton: Skeleton, log):
                 w = dW[src, order]
                 p["joints"][r] = dJ[src, order]
                 p["weights"][r] = w / w.sum()
-        near = np.argmin(((P[~copied, None, :] - bind_pos[None]) ** 2).sum(-1), axis=1)
+        # a k-d tree, not an (empty rows x joints) distance matrix: memory stays linear
+        near = cKDTree(bind_pos).query(P[~copied])[1] if (~copied).any() else np.zeros(0, dtype=np.int64)
         p["joints"][rows[~copied]] = 0
         p["weights"][rows[~copied]] = 0.0
         p["joints"][rows[~copied], 0] = near
