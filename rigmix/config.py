@@ -69,7 +69,7 @@ __all__ = [
 #: Prefix of a path that names a procedural character of :mod:`rigmix.examples`.
 BUILTIN_PREFIX = "builtin:"
 
-_STRICT = ConfigDict(extra="forbid", frozen=True)
+_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # TOML has nan and inf
 
 
 class JointRotation(BaseModel):
