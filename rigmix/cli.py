@@ -1,0 +1,402 @@
+"""The ``rigmix`` command line; the only place that configures logging.
+
+Usage::
+
+    rigmix [-v] [--debug] <command> ...
+    rigmix inspect FILE [--json]
+
+Adding a command
+----------------
+Write ``_add_<name>(parser)`` (declares the arguments of its ``argparse`` sub-parser) and
+``_run_<name>(args) -> int`` (does the work, returns the exit status), then append one
+:class:`Command` to :data:`COMMANDS`. Heavy imports go inside ``_run_<name>``, so that
+``rigmix --help`` stays fast.
+
+Errors
+------
+A :class:`rigmix.errors.RigmixError` (or an ``OSError`` such as a missing file) is printed as
+one line ``rigmix: error: <message>`` on stderr, exit status 2, no traceback; any other
+exception is reported the same way as an internal error, exit status 1. ``--debug`` re-raises
+instead (full traceback). Library code never prints: it logs through
+``logging.getLogger(__name__)``; warnings go to stderr, ``-v`` adds info, ``-vv`` debug.
+
+``rigmix inspect --json`` keys
+------------------------------
+``file``, ``name``, ``skinned`` (bool: a skeleton and at least one skinned mesh),
+``counts`` (``joints``, ``roots``, ``anchors``, ``meshes``, ``props``, ``vertices`` and
+``faces`` over meshes and props, ``clips``, ``materials``, ``textures``, ``warnings``),
+``joints`` (list of ``index``, ``name``, ``parent`` (name or null), ``depth``, ``anchor`` (name
+of the anchor a root hangs from, or null), ``translation``, ``rotation`` (xyzw), ``scale``),
+``anchors`` (``name``, ``parent``, ``translation``), ``meshes`` (``name``, ``vertices``,
+``faces``, ``material`` (index), ``material_name``, ``skinned``, ``influences`` (largest number
+of non-zero weights on one vertex, 0 if unskinned), ``slots`` (joint slots per vertex),
+``normals``, ``uv_sets``, ``colors``), ``props`` (``name``, ``joint`` (name or null),
+``vertices``, ``faces``, ``material``), ``materials`` (``index``, ``name``, ``base_color``,
+``metallic``, ``roughness``, ``texture``: null or ``name``, ``mime_type``, ``bytes``),
+``clips`` (``name``, ``start``, ``end``, ``duration`` in seconds, ``channels``, ``paths``
+(path -> channel count), ``interpolations`` (sorted)), ``warnings`` (the defects repaired on
+load, one string each).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from . import __version__
+from .errors import RigmixError
+
+__all__ = ["main", "build_parser", "describe", "format_description", "Command", "COMMANDS"]
+
+logger = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------------------------
+# describe: Character -> plain dict (shared by the text and JSON printers)
+# --------------------------------------------------------------------------------------------
+
+
+def _floats(a, digits=6):
+    return [round(float(x), digits) for x in np.asarray(a).ravel()]
+
+
+def describe(character, path=None) -> dict:
+    """A JSON-ready summary of a character (see the module docstring for the keys).
+
+    Parameters
+    ----------
+    character : rigmix.character.Character
+    path : str or Path, optional
+        The file it came from (default ``character.source``).
+
+    Returns
+    -------
+    dict
+        Plain Python values only (str, int, float, bool, list, dict, None).
+    """
+    sk = character.skeleton
+    J = sk.num_joints
+    depth = np.zeros(J, dtype=int)
+    for j in range(J):  # topological order
+        depth[j] = 0 if sk.parents[j] < 0 else depth[sk.parents[j]] + 1
+    anchors = [
+        {
+            "name": a.name,
+            "parent": sk.anchors[a.parent].name if a.parent >= 0 else None,
+            "translation": _floats(a.matrix[:3, 3]),
+        }
+        for a in sk.anchors
+    ]
+    joints = [
+        {
+            "index": j,
+            "name": sk.names[j],
+            "parent": sk.names[sk.parents[j]] if sk.parents[j] >= 0 else None,
+            "depth": int(depth[j]),
+            "anchor": sk.anchors[sk.root_anchor[j]].name if sk.root_anchor[j] >= 0 else None,
+            "translation": _floats(sk.translations[j]),
+            "rotation": _floats(sk.rotations[j]),
+            "scale": _floats(sk.scales[j]),
+        }
+        for j in range(J)
+    ]
+
+    def material_name(i):
+        return character.materials[i].name if 0 <= i < len(character.materials) else None
+
+    meshes = []
+    for m in character.meshes:
+        influences = int((m.weights > 0).sum(axis=1).max()) if m.skinned and len(m.weights) else 0
+        meshes.append({
+            "name": m.name,
+            "vertices": len(m.positions),
+            "faces": len(m.faces),
+            "material": int(m.material),
+            "material_name": material_name(m.material),
+            "skinned": m.skinned,
+            "influences": influences,
+            "slots": int(m.joints.shape[1]) if m.skinned else 0,
+            "normals": m.normals is not None,
+            "uv_sets": len(m.uvs),
+            "colors": m.colors is not None,
+        })
+    props = [
+        {
+            "name": p.mesh.name,
+            "joint": sk.names[p.joint] if 0 <= p.joint < J else None,
+            "vertices": len(p.mesh.positions),
+            "faces": len(p.mesh.faces),
+            "material": int(p.mesh.material),
+        }
+        for p in character.props
+    ]
+    materials = []
+    for i, mat in enumerate(character.materials):
+        tex = mat.base_color_texture
+        materials.append({
+            "index": i,
+            "name": mat.name,
+            "base_color": _floats(mat.base_color, 4),
+            "metallic": round(float(mat.metallic), 4),
+            "roughness": round(float(mat.roughness), 4),
+            "texture": None if tex is None else
+            {"name": tex.name, "mime_type": tex.mime_type, "bytes": len(tex.data)},
+        })
+    clips = []
+    for c in character.clips:
+        paths: dict[str, int] = {}
+        for t in c.tracks:
+            paths[t.path] = paths.get(t.path, 0) + 1
+        clips.append({
+            "name": c.name,
+            "start": round(c.start, 6),
+            "end": round(c.end, 6),
+            "duration": round(c.duration, 6),
+            "channels": len(c.tracks),
+            "paths": paths,
+            "interpolations": sorted({t.interpolation for t in c.tracks}),
+        })
+    all_meshes = list(character.meshes) + [p.mesh for p in character.props]
+    counts = {
+        "joints": J,
+        "roots": int(len(sk.roots)),
+        "anchors": len(sk.anchors),
+        "meshes": len(character.meshes),
+        "props": len(character.props),
+        "vertices": int(sum(len(m.positions) for m in all_meshes)),
+        "faces": int(sum(len(m.faces) for m in all_meshes)),
+        "clips": len(character.clips),
+        "materials": len(character.materials),
+        "textures": sum(m.base_color_texture is not None for m in character.materials),
+        "warnings": len(character.warnings),
+    }
+    return {
+        "file": str(path if path is not None else character.source),
+        "name": character.name,
+        "skinned": bool(character.skinned),
+        "counts": counts,
+        "joints": joints,
+        "anchors": anchors,
+        "meshes": meshes,
+        "props": props,
+        "materials": materials,
+        "clips": clips,
+        "warnings": list(character.warnings),
+    }
+
+
+def _vec(v):
+    return "(" + ", ".join(f"{x:.4g}" for x in v) + ")"
+
+
+def _depth_first(joints: list) -> list:
+    """The joint entries in depth-first order (children under their parent), roots in order."""
+    children: dict = {}
+    for j in joints:
+        children.setdefault(j["parent"], []).append(j)
+    out, stack = [], list(reversed(children.get(None, [])))
+    while stack:
+        j = stack.pop()
+        out.append(j)
+        stack.extend(reversed(children.get(j["name"], [])))
+    return out
+
+
+def format_description(d: dict) -> str:
+    """The text report of ``rigmix inspect`` from :func:`describe`'s dict."""
+    c = d["counts"]
+    lines = [f"{d['file'] or d['name']}: character {d['name']!r}"]
+    if d["skinned"]:
+        lines.append(f"skin: yes ({c['joints']} joints, {sum(m['skinned'] for m in d['meshes'])} skinned mesh(es))")
+    else:
+        lines.append("skin: none (no skin: a static model; it can be viewed but not composed)")
+    lines.append("counts: " + ", ".join(f"{k} {v}" for k, v in c.items()))
+
+    lines.append(f"anchors ({len(d['anchors'])}):" if d["anchors"] else "anchors: none")
+    for a in d["anchors"]:
+        under = f" under {a['parent']!r}" if a["parent"] else ""
+        lines.append(f"  {a['name']}{under}  t={_vec(a['translation'])}")
+
+    lines.append(f"joints ({len(d['joints'])}):" if d["joints"] else "joints: none")
+    for j in _depth_first(d["joints"]):
+        extra = ""
+        if j["parent"] is None:
+            extra = f"  [root, under anchor {j['anchor']!r}]" if j["anchor"] else "  [root]"
+        lines.append(f"  {'  ' * j['depth']}{j['name']}  t={_vec(j['translation'])}{extra}")
+
+    lines.append(f"meshes ({len(d['meshes'])}):" if d["meshes"] else "meshes: none (no skinned mesh)")
+    for m in d["meshes"]:
+        mat = ("default material" if m["material"] < 0 else
+               f"material {m['material']}" + (f" {m['material_name']!r}" if m["material_name"] else ""))
+        skin = f"skinned, {m['influences']} influences max" if m["skinned"] else "not skinned"
+        attrs = [a for a, on in (("normals", m["normals"]), ("colors", m["colors"])) if on]
+        if m["uv_sets"]:
+            attrs.append(f"{m['uv_sets']} uv set(s)")
+        lines.append(f"  {m['name']}: {m['vertices']} vertices, {m['faces']} faces, {mat}, {skin}"
+                     + (f"; {', '.join(attrs)}" if attrs else ""))
+
+    lines.append(f"props ({len(d['props'])}):" if d["props"] else "props: none")
+    for p in d["props"]:
+        where = f"on joint {p['joint']!r}" if p["joint"] else "static (world)"
+        lines.append(f"  {p['name']}: {p['vertices']} vertices, {p['faces']} faces, material {p['material']}, {where}")
+
+    lines.append(f"materials ({len(d['materials'])}):" if d["materials"] else "materials: none")
+    for m in d["materials"]:
+        tex = m["texture"]
+        tex_s = f", texture {tex['name']!r} {tex['mime_type']} {tex['bytes']} bytes" if tex else ""
+        lines.append(f"  {m['index']} {m['name']!r}: base colour {_vec(m['base_color'])}{tex_s}")
+
+    lines.append(f"clips ({len(d['clips'])}):" if d["clips"] else "clips: none")
+    for cl in d["clips"]:
+        paths = ", ".join(f"{k} {v}" for k, v in cl["paths"].items())
+        lines.append(f"  {cl['name']!r}: {cl['duration']:.4g} s, {cl['channels']} channels ({paths}), "
+                     f"{'/'.join(cl['interpolations'])}")
+
+    lines.append(f"repaired defects ({len(d['warnings'])}):" if d["warnings"] else "repaired defects: none")
+    lines += [f"  {w}" for w in d["warnings"]]
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------
+# Commands
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Command:
+    """One sub-command: its name, one-line help, argument declaration and runner."""
+
+    name: str
+    help: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+
+
+def _add_inspect(parser):
+    parser.add_argument("file", type=Path, help="a character file (.glb, .gltf, .usd, .usda, .usdc, .usdz)")
+    parser.add_argument("--json", action="store_true", help="print a JSON object instead of text")
+
+
+def _run_inspect(args) -> int:
+    from .io import load_character
+
+    path = args.file
+    try:
+        character = load_character(path)
+    except RigmixError as exc:
+        if path.name not in str(exc):  # every message must name the file
+            raise type(exc)(f"inspect: {path}: {exc}") from exc
+        raise
+    d = describe(character, path)
+    print(json.dumps(d, indent=2) if args.json else format_description(d))
+    return 0
+
+
+#: The sub-commands, in the order ``rigmix --help`` lists them. Append here.
+COMMANDS: list[Command] = [
+    Command("inspect", "print a character's joints, meshes, clips, counts and repaired defects",
+            _add_inspect, _run_inspect),
+]
+
+
+# --------------------------------------------------------------------------------------------
+# Entry point
+# --------------------------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``rigmix`` parser with one sub-parser per entry of :data:`COMMANDS`."""
+    parser = argparse.ArgumentParser(
+        prog="rigmix",
+        description="Compose new rigged, skinned and animated characters from pieces of existing ones.",
+    )
+    parser.add_argument("--version", action="version", version=f"rigmix {__version__}")
+    # the common options are accepted before or after the command name; in the sub-parsers
+    # they default to SUPPRESS so that they never overwrite a value given before the command
+    _add_common_options(parser, default=True)
+    parser.set_defaults(command=None)
+    common = argparse.ArgumentParser(add_help=False)
+    _add_common_options(common, default=False)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for cmd in COMMANDS:
+        p = sub.add_parser(cmd.name, help=cmd.help, description=cmd.help, parents=[common])
+        cmd.add_arguments(p)
+        p.set_defaults(run=cmd.run)
+    return parser
+
+
+def _add_common_options(parser, *, default: bool) -> None:
+    parser.add_argument("-v", "--verbose", action="count", default=0 if default else argparse.SUPPRESS,
+                        help="log info (-v) or debug (-vv) messages on stderr")
+    parser.add_argument("--debug", action="store_true", default=False if default else argparse.SUPPRESS,
+                        help="show the full traceback of an error")
+
+
+class _OneLine(logging.Formatter):
+    def format(self, record):
+        return " ".join(super().format(record).split("\n"))
+
+
+def _configure_logging(verbosity: int) -> None:
+    """Warnings (or info/debug with -v/-vv) of rigmix and dfd on stderr, one line each."""
+    level = logging.WARNING if verbosity <= 0 else logging.INFO if verbosity == 1 else logging.DEBUG
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_OneLine("rigmix: %(levelname)s: %(message)s"))
+    handler._rigmix_cli = True
+    for name in ("rigmix", "dfd"):
+        log = logging.getLogger(name)
+        for h in [h for h in log.handlers if getattr(h, "_rigmix_cli", False)]:
+            log.removeHandler(h)  # calling main() twice in one process must not double lines
+        log.addHandler(handler)
+        log.setLevel(level)
+        log.propagate = False
+    logging.captureWarnings(True)
+
+
+def _error(message: str) -> None:
+    print("rigmix: error: " + " ".join(str(message).split()), file=sys.stderr)
+
+
+def main(argv=None) -> int:
+    """Run the command line; returns the exit status (0 ok, 2 user error, 1 internal error)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help(sys.stderr)
+        return 2
+    _configure_logging(args.verbose)
+    try:
+        return int(args.run(args) or 0)
+    except RigmixError as exc:
+        if args.debug:
+            raise
+        _error(str(exc))
+        return 2
+    except BrokenPipeError:  # e.g. `rigmix inspect X | head`: stop quietly
+        sys.stdout = open(os.devnull, "w")
+        return 0
+    except OSError as exc:
+        if args.debug:
+            raise
+        _error(f"{exc.filename}: {exc.strerror}" if exc.filename else str(exc))
+        return 2
+    except KeyboardInterrupt:
+        _error("interrupted")
+        return 130
+    except Exception as exc:  # a bug: still one line, the traceback with --debug
+        if args.debug:
+            raise
+        _error(f"internal error ({type(exc).__name__}: {exc}); run again with --debug for the traceback")
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
