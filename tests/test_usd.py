@@ -414,9 +414,9 @@ def test_writing_is_atomic(tmp_path, monkeypatch):
     def failing_replace(src, dst):
         raise OSError("disk full")
 
-    import rigmix.io.usd as usd_module
+    import rigmix.safety
 
-    monkeypatch.setattr(usd_module.os, "replace", failing_replace)
+    monkeypatch.setattr(rigmix.safety.os, "replace", failing_replace)  # the writers' final rename
     with pytest.raises(RigmixError, match="disk full"):
         write_usd(two_clip_chain(), path)
     monkeypatch.undo()

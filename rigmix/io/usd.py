@@ -61,7 +61,6 @@ roughness / normal / occlusion / emissive textures (the model keeps only the bas
 from __future__ import annotations
 
 import logging
-import os
 import tempfile
 from pathlib import Path
 
@@ -69,6 +68,7 @@ import numpy as np
 
 from ..animation import clip_times, sample_clip
 from ..errors import InputError
+from ..safety import atomic_output
 from ..transforms import matrix_to_trs, trs_to_matrix
 from .usd_shade import define_materials, texture_files, write_texture_files
 
@@ -246,23 +246,9 @@ def write_usd(character, path, *, clips=None, default_clip=None, fps=30.0):
 
 def _export_atomic(stage, path):
     """Export the root layer to a temporary file beside ``path``, then rename it over ``path``."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        if not stage.GetRootLayer().Export(tmp):
+    with atomic_output(path, suffix=path.suffix) as tmp:  # USD picks the format by suffix
+        if not stage.GetRootLayer().Export(str(tmp)):
             raise InputError(f"usd: could not write {path} (check the folder and the suffix)")
-        _readable(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def _readable(file):
-    """Give a ``mkstemp`` file (mode 0600) the permissions of an ordinary new file."""
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(file, 0o666 & ~umask)
 
 
 def _write_usdz(stage, tex_files, path):
@@ -274,11 +260,9 @@ def _write_usdz(stage, tex_files, path):
         write_texture_files(tex_files, tmpdir)
         if not stage.GetRootLayer().Export(str(layer)):
             raise InputError(f"usd: could not write the layer of {path}")
-        packed = tmpdir / ("package" + path.suffix)
-        if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(layer)), str(packed)):
-            raise InputError(f"usd: could not package {path} as usdz")
-        _readable(packed)
-        os.replace(packed, path)
+        with atomic_output(path, suffix=".usdz") as tmp:
+            if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(layer)), str(tmp)):
+                raise InputError(f"usd: could not package {path} as usdz")
 
 
 def _build_stage(character, root_ident, clips, selected, tex_names, fps):

@@ -19,9 +19,9 @@ folder next to the layer; identical images are written once.
 from __future__ import annotations
 
 import hashlib
-import os
-import tempfile
 from pathlib import Path
+
+from ..safety import atomic_write_bytes
 
 __all__ = ["texture_files", "define_materials", "write_texture_files"]
 
@@ -76,17 +76,7 @@ def write_texture_files(files, folder):
     for rel, data in files.items():
         target = folder / rel
         target.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(data)
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600 files
-            os.replace(tmp, target)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        atomic_write_bytes(target, data)
 
 
 def define_materials(stage, scope_path, materials, identifiers, texture_names):

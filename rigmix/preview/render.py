@@ -22,8 +22,6 @@ from __future__ import annotations
 
 import io
 import logging
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,6 +29,7 @@ import numpy as np
 
 from ..animation import clip_times, sample_clip
 from ..errors import InputError, UnsupportedError
+from ..safety import atomic_output
 from ..skinning import skin_character
 from ..transforms import trs_to_matrix
 
@@ -451,17 +450,8 @@ def _atomic(path, write):
     """Call ``write(tmp_path)`` on a temporary file beside ``path``, then rename it over ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600 files
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_output(path, suffix=path.suffix) as tmp:  # imageio picks the format by suffix
+        write(str(tmp))
     return path
 
 
