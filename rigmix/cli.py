@@ -4,6 +4,10 @@ Usage::
 
     rigmix [-v] [--debug] <command> ...
     rigmix inspect FILE [--json]
+    rigmix convert IN OUT
+    rigmix render FILE [--clip NAME] [--gif OUT.gif] [--mp4 OUT.mp4] [--sheet OUT.png]
+    rigmix map CONFIG [--json]
+    rigmix schema
 
 Adding a command
 ----------------
@@ -300,10 +304,109 @@ def _run_inspect(args) -> int:
     return 0
 
 
+def _add_map(parser):
+    parser.add_argument("config", type=Path, help="a composition config (.toml)")
+    parser.add_argument("--json", action="store_true",
+                        help="print a JSON object: output_joints, mapping rows (character, input_joint, "
+                             "output_joint, confidence) and the operations report (scales, fused pairs)")
+
+
+def _run_map(args) -> int:
+    from .pipeline import compose, mapping_table
+
+    comp = compose(args.config, until="mapping")
+    rows = mapping_table(comp)
+    if args.json:
+        print(json.dumps({"config": str(args.config), "output_joints": list(comp.skeleton.names),
+                          "mapping": rows, "operations": comp.report["operations"]}, indent=2))
+        return 0
+    heads = ("character", "input joint", "output joint", "confidence")
+    cells = [(r["character"], r["input_joint"], r["output_joint"] or "-", f"{r['confidence']:.3f}") for r in rows]
+    widths = [max(len(h), *(len(c[i]) for c in cells)) for i, h in enumerate(heads)]
+    lines = ["  ".join(h.ljust(w) for h, w in zip(heads, widths)).rstrip()]
+    lines += ["  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip() for row in cells]
+    for cid, info in comp.report["operations"]["characters"].items():
+        lines.append(f"# {cid}: scale {info['scale']:.6g} ({info['scale_method']})")
+    print("\n".join(lines))
+    return 0
+
+
+def _add_schema(parser):
+    pass
+
+
+def _run_schema(args) -> int:
+    from .config import config_schema
+
+    print(json.dumps(config_schema(), indent=2))
+    return 0
+
+
+def _add_convert(parser):
+    parser.add_argument("input", type=Path, help="a character file (.glb, .gltf, .usd, .usda, .usdc, .usdz)")
+    parser.add_argument("output", type=Path,
+                        help="the file to write: .usda, .usdc, .usd (crate), .usdz, .glb or .gltf; USD keeps "
+                             "every clip (an 'animation' variant set), materials and textures (textures/ beside it)")
+
+
+def _run_convert(args) -> int:
+    from .io.convert import convert
+
+    character = convert(args.input, args.output)
+    print(f"{args.output}: {character.skeleton.num_joints} joints, {len(character.meshes)} meshes, "
+          f"{len(character.props)} props, {len(character.clips)} clips, {len(character.materials)} materials")
+    return 0
+
+
+def _add_render(parser):
+    parser.add_argument("file", type=Path, help="a character file (.glb, .gltf, .usd, .usda, .usdc, .usdz)")
+    parser.add_argument("--clip", help="the clip to render (default: the first; the rest pose if there is none)")
+    parser.add_argument("--gif", type=Path, help="write an animated GIF")
+    parser.add_argument("--mp4", type=Path, help="write an MP4 video (needs imageio-ffmpeg)")
+    parser.add_argument("--sheet", type=Path, help="write a contact sheet PNG of frames over the clip")
+    parser.add_argument("--size", type=int, nargs=2, default=(480, 480), metavar=("W", "H"), help="pixels")
+    parser.add_argument("--fps", type=float, default=30.0, help="frames per second (default 30)")
+    parser.add_argument("--azimuth", type=float, default=30.0, help="camera degrees around +Y from the front")
+    parser.add_argument("--elevation", type=float, default=15.0, help="camera degrees above the horizon")
+    parser.add_argument("--backend", choices=("auto", "gl", "pil"), default="auto",
+                        help="gl: OpenGL on EGL (Mesa, CPU); pil: Pillow fallback; auto: gl if it works")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _run_render(args) -> int:
+    from tqdm import tqdm
+
+    from .errors import InputError
+    from .io import load_character
+    from .preview.render import render_clip
+
+    outputs = [p for p in (args.gif, args.mp4, args.sheet) if p is not None]
+    if not outputs:
+        raise InputError("render: nothing to write; give --gif OUT.gif, --mp4 OUT.mp4 or --sheet OUT.png")
+    character = load_character(args.file)
+    with tqdm(desc="render", unit="frame", disable=args.no_progress, file=sys.stderr, leave=False) as bar:
+        def progress(done, total):
+            bar.total = total
+            bar.update(done - bar.n)
+
+        frames = render_clip(character, args.clip, gif=args.gif, mp4=args.mp4, sheet=args.sheet, fps=args.fps,
+                             width=args.size[0], height=args.size[1], azimuth=args.azimuth,
+                             elevation=args.elevation, backend=args.backend, progress=progress)
+    print(f"{', '.join(map(str, outputs))}: {len(frames)} frames of {args.size[0]}x{args.size[1]}")
+    return 0
+
+
 #: The sub-commands, in the order ``rigmix --help`` lists them. Append here.
 COMMANDS: list[Command] = [
     Command("inspect", "print a character's joints, meshes, clips, counts and repaired defects",
             _add_inspect, _run_inspect),
+    Command("convert", "convert a character file: glTF/GLB <-> USD (.usda, .usdc, .usd, .usdz)",
+            _add_convert, _run_convert),
+    Command("render", "render a clip offscreen on the CPU to a GIF, an MP4 or a contact sheet PNG",
+            _add_render, _run_render),
+    Command("map", "print the bone-to-bone mapping of a composition config (input joint -> output "
+                   "joint, confidence)", _add_map, _run_map),
+    Command("schema", "print the JSON schema of composition configs", _add_schema, _run_schema),
 ]
 
 
