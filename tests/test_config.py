@@ -181,3 +181,38 @@ def test_shipped_configs_parse():
             continue
         cfg = load_config(f)
         assert cfg.characters
+
+
+# --------------------------------------------------------------------------------------------
+# Command line
+# --------------------------------------------------------------------------------------------
+
+
+def test_cli_schema(capsys):
+    from rigmix.cli import main
+
+    assert main(["schema"]) == 0
+    out = capsys.readouterr().out
+    assert json.loads(out) == config_schema()
+
+
+@pytest.mark.parametrize("name, words", [
+    ("unknown_joint", ["target_joint", "'Nek1'", "closest: Neck1"]),
+    ("unknown_key", ["characters.knight.scal", "unknown key"]),
+    ("cycle", ["cycle"]),
+    ("self_attach", ["grafted onto itself"]),
+    ("missing_file", ["characters.horse.path", "no such file", "NoSuchHorse.glb"]),
+])
+def test_cli_bad_configs_fail_with_one_line_and_no_output(capsys, name, words):
+    from rigmix.cli import main
+
+    path = CONFIGS / "bad" / f"{name}.toml"
+    if name != "missing_file" and not default_assets_dir().exists():
+        pytest.skip("shared characters missing")
+    assert main(["map", str(path)]) == 2
+    cap = capsys.readouterr()
+    assert cap.out == ""
+    err = [l for l in cap.err.splitlines() if l.startswith("rigmix: error:")]
+    assert len(err) == 1 and f"{name}.toml" in err[0]
+    for w in words:
+        assert w in err[0]

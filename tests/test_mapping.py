@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -184,3 +185,20 @@ def test_centaur_head_follows_the_new_torso(plans):
     torso = out.subtree(plan.image["horse"][horse.index("Neck1")])
     for name in ("Neck2", "Neck3", "Head"):
         assert torso[bm.target[horse.index(name)]], name
+
+
+def test_cli_map_table_and_json(capsys):
+    from rigmix.cli import main
+
+    asset("CesiumMan"), asset("RiggedFigure")
+    assert main(["map", str(CONFIGS / "limb_swap.toml"), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    rows = {(r["character"], r["input_joint"]): r for r in d["mapping"]}
+    r = rows[("cesium", "Skeleton_arm_joint_L__3_")]
+    assert r["output_joint"] == "arm_joint_L_2" and 0.9 < r["confidence"] <= 1
+    assert len(d["mapping"]) == 38 and len(d["output_joints"]) == 19
+    assert d["operations"]["characters"]["figure"]["scale_method"] == "limb-length"
+    assert main(["map", str(CONFIGS / "limb_swap.toml")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split() == ["character", "input", "joint", "output", "joint", "confidence"]
+    assert any(l.split()[:3] == ["cesium", "Skeleton_arm_joint_L__2_", "arm_joint_L_3"] for l in lines)
