@@ -92,3 +92,17 @@ def test_usd_back_to_glb_is_valid_and_poses_the_same(tmp_path):
     if validator_available():
         report = validate_gltf(glb)
         assert report["issues"]["numErrors"] == 0, report["issues"]["messages"][:5]
+
+
+def test_cli_convert(tmp_path, capsys):
+    from rigmix.cli import main
+
+    out = tmp_path / "fox.usdc"
+    assert main(["convert", str(asset("Fox")), str(out)]) == 0
+    assert "24 joints" in capsys.readouterr().out and validation_errors(out) == []
+    assert main(["convert", str(asset("Fox")), str(tmp_path / "fox.obj")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("rigmix: error: convert: fox.obj") and ".usdz" in err[0]
+    assert main(["convert", str(tmp_path / "none.glb"), str(tmp_path / "x.usda")]) == 2
+    assert "none.glb" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fox.usdc", "textures"]

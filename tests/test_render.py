@@ -157,3 +157,22 @@ def test_contact_sheet_picks_first_and_last():
     sheet = contact_sheet(frames, count=4, columns=2)
     assert sheet.shape == (8, 10, 3)
     assert sheet[0, 0, 0] == 0 and sheet[-1, -1, 0] == 90  # frames 0 ... 9
+
+
+def test_cli_render(tmp_path, capsys):
+    from rigmix.cli import main
+
+    gif, sheet = tmp_path / "walk.gif", tmp_path / "walk.png"
+    args = ["render", str(asset("Fox")), "--clip", "Walk", "--gif", str(gif), "--sheet", str(sheet),
+            "--size", "64", "48", "--fps", "12", "--backend", "pil"]
+    assert main(args) == 0
+    F = len(clip_times(read_gltf(asset("Fox")).clip("Walk"), 12))
+    assert Image.open(gif).n_frames == F and Image.open(gif).size == (64, 48)
+    assert Image.open(sheet).size == (4 * 64, 3 * 48)  # 12 tiles asked, F = 10 available: 4 x 3 grid
+    assert f"{F} frames" in capsys.readouterr().out
+    assert main(["render", str(asset("Fox")), "--clip", "Fly", "--gif", str(tmp_path / "x.gif")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("rigmix: error: render:") and "'Walk'" in err[-1]
+    assert main(["render", str(asset("Fox"))]) == 2
+    assert "nothing to write" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["walk.gif", "walk.png"]
