@@ -411,10 +411,16 @@ def _check_centaur(skel, inputs, maps, prov, clips):
     return acceleration_figures(skel, inputs, maps, prov, clips, keys)
 
 
-def test_centaur_from_examples_completes_everything_smoothly():
-    from rigmix import examples
+@pytest.fixture(scope="module")
+def builtin_centaur():
+    """examples/centaur.toml through the operations and mapping stages (built-in characters)."""
+    import rigmix
 
-    quad, human = examples.quadruped(), examples.humanoid()
+    return rigmix.compose(Path(__file__).parent.parent / "examples" / "centaur.toml", until="mapping")
+
+
+def test_centaur_from_examples_completes_everything_smoothly(builtin_centaur):
+    quad, human = builtin_centaur.inputs["body"], builtin_centaur.inputs["rider"]
     extra = [("human", "Hips", "Hips", 0.5), ("human", "Spine", "Spine", 0.6),
              ("quad", "Head", "human.Head", 0.7)]
     skel, prov, maps = graft(quad, "quad", "Neck", human, "human", "Chest", extra=extra)
@@ -499,14 +505,13 @@ def test_pipeline_centaur_and_tail_graft(config, assets):
         assert f["mean_ratio"] is None or f["mean_ratio"] <= 2.0, (config, x, f)
 
 
-def test_completion_stage_on_the_builtin_centaur():
+def test_completion_stage_on_the_builtin_centaur(builtin_centaur):
     """The stage as the pipeline runs it, on examples/centaur.toml (built-in characters)."""
     import dataclasses
 
-    import rigmix
     from rigmix.completion import completion_stage, options_from_config
 
-    comp = rigmix.compose(Path(__file__).parent.parent / "examples" / "centaur.toml", until="mapping")
+    comp = builtin_centaur
     out = completion_stage(comp)
     clips = out.stages["clips"]
     assert [c.name for c in clips] == ["body:walk", "trot", "body:idle", "rider:walk", "rider:idle"]
