@@ -198,7 +198,8 @@ def write_usd(character, path, *, clips=None, default_clip=None, fps=30.0):
     clips : sequence of (Clip, str or int), optional
         The clips written (objects, names or indices); default: every clip of the character.
     default_clip : Clip, str or int, optional
-        The ``animation`` variant selected in the file; default: the first written clip.
+        The ``animation`` variant selected in the file; default: the first written clip. A
+        default clip missing from ``clips`` is written too (first).
     fps : float
         Sampling rate of the animations and the stage's ``timeCodesPerSecond``; each clip is
         sampled at :func:`rigmix.animation.clip_times` (``1/fps`` apart, end included).
