@@ -481,26 +481,37 @@ def continuity_scores(score, segment_b, weights=(0.2, 0.1)) -> np.ndarray:
     Fa, Fb = score.shape
     out = score.copy()
     rows, cols = [], []  # the existence of each neighbour term is separable: row x column
-    buf = np.empty_like(score)
     for step, wk in enumerate(weights, start=1):
         if wk == 0:
             continue
+        scaled = score * score.dtype.type(wk)  # one scaled copy per step, added twice
         for k in (-step, step):
             a0, a1 = max(0, -k), min(Fa, Fa - k)
             b0, b1 = max(0, -k), min(Fb, Fb - k)
             if a1 <= a0 or b1 <= b0:
                 continue
-            same = np.zeros(Fb, dtype=score.dtype)
+            same = np.zeros(Fb, dtype=bool)
             same[b0:b1] = seg[b0 + k:b1 + k] == seg[b0:b1]
-            rv = np.zeros(Fa, dtype=score.dtype)
+            rv = np.zeros(Fa)
             rv[a0:a1] = wk
             rows.append(rv)
             cols.append(same)
-            view = buf[a0:a1, b0:b1]
-            np.multiply(score[a0 + k:a1 + k, b0 + k:b1 + k], same[b0:b1] * score.dtype.type(wk), out=view)
-            out[a0:a1, b0:b1] += view
+            out[a0:a1, b0:b1] += scaled[a0 + k:a1 + k, b0 + k:b1 + k]
+            bad = np.flatnonzero(~same[b0:b1]) + b0  # neighbours in another clip: take back
+            if bad.size:
+                out[a0:a1, bad] -= scaled[a0 + k:a1 + k, bad + k]
     if rows:
-        norm = np.stack(rows, axis=1) @ np.stack(cols, axis=0)  # (Fa, Fb), rank <= 2 * steps
-        norm += 1.0
-        out /= norm
+        # divide by 1 + the weights of the existing terms: a constant except on the first and
+        # last rows and next to clip boundaries, which are corrected afterwards
+        R, C = np.stack(rows, axis=1), np.stack(cols, axis=0).astype(np.float64)  # (Fa, n), (n, Fb)
+        full = 1.0 + float(R.max(axis=0).sum())
+        out *= score.dtype.type(1.0 / full)
+        edge_rows = np.flatnonzero(np.any(R != R.max(axis=0), axis=1))
+        edge_cols = np.flatnonzero(~np.all(C > 0, axis=0))
+        if edge_rows.size:
+            out[edge_rows] *= (full / (1.0 + R[edge_rows] @ C)).astype(score.dtype)
+        if edge_cols.size:
+            inner = np.setdiff1d(np.arange(Fa), edge_rows)
+            fix = (full / (1.0 + R[inner] @ C[:, edge_cols])).astype(score.dtype)
+            out[np.ix_(inner, edge_cols)] *= fix
     return out

@@ -198,12 +198,19 @@ def _continuity_reference(S, seg, weights):
     return out
 
 
-def test_continuity_matches_slow_reference():
+@pytest.mark.parametrize("Fa, lengths, weights", [(7, [3, 2, 4, 2], (0.2, 0.1)),
+                                                  (20, [6, 1, 9, 2, 12], (0.2, 0.1)),
+                                                  (3, [5, 5], (0.3, 0.0, 0.05)),
+                                                  (1, [2, 3], (0.2, 0.1))])
+def test_continuity_matches_slow_reference(Fa, lengths, weights):
     rng = np.random.default_rng(3)
-    S = rng.normal(size=(7, 11))
-    seg = np.array([0, 0, 0, 1, 1, 2, 2, 2, 2, 3, 3])
-    np.testing.assert_allclose(continuity_scores(S, seg, (0.2, 0.1)),
-                               _continuity_reference(S, seg, (0.2, 0.1)), atol=1e-14)
+    seg = np.repeat(np.arange(len(lengths)), lengths)
+    S = rng.normal(size=(Fa, len(seg)))
+    want = _continuity_reference(S, seg, weights)
+    np.testing.assert_allclose(continuity_scores(S, seg, weights), want, atol=1e-13)
+    got32 = continuity_scores(S.astype(np.float32), seg, weights)
+    assert got32.dtype == np.float32
+    np.testing.assert_allclose(got32, want, atol=1e-5)
 
 
 def test_choose_frames_viterbi_matches_brute_force():
