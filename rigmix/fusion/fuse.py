@@ -114,6 +114,8 @@ class FusionParams:
         presence-weighted closest input points (0 disables).
     min_seam_wedge : degrees; preserved faces around a seam vertex that leaves the junction a
         thinner wedge than this join the junction (no good triangle fits such a wedge).
+    min_island_faces : preserved parts bordering a junction with fewer faces join it (specks
+        left by the presence pattern have no isosurface hole to meet).
     backend : "numpy" (numpy + libigl) or "openvdb".
     keep_fields : keep the blended grids in the result (for ``dump_fields``).
     """
@@ -136,6 +138,7 @@ class FusionParams:
     taubin_iterations: int = 3
     project_voxels: float = 1.0
     min_seam_wedge: float = 60.0
+    min_island_faces: int = 24
     backend: str = "numpy"
     keep_fields: bool = False
 
@@ -214,27 +217,39 @@ def _check_inputs(inputs, actions):
 
 
 def _attach_conflicts(pres: list[Presence], actions, h):
-    """Preserved faces that an attach must cut through: near or inside the other's present part."""
+    """Preserved faces the fused surface must cut through or that it buries.
+
+    attach: faces of either input near or inside the other's present part. replace: faces of
+    one input buried inside the present part of the other (the rider's hips inside the horse):
+    their seams would have no isosurface to meet. Faces on the other surface itself (a
+    character composed with itself) are not buried.
+    """
     import igl
 
     out = [p.preserved.copy() for p in pres]
     for act in actions:
-        if act.kind != "attach":
-            continue
         for x, y in ((act.a, act.b), (act.b, act.a)):
             Py = pres[y]
             fp = Py.p_welded[Py.welded.F].mean(axis=1)
-            Fy = Py.welded.F[(fp >= 0.5) & ~Py.absent]
+            Fy = Py.welded.F[(fp >= 0.5) & ~Py.absent & ~Py.secondary]
             Px = pres[x]
-            idx = np.flatnonzero(out[x])
+            idx = np.flatnonzero(out[x] & ~Px.secondary)
             if len(Fy) == 0 or len(idx) == 0:
                 continue
             Vx = Px.welded.V
             C = Vx[Px.welded.F[idx]].mean(axis=1)
             Vy = Py.welded.V
             d2, _, _ = igl.point_mesh_squared_distance(C, Vy, Fy)
-            w = igl.fast_winding_number(Vy, Fy, C)
-            hit = (d2 < (h * 2.0) ** 2) | (np.abs(w) > 0.5)
+            if act.kind == "attach":
+                w = igl.fast_winding_number(Vy, Fy, C)
+                hit = (d2 < (h * 2.0) ** 2) | (np.abs(w) > 0.5)
+            else:
+                # inside the other's whole surface, nearest to a present part of it, not on it
+                Fall = prepare_surface(Vy, Py.welded.F[~Py.secondary])
+                w = igl.fast_winding_number(Vy, Fall, C)
+                d2a, fa, _ = igl.point_mesh_squared_distance(C, Vy, Fall)
+                pa = Py.p_welded[Fall[fa]].mean(axis=1)
+                hit = (w > 0.5) & (pa >= 0.5) & (d2a > (0.5 * h) ** 2)
             out[x][idx[hit]] = False
     return out
 
@@ -270,6 +285,45 @@ def _seam_components(P: Presence, preserved):
         if on_seam[P.welded.F[f]].any():
             comps.append(f)
     return comps
+
+
+def _pinched(F):
+    """``(m,)`` bool: faces at a vertex where the boundary passes more than once."""
+    B = boundary_halfedges(F)
+    if len(B) == 0:
+        return np.zeros(len(F), bool)
+    n = int(np.max(F)) + 1
+    cnt = np.bincount(B[:, 0], minlength=n)
+    return (cnt[F] > 1).any(axis=1)
+
+
+def _unpinch_preserved(pres: list[Presence], preserved, rounds=3):
+    """Un-preserve the faces at seam vertices the preserved boundary visits twice.
+
+    Two seam loops through one vertex would both be bridged from it and give an edge of three
+    or four faces.
+    """
+    out = [m.copy() for m in preserved]
+    for i, P in enumerate(pres):
+        for _ in range(rounds):
+            idx = np.flatnonzero(out[i])
+            if len(idx) == 0:
+                break
+            bad = _pinched(P.welded.F[idx])
+            if not bad.any():
+                break
+            out[i][idx[bad]] = False
+    return out
+
+
+def _drop_specks(pres: list[Presence], preserved, min_faces):
+    """Un-preserve preserved parts bordering a junction that have fewer than ``min_faces``."""
+    out = [m.copy() for m in preserved]
+    for i, P in enumerate(pres):
+        for f in _seam_components(P, preserved[i]):
+            if len(f) < min_faces:
+                out[i][f] = False
+    return out
 
 
 def _separate_seams(pres: list[Presence], preserved, delta):
@@ -557,6 +611,11 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
             d2, _, _ = igl.point_mesh_squared_distance(Vi, P.welded.V, Fp)
             dmin = np.minimum(dmin, np.sqrt(d2))
         Vc, Fc, _ = clip_mesh(Vi, Fi, dmin - params.cut_voxels * h)
+        for _ in range(3):  # boundaries through one vertex twice: open them up
+            bad = _pinched(Fc) if len(Fc) else np.zeros(0, bool)
+            if not bad.any():
+                break
+            Vc, Fc, _ = remove_unreferenced(Vc, Fc[~bad])
     else:
         Vc, Fc = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
     iso_loops, _ = boundary_loops(Vc, Fc, -1) if len(Fc) else ([], [])
@@ -576,8 +635,20 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
         new[old] = np.arange(len(old))
         iso_loops = [Loop(-1, new[L.vertices], L.positions) for L in iso_loops]
         Vc, Fc = Vc2, Fc2
+        # isosurface holes no seam claims (cut around a preserved speck): closed by a fan
+        matched_sets = [frozenset(iso_loops[j].vertices.tolist()) for j in matched_iso]
         remaining, _ = boundary_loops(Vc, Fc, -1)
-        info["unmatched_iso_loops"] = int(max(len(remaining) - len(matched_iso), 0))
+        extra_v, extra_f = [], []
+        for L in remaining:
+            if frozenset(L.vertices.tolist()) in matched_sets:
+                continue
+            c = len(Vc) + len(extra_v)
+            extra_v.append(L.positions.mean(axis=0))
+            extra_f += [(L.vertices[k], c, L.vertices[k - 1]) for k in range(len(L.vertices))]
+            info["unmatched_iso_loops"] += 1
+        if extra_v:
+            Vc = np.concatenate([Vc, np.asarray(extra_v)])
+            Fc = np.concatenate([Fc, np.asarray(extra_f, np.int64)])
     else:
         Vc, Fc = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
     # junction vertex table: isosurface vertices, then preserved loop vertices (fixed)
@@ -701,6 +772,8 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
         boxes0 = _clusters(pres, junction, params.margin_voxels * h0)
         h_est = min(_grid_for(lo, hi, h0, params).voxel for lo, hi in boxes0)
         preserved = _separate_seams(pres, preserved, (2.0 * params.cut_voxels + 1.5) * h_est)
+        preserved = _drop_specks(pres, preserved, params.min_island_faces)
+        preserved = _unpinch_preserved(pres, preserved)
         if params.min_seam_wedge > 0:
             preserved = [_open_notches(P, preserved[i], min_wedge=params.min_seam_wedge) for i, P in enumerate(pres)]
         junction = [~preserved[i] & ~(P.absent & ~P.preserved) for i, P in enumerate(pres)]
