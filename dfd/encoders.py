@@ -21,7 +21,7 @@ from scipy import ndimage
 
 from dfd.errors import DfdInputError
 
-__all__ = ["Encoder", "FilterBankEncoder", "get_encoder", "encode_views", "ENCODERS"]
+__all__ = ["Encoder", "FilterBankEncoder", "DinoV2Encoder", "get_encoder", "encode_views", "ENCODERS"]
 
 
 @runtime_checkable
@@ -200,3 +200,12 @@ def get_encoder(name="filterbank", **kwargs):
 
         return DinoV2Encoder(**kwargs)
     raise DfdInputError(f"encoder: unknown encoder {name!r}; expected one of {', '.join(ENCODERS)}")
+
+
+def __getattr__(name):
+    # DinoV2Encoder lives in dfd.dinov2 (it needs torch); import it only when asked for
+    if name == "DinoV2Encoder":
+        from dfd.dinov2 import DinoV2Encoder
+
+        return DinoV2Encoder
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

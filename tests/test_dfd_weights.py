@@ -118,3 +118,12 @@ def test_rows_on_demand_match_full_matrix(features):
     parts = dict(iter_handle_weights(X, H, chunk=64, form="cosine", fixed=X[:2], geodesic=D, p=1.5))
     assert sorted(parts) == list(range(0, len(X), 64))
     np.testing.assert_array_equal(np.concatenate([parts[k] for k in sorted(parts)]), full)
+
+
+def test_geodesic_on_a_non_manifold_mesh():
+    """Three triangles on one edge: the heat method solver refuses it; edge paths take over."""
+    V = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -1, 0], [0.5, 0, 1]], dtype=float)
+    F = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])
+    D = geodesic_distances(V, F, [2])[:, 0]
+    np.testing.assert_allclose(D, [0.5, 0.5, 0.0, 1.0, 1.0], atol=1e-5)
+    assert D.max() < 1.0
