@@ -439,9 +439,12 @@ class Candidates:
         rw, tw, length = self.weights
         dtype = self.Xr.dtype
         Xr, Xp = _score_features(Ga, Pa, self.w, length)
-        score = (Xr - self.mean_r).astype(dtype) @ self.Xr.T  # (Fa, Fb), one GEMM
-        score += (rw * (Xr @ self.mean_r)).astype(dtype)[:, None]
-        score += self.col_r[None, :]
+        if rw > 0:
+            score = (Xr - self.mean_r).astype(dtype) @ self.Xr.T  # (Fa, Fb), one GEMM
+            score += (rw * (Xr @ self.mean_r)).astype(dtype)[:, None]
+            score += self.col_r[None, :]
+        else:  # the rotation term is computed elsewhere (metric="abs")
+            score = np.zeros((len(Xr), len(self.Xr)), dtype=dtype)
         if tw > 0:
             Xp = Xp - self.mean_p
             d = Xp.astype(dtype) @ self.Xp.T  # -2 pa.pb, then + |pa|^2 + |pb|^2 - log tw
