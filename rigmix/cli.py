@@ -6,6 +6,7 @@ Usage::
     rigmix inspect FILE [--json]
     rigmix convert IN OUT
     rigmix render FILE [--clip NAME] [--gif OUT.gif] [--mp4 OUT.mp4] [--sheet OUT.png]
+    rigmix preview FILE.glb [--out DIR] [--port N] [--no-serve]
     rigmix map CONFIG [--json]
     rigmix schema
 
@@ -396,6 +397,34 @@ def _run_render(args) -> int:
     return 0
 
 
+def _add_preview(parser):
+    parser.add_argument("file", type=Path, help="a character file (.glb, or a .gltf with embedded buffers)")
+    parser.add_argument("--out", type=Path, help="the viewer folder (default: <name>_preview beside the file)")
+    parser.add_argument("--port", type=int, default=0, help="port on 127.0.0.1 (default: a free one)")
+    parser.add_argument("--no-serve", action="store_true", help="only write the viewer folder")
+
+
+def _run_preview(args) -> int:
+    import threading
+
+    from .preview.viewer import serve, write_viewer
+
+    out = args.out or args.file.with_name(args.file.stem + "_preview")
+    index = write_viewer(args.file, out)
+    if args.no_serve:
+        print(f"{index}: open it through a web server (ES modules do not load from file://)")
+        return 0
+    server, url = serve(out, port=args.port)
+    print(f"rigmix preview: {url} (serving {out}; Ctrl+C to stop)", flush=True)
+    try:
+        threading.Event().wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.shutdown()
+    return 0
+
+
 #: The sub-commands, in the order ``rigmix --help`` lists them. Append here.
 COMMANDS: list[Command] = [
     Command("inspect", "print a character's joints, meshes, clips, counts and repaired defects",
@@ -404,6 +433,8 @@ COMMANDS: list[Command] = [
             _add_convert, _run_convert),
     Command("render", "render a clip offscreen on the CPU to a GIF, an MP4 or a contact sheet PNG",
             _add_render, _run_render),
+    Command("preview", "write a web viewer for a .glb (clips, timeline, skeleton) and serve it on 127.0.0.1",
+            _add_preview, _run_preview),
     Command("map", "print the bone-to-bone mapping of a composition config (input joint -> output "
                    "joint, confidence)", _add_map, _run_map),
     Command("schema", "print the JSON schema of composition configs", _add_schema, _run_schema),

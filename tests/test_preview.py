@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from rigmix.errors import InputError
-from rigmix.preview.viewer import _RELATIVE_IMPORT, find_three, main, preview, serve, write_viewer
+from rigmix.cli import main
+from rigmix.preview.viewer import _RELATIVE_IMPORT, find_three, preview, serve, write_viewer
 
 ROOT = Path(__file__).resolve().parent.parent
 CHROMIUM = os.environ.get("CHROMIUM", "/usr/bin/chromium")
@@ -157,9 +158,30 @@ def test_clear_errors(tmp_path):
     (tmp_path / "x.glb").write_bytes(b"glTF")
     with pytest.raises(InputError, match="three.js file"):
         write_viewer(tmp_path / "x.glb", tmp_path / "v", three_dir=tmp_path)
-    assert main([str(tmp_path / "none.glb"), "--no-serve"]) == 2
-    assert main([str(tmp_path / "x.glb"), "--no-serve", "--out", str(tmp_path / "w")]) == 0
+    assert main(["preview", str(tmp_path / "none.glb"), "--no-serve"]) == 2
+    assert main(["preview", str(tmp_path / "x.glb"), "--no-serve", "--out", str(tmp_path / "w")]) == 0
     assert (tmp_path / "w" / "index.html").is_file()
+
+
+def test_cli_prints_the_address_and_serves(composed_glb, tmp_path):
+    """`rigmix preview FILE`: the first line of output is the address; the page is served there."""
+    import re
+    import sys
+
+    glb, _ = composed_glb
+    proc = subprocess.Popen([sys.executable, "-m", "rigmix.cli", "preview", str(glb), "--out", str(tmp_path / "v")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        m = re.search(r"http://127\.0\.0\.1:\d+/", line)
+        assert m, (line, proc.poll())
+        with urllib.request.urlopen(m.group(0)) as r:
+            assert b'<select id="clip"' in r.read()
+        with urllib.request.urlopen(m.group(0) + "viewer.js") as r:
+            assert b"window.rigmixViewer" in r.read()
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
 
 
 def test_viewer_in_headless_chromium(composed_glb, tmp_path):

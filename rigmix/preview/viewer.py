@@ -1,4 +1,4 @@
-"""The web viewer: ``rigmix preview OUT.glb``.
+"""The web viewer behind ``rigmix preview OUT.glb`` (:mod:`rigmix.cli`).
 
 :func:`write_viewer` writes a self-contained folder: ``index.html`` (clip selector, play/pause,
 timeline, skeleton overlay), ``viewer.js``, the character as ``model.glb`` and the parts of
@@ -13,21 +13,19 @@ the current clip and time in ``document.body.dataset`` for scripts and tests.
 
 from __future__ import annotations
 
-import argparse
 import functools
 import html
 import logging
 import os
 import re
 import shutil
-import sys
 import threading
 from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 from ..errors import InputError
 
-__all__ = ["find_three", "write_viewer", "serve", "preview", "main"]
+__all__ = ["find_three", "write_viewer", "serve", "preview"]
 
 logger = logging.getLogger(__name__)
 
@@ -178,38 +176,3 @@ def preview(glb, out_dir=None, *, host="127.0.0.1", port=0, title=None):
     out = Path(out_dir) if out_dir else glb.with_name(glb.stem + "_preview")
     write_viewer(glb, out, title=title)
     return serve(out, host=host, port=port)
-
-
-def main(argv=None) -> int:
-    """``rigmix preview OUT.glb [--out DIR] [--port N] [--no-serve]``: print the address, serve
-    until interrupted."""
-    parser = argparse.ArgumentParser(prog="rigmix preview", description=__doc__.splitlines()[0])
-    parser.add_argument("glb", help="character file (.glb)")
-    parser.add_argument("--out", help="viewer folder (default: <name>_preview beside the file)")
-    parser.add_argument("--host", default="127.0.0.1")
-    parser.add_argument("--port", type=int, default=0, help="0: a free port")
-    parser.add_argument("--no-serve", action="store_true", help="only write the folder")
-    args = parser.parse_args(argv)
-    glb = Path(args.glb)
-    out = Path(args.out) if args.out else glb.with_name(glb.stem + "_preview")
-    try:
-        index = write_viewer(glb, out)
-    except InputError as e:
-        print(f"rigmix: {e}", file=sys.stderr)
-        return 2
-    if args.no_serve:
-        print(f"rigmix preview: wrote {index}")
-        return 0
-    server, url = serve(out, host=args.host, port=args.port)
-    print(f"rigmix preview: serving {out} at {url} (Ctrl+C to stop)", flush=True)
-    try:
-        threading.Event().wait()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        server.shutdown()
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
