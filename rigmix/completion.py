@@ -467,7 +467,9 @@ def options_from_config(section) -> CompletionOptions:
 def completion_stage(composition, progress=None):
     """The animation stage of :func:`rigmix.pipeline.compose`: A_R from the plan and the maps.
 
-    Reads the options from ``composition.config.animation`` when the config has that section;
+    Reads the options from the config's ``[animation]`` section (keys: the fields of
+    :class:`CompletionOptions`; ``fixed_frames`` as a list of tables with the fields of
+    :class:`FixedFrame`);
     completes the clips of the inputs as loaded (rest-relative deltas carry them onto S_R,
     whatever scale and rest pose the positioning chose).
 
@@ -478,7 +480,11 @@ def completion_stage(composition, progress=None):
     """
     from dataclasses import replace
 
-    options = options_from_config(getattr(composition.config, "animation", None))
+    try:
+        options = options_from_config(getattr(composition.config, "animation", None))
+    except (InputError, TypeError, ValueError) as e:  # unknown keys, bad fixed frames, bad values
+        source = getattr(composition.config, "source", "") or "(in code)"
+        raise InputError(f"config {source}: [animation]: {e}") from None
     plan = composition.plan
     clips = complete_clips(plan.skeleton, composition.inputs, composition.maps,
                            options=options, provenance=plan.provenance)

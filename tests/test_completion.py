@@ -533,6 +533,9 @@ def test_completion_stage_on_the_builtin_centaur(builtin_centaur):
     assert opts.jump_penalty == 0.1 and isinstance(opts.fixed_frames[0], FixedFrame)
     with pytest.raises(InputError, match="unknown animation option"):
         options_from_config({"jump": 1})
+    bad = dataclasses.replace(comp, config=comp.config.model_copy(update={"animation": {"jump": 1}}))
+    with pytest.raises(InputError, match=r"\[animation\].*unknown animation option"):
+        completion_stage(bad)
     assert dataclasses.asdict(options_from_config(None)) == dataclasses.asdict(CompletionOptions())
 
 
