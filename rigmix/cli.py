@@ -426,6 +426,112 @@ def _run_preview(args) -> int:
 
 
 #: The sub-commands, in the order ``rigmix --help`` lists them. Append here.
+def _add_compose(parser):
+    parser.add_argument("config", type=Path, help="a composition config (.toml)")
+    parser.add_argument("-o", "--output", type=Path, required=True, help="the composed character (.glb or .gltf)")
+    parser.add_argument("--report", type=Path, help="write the JSON report (timings, mesh, fields, weights, "
+                                                    "quality, animation, scales, warnings)")
+    parser.add_argument("--usd", type=Path, help="also write the character as USD (.usda, .usdc, .usd, .usdz)")
+    parser.add_argument("--dump-fields", type=Path, metavar="DIR",
+                        help="write the blended signed distance fields (.vdb with OpenVDB, else .npz) to DIR")
+    parser.add_argument("--weights", choices=("nearest", "inpaint", "dfd"),
+                        help="junction weight method (default: the config's [weights] method, else dfd)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _run_compose(args) -> int:
+    import tempfile
+
+    from tqdm import tqdm
+
+    from .config import load_config
+    from .errors import InputError
+    from .io.gltf import write_gltf
+    from .pipeline import STAGE_NAMES, compose
+    from .safety import atomic_output, atomic_write_text
+
+    if args.output.suffix.lower() not in (".glb", ".gltf"):
+        raise InputError(f"compose: output {args.output} must end in .glb or .gltf")
+    if args.usd is not None and args.usd.suffix.lower() not in (".usda", ".usdc", ".usd", ".usdz"):
+        raise InputError(f"compose: --usd {args.usd} must end in .usda, .usdc, .usd or .usdz")
+    for p in (args.output, args.report, args.usd):
+        if p is not None and not p.parent.is_dir():
+            raise InputError(f"compose: the folder of {p} does not exist")
+    config = load_config(args.config)
+    update = {}
+    if args.weights:
+        update["weights"] = {**(config.weights or {}), "method": args.weights}
+    if args.dump_fields:
+        update["fusion"] = {**(config.fusion or {}), "keep_fields": True}
+    if update:
+        config = config.model_copy(update=update)
+    with tqdm(total=len(STAGE_NAMES), desc="compose", unit="stage", disable=args.no_progress, file=sys.stderr,
+              leave=False) as bar:
+        def progress(stage, done, total):
+            if isinstance(done, int) and stage in STAGE_NAMES:
+                bar.total = total
+                bar.set_postfix_str(stage)
+                bar.update(done - bar.n)
+
+        comp = compose(config, progress=progress)
+    # every output is written to a temporary file first; nothing is renamed until all succeeded
+    with tempfile.TemporaryDirectory(dir=args.output.parent, prefix=".rigmix-compose-") as tmp:
+        tmp = Path(tmp)
+        staged = tmp / ("character" + args.output.suffix.lower())
+        write_gltf(comp.character, staged)
+        usd_dir = None
+        if args.usd is not None:
+            from .io.usd import write_usd
+
+            usd_dir = tmp / "usd"
+            usd_dir.mkdir()
+            write_usd(comp.character, usd_dir / args.usd.name)
+        fields_written = []
+        if args.dump_fields:
+            from .fusion import dump_fields
+
+            fdir = tmp / "fields"
+            fdir.mkdir()
+            fields_written = dump_fields(fdir, comp.stages["surface"].fields) or []
+        report = dict(comp.report)
+        report["output"] = str(args.output)
+        text = json.dumps(report, indent=2, default=_json_default)
+        # commit: the character, then the USD (and its textures), the fields, the report
+        with atomic_output(args.output) as out:
+            out.write_bytes(staged.read_bytes())
+        if usd_dir is not None:
+            for f in sorted(usd_dir.rglob("*")):
+                if f.is_file():
+                    dest = args.usd.parent / f.relative_to(usd_dir)
+                    dest.parent.mkdir(parents=True, exist_ok=True)
+                    with atomic_output(dest, suffix=dest.suffix) as out:
+                        out.write_bytes(f.read_bytes())
+        if args.dump_fields:
+            args.dump_fields.mkdir(parents=True, exist_ok=True)
+            for f in sorted((tmp / "fields").iterdir()):
+                with atomic_output(args.dump_fields / f.name, suffix=f.suffix) as out:
+                    out.write_bytes(f.read_bytes())
+        if args.report is not None:
+            atomic_write_text(args.report, text + "\n")
+    w, m, q = comp.report.get("weights", {}), comp.report.get("mesh", {}), comp.report.get("quality", {})
+    print(f"{args.output}: {comp.skeleton.num_joints} joints, {m.get('vertices')} vertices, {m.get('faces')} faces, "
+          f"{len(comp.character.clips)} clips; weights {w.get('method')}; junction stretch ratio "
+          f"{q.get('junction_stretch_ratio')}; {comp.report['timings']['total']:.1f} s")
+    return 0
+
+
+def _json_default(o):
+    import numpy as np
+
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serializable: {type(o).__name__}")
+
+
 COMMANDS: list[Command] = [
     Command("inspect", "print a character's joints, meshes, clips, counts and repaired defects",
             _add_inspect, _run_inspect),
@@ -438,6 +544,8 @@ COMMANDS: list[Command] = [
     Command("map", "print the bone-to-bone mapping of a composition config (input joint -> output "
                    "joint, confidence)", _add_map, _run_map),
     Command("schema", "print the JSON schema of composition configs", _add_schema, _run_schema),
+    Command("compose", "compose a new character from a config: GLB (and USD), JSON report", _add_compose,
+            _run_compose),
 ]
 
 

@@ -5,7 +5,7 @@
 1. builds the procedural example characters (:mod:`rigmix.examples`),
 2. writes each as GLB to ``DIR`` (:func:`rigmix.io.gltf.write_gltf`),
 3. reads each file back and prints its ``rigmix inspect`` summary,
-4. (composition: see :func:`compose_examples`, filled in by the composition stages),
+4. composes the built-in centaur (:func:`compose_examples`: GLB, USD and JSON report),
 5. lists what was written.
 """
 
@@ -41,13 +41,33 @@ def write_examples(out: Path) -> list[Path]:
 
 
 def compose_examples(inputs: list[Path], out: Path) -> list[Path]:
-    """Compose new characters from the written examples (e.g. a centaur: the humanoid's torso,
-    arms and head on the quadruped's body).
+    """Compose the built-in centaur (``examples/centaur.toml``: the humanoid's torso, arms and
+    head on the quadruped's body) with ``rigmix compose``.
 
-    The composition stages plug in here: read ``inputs``, compose, write the results to
-    ``out`` and return their paths. Until then nothing is composed.
+    Writes ``centaur.glb``, ``centaur.usda`` and ``centaur.report.json`` to ``out``. The config
+    names the built-in characters, so ``inputs`` (the files written before) are not read again.
+
+    Returns
+    -------
+    list of Path
+        The character files written (GLB, USD).
+
+    Raises
+    ------
+    rigmix.errors.RigmixError
+        The composition failed (nothing is written then).
     """
-    return []
+    from .cli import main as cli_main
+    from .errors import RigmixError
+
+    config = Path(__file__).resolve().parent.parent / "examples" / "centaur.toml"
+    glb, usd, report = out / "centaur.glb", out / "centaur.usda", out / "centaur.report.json"
+    status = cli_main(["compose", str(config), "-o", str(glb), "--usd", str(usd), "--report", str(report),
+                       "--no-progress"])
+    if status != 0:
+        raise RigmixError(f"demo: rigmix compose {config} failed (exit {status})")
+    print(f"demo: composition report {report}")
+    return [glb, usd]
 
 
 def main(argv=None) -> int:

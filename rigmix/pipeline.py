@@ -6,12 +6,15 @@ Reads like the paper's overview (PIPELINE.md):
 2. operations: output skeleton S_R with provenance, scale matching, preliminary positioning
    (:func:`rigmix.operations.plan_operations`);
 3. bone-to-bone mappings B_i with confidence (:func:`rigmix.mapping.map_bones`);
-4. surface fusion M_R, 5. skinning weights W_R, 6. animation completion A_R: stages added to
-   :data:`STAGES` by their modules (each takes and returns a :class:`Composition`).
+4. surface fusion M_R (:func:`rigmix.fusion.fuse_surfaces`);
+5. skinning weights W_R (:func:`rigmix.skin_weights.blend_weights`);
+6. animation completion A_R (:func:`rigmix.completion.complete_clips`);
+7. assembly of the output character (:func:`rigmix.assemble.assemble_character`);
+8. quality figures (:func:`rigmix.quality.junction_stretch_ratio`).
 
-Later stages register with :func:`register_stage` (or are appended to :data:`STAGES`) and
-return ``dataclasses.replace(composition, ...)`` with their results (``character`` and entries
-of ``report``); they never mutate their input.
+Each stage is one explicit call in :func:`compose`; stage functions take a
+:class:`Composition` and return ``dataclasses.replace(composition, ...)`` with their results
+(entries of ``stages`` and ``report``); they never mutate their input.
 """
 
 from __future__ import annotations
@@ -29,7 +32,8 @@ from .errors import InputError
 from .mapping import map_bones
 from .operations import Plan, plan_operations
 
-__all__ = ["Composition", "Progress", "STAGES", "register_stage", "load_characters", "compose", "mapping_table"]
+__all__ = ["Composition", "Progress", "STAGE_NAMES", "load_characters", "compose", "mapping_table",
+           "fusion_stage", "weights_stage", "assembly_stage", "quality_stage"]
 
 logger = logging.getLogger(__name__)
 
@@ -70,32 +74,71 @@ class Composition:
     report: dict = field(default_factory=dict)
 
 
-#: Stages after the mapping, in order: ``(name, function(Composition, progress) -> Composition)``.
-STAGES: list[tuple[str, Callable]] = []
+#: The stages :func:`compose` runs, in order (``until=`` takes one of these names).
+STAGE_NAMES = ("load", "operations", "mapping", "fusion", "weights", "completion", "assembly", "quality")
 
 
-def register_stage(name: str, fn: Callable, *, before: str | None = None) -> None:
-    """Add (or replace) a stage run by :func:`compose` after the mapping.
+def _options(section) -> dict:
+    return dict(section or {})
 
-    Parameters
-    ----------
-    name : str
-        E.g. ``"fusion"``, ``"weights"``, ``"animation"``.
-    fn : callable
-        ``fn(composition, progress) -> Composition``.
-    before : str, optional
-        Insert before this stage instead of at the end.
+
+def fusion_stage(composition: Composition, progress: Progress | None = None) -> Composition:
+    """M_R: the fused rest surface (options from the config's ``[fusion]`` section).
+
+    Returns the composition with ``stages["fusion_inputs"]``, ``stages["fusion_ids"]``,
+    ``stages["surface"]`` (:class:`rigmix.fusion.FusedSurface`) and ``report["mesh"]``,
+    ``report["fields"]``.
     """
-    for i, (n, _) in enumerate(STAGES):
-        if n == name:
-            STAGES[i] = (name, fn)
-            return
-    if before is not None:
-        for i, (n, _) in enumerate(STAGES):
-            if n == before:
-                STAGES.insert(i, (name, fn))
-                return
-    STAGES.append((name, fn))
+    from .fusion import FusionParams, fuse_surfaces
+    from .fusion.inputs import fusion_inputs_from_plan
+
+    opts = _options(composition.config.fusion)
+    known = set(FusionParams.__dataclass_fields__)
+    bad = sorted(set(opts) - known)
+    if bad:
+        raise InputError(f"config {composition.config.source}: [fusion] has unknown option(s) {bad}; "
+                         f"known: {sorted(known)}")
+    inputs, actions, ids = fusion_inputs_from_plan(composition.plan)
+    surface = fuse_surfaces(inputs, actions, params=FusionParams(**opts))
+    stages = {**composition.stages, "fusion_inputs": tuple(inputs), "fusion_ids": tuple(ids), "surface": surface}
+    report = {**composition.report, "mesh": surface.report["mesh"], "fields": surface.report["fields"]}
+    return replace(composition, stages=stages, report=report)
+
+
+def weights_stage(composition: Composition, progress: Progress | None = None) -> Composition:
+    """W_R on the fused surface (options from the config's ``[weights]`` section).
+
+    Returns the composition with ``stages["weights"]`` (:class:`rigmix.skin_weights.SkinWeights`)
+    and ``report["weights"]``.
+    """
+    from .skin_weights import blend_weights
+
+    opts = _options(composition.config.weights)
+    ids = composition.stages["fusion_ids"]
+    try:
+        skin = blend_weights(composition.stages["surface"], composition.stages["fusion_inputs"],
+                             [composition.maps[cid] for cid in ids], composition.skeleton.num_joints, **opts)
+    except TypeError as e:  # an unknown option name in the config
+        raise InputError(f"config {composition.config.source}: [weights]: {e}") from None
+    return replace(composition, stages={**composition.stages, "weights": skin},
+                   report={**composition.report, "weights": skin.report})
+
+
+def assembly_stage(composition: Composition, progress: Progress | None = None) -> Composition:
+    """The output :class:`Character`: meshes by (input, material), weights, clips, props."""
+    from .assemble import assemble_character
+
+    character = assemble_character(composition)
+    warnings = [w for ch in composition.inputs.values() for w in ch.warnings]
+    return replace(composition, character=character, report={**composition.report, "warnings": warnings})
+
+
+def quality_stage(composition: Composition, progress: Progress | None = None) -> Composition:
+    """Figures that need no ground truth: the junction stretch ratio under animation."""
+    from .quality import junction_stretch_ratio
+
+    q = junction_stretch_ratio(composition)
+    return replace(composition, report={**composition.report, "quality": q})
 
 
 @lru_cache(maxsize=8)
@@ -155,8 +198,8 @@ def compose(config, *, progress: Progress | None = None, until: str | None = Non
     progress : callable, optional
         ``progress(stage, done, total)`` after each stage.
     until : str, optional
-        Stop after this stage (``"mapping"`` or a registered stage's name),
-        e.g. ``until="mapping"`` for ``rigmix map``.
+        Stop after this stage (one of :data:`STAGE_NAMES`), e.g. ``until="mapping"`` for
+        ``rigmix map``.
 
     Returns
     -------
@@ -170,38 +213,48 @@ def compose(config, *, progress: Progress | None = None, until: str | None = Non
     """
     if not isinstance(config, Config):
         config = load_config(Path(config))
-    names = ["mapping"] + [n for n, _ in STAGES]
-    if until is not None and until not in names:
-        raise ValueError(f"compose: unknown stage {until!r}; stages: {', '.join(names)}")
-    stages = list(STAGES) if until is None else list(STAGES)[: names.index(until)]
-    total = 3 + len(stages)
+    if until is not None and until not in STAGE_NAMES:
+        raise ValueError(f"compose: unknown stage {until!r}; stages: {', '.join(STAGE_NAMES)}")
+    last = STAGE_NAMES.index(until) if until is not None else len(STAGE_NAMES) - 1
+    total = last + 1
     timings = {}
+    t_all = time.perf_counter()
 
-    def done(stage, k, t0):
+    def done(stage, t0):
         timings[stage] = round(time.perf_counter() - t0, 4)
         if progress is not None:
-            progress(stage, k, total)
+            progress(stage, STAGE_NAMES.index(stage) + 1, total)
 
     t0 = time.perf_counter()
     inputs = load_characters(config)
-    done("load", 1, t0)
+    done("load", t0)
 
     t0 = time.perf_counter()
     plan = plan_operations(inputs, config)  # S_R, provenance, positioning
-    done("operations", 2, t0)
+    done("operations", t0)
 
     t0 = time.perf_counter()
     maps = map_bones(plan, score=config.mapping.score,
                      injectivity_bonus=config.mapping.injectivity_bonus)  # B_i with confidence
-    done("mapping", 3, t0)
+    done("mapping", t0)
 
-    report = {"name": config.name, "config": config.source, "operations": plan.report, "timings": timings}
+    report = {"name": config.name, "config": config.source, "operations": plan.report,
+              "scales": {cid: float(s) for cid, s in plan.scales.items()}, "timings": timings}
     comp = Composition(plan.skeleton, plan, maps, inputs, config, report=report)
-    # fusion (M_R), weights (W_R), animation (A_R): registered by their modules
-    for k, (name, fn) in enumerate(list(stages), start=4):
+
+    from .completion import completion_stage
+
+    for name, stage in (("fusion", fusion_stage),            # M_R
+                        ("weights", weights_stage),          # W_R
+                        ("completion", completion_stage),    # A_R
+                        ("assembly", assembly_stage),        # the output character
+                        ("quality", quality_stage)):         # junction stretch under animation
+        if STAGE_NAMES.index(name) > last:
+            break
         t0 = time.perf_counter()
-        comp = fn(comp, progress)
-        done(name, k, t0)
+        comp = stage(comp, progress)
+        done(name, t0)
+    timings["total"] = round(time.perf_counter() - t_all, 4)
     return replace(comp, report={**comp.report, "timings": timings})
 
 

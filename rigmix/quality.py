@@ -1,0 +1,281 @@
+"""Quality figures that need no ground truth (PIPELINE.md section 7).
+
+Junction stretch ratio
+----------------------
+Per face, the deformation gradient from rest to a posed frame is
+``G = [e1' e2' n'] [e1 e2 n]^-1`` (two edges and the unit normal, rest and posed); its stretch
+part (polar decomposition ``G = R U``) has the singular values ``s`` of ``G``, and the face's
+stretch is ``||log s||`` (0 for a rigid motion). A vertex's stretch is the rest-area-weighted
+mean over its faces. The figure of a band is the 95th percentile over its vertices and over
+every frame (30 fps, at most ``max_frames`` per clip, evenly spaced) of every clip.
+
+Bands. On the output: the vertices within ``r`` of a fused joint (rest pose), where ``r`` is the
+reach of the junction (the largest distance from a junction vertex to its nearest fused joint).
+On the sources: each input's own vertices within ``r / scale`` of its joint of that fused pair
+(``scale`` the input's scale in the composition), over the input's own clips. The ratio is the
+output figure over the sources' (pooled) figure: about 1 when the seam deforms like the source
+characters deform near the same joints.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from .animation import clip_times, sample_clip
+from .skinning import linear_blend_skinning, rest_skinning_matrices, skinning_matrices
+
+__all__ = ["face_stretch", "vertex_stretch", "band_stretch", "junction_stretch_ratio"]
+
+log = logging.getLogger(__name__)
+
+
+def face_stretch(V0, U, F):
+    """``||log s||`` per face, ``s`` the singular values of the rest-to-posed deformation gradient.
+
+    The gradient ``G = [e1' e2' n'] [e1 e2 n]^-1`` maps the unit normal to the unit normal, so
+    its singular values are 1 and the square roots of the eigenvalues of ``g0^-1 g1`` (the
+    2 x 2 first fundamental forms of the rest and posed triangle): computed in closed form.
+
+    Parameters
+    ----------
+    V0 : (n, 3) float array
+        Rest positions.
+    U : (k, n, 3) float array
+        Posed positions, ``k`` frames.
+    F : (m, 3) int array
+
+    Returns
+    -------
+    (k, m) float64
+        Degenerate rest faces get 0.
+    """
+    def forms(P):
+        e1 = P[..., F[:, 1], :] - P[..., F[:, 0], :]
+        e2 = P[..., F[:, 2], :] - P[..., F[:, 0], :]
+        return (np.einsum("...i,...i->...", e1, e1), np.einsum("...i,...i->...", e1, e2),
+                np.einsum("...i,...i->...", e2, e2))
+
+    F = np.asarray(F, np.int64)
+    a0, b0, c0 = forms(np.asarray(V0, np.float64))
+    det0 = a0 * c0 - b0 * b0
+    ok = det0 > 1e-12 * np.maximum(a0 * c0, 1e-300)
+    a1, b1, c1 = forms(np.asarray(U, np.float64))
+    # M = g0^-1 g1; eigenvalues from its trace and determinant
+    inv = np.where(ok, 1.0 / np.where(ok, det0, 1.0), 0.0)
+    tr = (c0 * a1 - 2.0 * b0 * b1 + a0 * c1) * inv
+    det = (a1 * c1 - b1 * b1) * inv
+    disc = np.sqrt(np.maximum(tr * tr / 4.0 - det, 0.0))
+    l1 = np.maximum(tr / 2.0 + disc, 1e-24)
+    l2 = np.maximum(tr / 2.0 - disc, 1e-24)
+    out = 0.5 * np.sqrt(np.log(l1) ** 2 + np.log(l2) ** 2)
+    out[..., ~ok] = 0.0
+    return out
+
+
+def vertex_stretch(V0, U, F, vertices):
+    """Rest-area-weighted mean face stretch at ``vertices`` ``(q,)``: returns ``(k, q)``."""
+    F = np.asarray(F, np.int64)
+    vertices = np.asarray(vertices, np.int64)
+    mark = np.zeros(len(V0), bool)
+    mark[vertices] = True
+    faces = np.flatnonzero(mark[F].any(axis=1))
+    Fb = F[faces]
+    s = face_stretch(V0, U, Fb)  # (k, mb)
+    area = 0.5 * np.linalg.norm(np.cross(V0[Fb[:, 1]] - V0[Fb[:, 0]], V0[Fb[:, 2]] - V0[Fb[:, 0]]), axis=1)
+    pos = np.full(len(V0), -1)
+    pos[vertices] = np.arange(len(vertices))
+    num = np.zeros((len(U), len(vertices)))
+    den = np.zeros(len(vertices))
+    for c in range(3):
+        p = pos[Fb[:, c]]
+        sel = p >= 0
+        np.add.at(num.T, p[sel], (s[:, sel] * area[sel]).T)
+        np.add.at(den, p[sel], area[sel])
+    return num / np.maximum(den, 1e-30)
+
+
+def _frames(clip, fps, max_frames):
+    t = clip_times(clip, fps)
+    if len(t) > max_frames:
+        t = t[np.round(np.linspace(0, len(t) - 1, max_frames)).astype(int)]
+    return t
+
+
+def band_stretch(skeleton, clips, V0, joints, weights, F, vertices, *, rest=None, fps=30.0, max_frames=30):
+    """Stretch samples ``(sum_clips frames x q,)`` of the band ``vertices`` of one skinned mesh.
+
+    ``V0`` are bind-space positions; ``rest`` the rest-pose positions the gradient starts from
+    (default: ``V0`` skinned by the rest pose).
+    """
+    if len(vertices) == 0 or not clips:
+        return np.zeros(0)
+    F = np.asarray(F, np.int64)
+    mark = np.zeros(len(V0), bool)
+    mark[np.asarray(vertices, np.int64)] = True
+    # only the faces around the band matter: skin their vertices alone
+    sub = np.unique(F[mark[F].any(axis=1)].ravel())
+    pos = np.full(len(V0), -1)
+    pos[sub] = np.arange(len(sub))
+    Fs = pos[F[(pos[F] >= 0).all(axis=1)]]
+    V0s, Js, Ws = np.asarray(V0)[sub], np.asarray(joints)[sub], np.asarray(weights)[sub]
+    rest = linear_blend_skinning(V0s, Js, Ws, rest_skinning_matrices(skeleton)) if rest is None else np.asarray(rest)[sub]
+    vs = pos[np.asarray(vertices, np.int64)]
+    out = []
+    for clip in clips:
+        T, R, S = sample_clip(skeleton, clip, _frames(clip, fps, max_frames))
+        U = linear_blend_skinning(V0s, Js, Ws, skinning_matrices(skeleton, T, R, S))
+        out.append(vertex_stretch(rest, U, Fs, vs).ravel())
+    return np.concatenate(out)
+
+
+def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=95.0) -> dict:
+    """The junction stretch ratio of a composition (see the module docstring).
+
+    Parameters
+    ----------
+    composition : rigmix.pipeline.Composition
+        After the assembly stage (``character`` with its clips) and the fusion.
+
+    Returns
+    -------
+    dict
+        ``junction_stretch_ratio`` (None without clips or fused joints), ``output_p95``,
+        ``source_p95``, ``band_radius``, ``output_band_vertices``, ``source_band_vertices``.
+    """
+    from .skin_weights import to_influences
+
+    plan = composition.plan
+    surface = composition.stages["surface"]
+    skin = composition.stages["weights"]
+    ch = composition.character
+    V = np.asarray(surface.V)
+    out = {"junction_stretch_ratio": None, "output_p95": None, "source_p95": None, "band_radius": None,
+           "output_band_vertices": 0, "source_band_vertices": 0}
+    pairs = plan.fused_pairs
+    jv = np.flatnonzero(np.asarray(surface.origin_input) < 0)
+    if not pairs or ch is None or not ch.clips:
+        return out
+    Jpos = plan.skeleton.rest_worlds()[:, :3, 3]
+    P = Jpos[[p.output for p in pairs]]  # (k, 3)
+    if len(jv):
+        d = np.linalg.norm(V[jv, None, :] - P[None], axis=2).min(axis=1)
+        r = float(d.max())
+    else:
+        r = 0.1 * float(np.linalg.norm(np.ptp(V, axis=0)))
+    band = np.flatnonzero(np.linalg.norm(V[:, None, :] - P[None], axis=2).min(axis=1) <= r)
+    J, W = to_influences(skin.W, 4)
+    s_out = band_stretch(ch.skeleton, ch.clips, V, J, W, surface.F, band, rest=V, fps=fps, max_frames=max_frames)
+    samples, nsrc = [], 0
+    for p in pairs:
+        for cid, j in ((p.target, p.target_joint), (p.source, p.source_joint)):
+            src = composition.inputs[cid]
+            if not src.clips:
+                continue
+            scale = float(plan.scales.get(cid, 1.0)) or 1.0
+            c = src.skeleton.rest_worlds()[j, :3, 3]
+            M0 = rest_skinning_matrices(src.skeleton)
+            for m in src.meshes:
+                if not m.skinned or not len(m.faces):
+                    continue
+                rest = linear_blend_skinning(m.positions, m.joints, m.weights, M0)
+                b = np.flatnonzero(np.linalg.norm(rest - c, axis=1) <= r / scale)
+                nsrc += len(b)
+                samples.append(band_stretch(src.skeleton, src.clips, m.positions, m.joints, m.weights, m.faces, b,
+                                            rest=rest, fps=fps, max_frames=max_frames))
+    s_src = np.concatenate(samples) if samples else np.zeros(0)
+    out.update(band_radius=r, output_band_vertices=int(len(band)), source_band_vertices=int(nsrc))
+    if len(s_out) and len(s_src):
+        a, b = float(np.percentile(s_out, percentile)), float(np.percentile(s_src, percentile))
+        out.update(output_p95=a, source_p95=b, junction_stretch_ratio=a / max(b, 1e-12))
+    return out
+
+
+def self_composition_errors(composition, skin, *, fps=30.0, max_frames=None) -> dict:
+    """Weight and skinning errors of a self-composition against the original character.
+
+    A self-composition replaces a subtree of a character with the same subtree of the same
+    character (two config ids, one file, unit scale, no placement): every output joint is a
+    joint of the original, and the original weights are the ground truth everywhere
+    (PIPELINE.md section 7).
+
+    Parameters
+    ----------
+    composition : rigmix.pipeline.Composition
+        After the fusion stage; its inputs are one character under two ids.
+    skin : rigmix.skin_weights.SkinWeights
+        W_R to evaluate (any method).
+    fps : float
+    max_frames : int, optional
+        Evenly spaced frames per clip (default: every frame at ``fps``).
+
+    Returns
+    -------
+    dict
+        ``junction_weight_error_mean``, ``junction_weight_error_max`` (L1 over output joints, at
+        junction vertices, against the original weights at the closest original point),
+        ``skinned_error_max`` and ``skinned_error_mean`` (over all vertices, frames and clips,
+        relative to the bounding-box diagonal; the max is the worst frame),
+        ``frames``, ``junction_vertices``.
+    """
+    plan = composition.plan
+    surface = composition.stages["surface"]
+    ids = list(composition.stages["fusion_ids"])
+    inputs = composition.stages["fusion_inputs"]
+    original = composition.inputs[ids[0]]
+    J_out = plan.skeleton.num_joints
+    # original joint -> output joint (the kept copy of either id), and back
+    t = np.full(original.skeleton.num_joints, -1)
+    for cid in ids:
+        img = plan.image[cid]
+        t = np.where(t >= 0, t, img)
+    src = np.array([plan.provenance[o][0][1] for o in range(J_out)])
+    G = np.zeros((len(surface.V), J_out))
+    oi, ov = np.asarray(surface.origin_input), np.asarray(surface.origin_vertex)
+    for i in range(len(ids)):
+        rows = np.flatnonzero(oi == i)
+        Wi = np.asarray(inputs[i].W)[ov[rows]]
+        for j in range(Wi.shape[1]):
+            if t[j] >= 0:
+                G[rows, t[j]] += Wi[:, j]
+    jrows = np.flatnonzero(oi < 0)
+    if len(jrows):
+        s = surface.junction_sources[0]  # the whole original surface (input 0 keeps everything at rest)
+        T = np.asarray(inputs[0].F)[np.asarray(s["face"])]
+        Wc = np.einsum("qk,qkj->qj", np.asarray(s["bary"]), np.asarray(inputs[0].W)[T])
+        for j in range(Wc.shape[1]):
+            if t[j] >= 0:
+                G[jrows, t[j]] += Wc[:, j]
+    G /= np.maximum(G.sum(axis=1, keepdims=True), 1e-12)
+    W = np.asarray(skin.W)
+    l1 = np.abs(W[jrows] - G[jrows]).sum(axis=1) if len(jrows) else np.zeros(0)
+    V = np.asarray(surface.V)
+    diag = float(np.linalg.norm(np.ptp(V, axis=0)))
+    sk = original.skeleton
+    rest_inv = np.linalg.inv(sk.rest_worlds())
+    D = W - G  # skinned error = sum_o D_o T_src(o) u
+    worst, total, count, per_frame = 0.0, 0.0, 0, []
+    for clip in original.clips:
+        times = clip_times(clip, fps)
+        if max_frames is not None and len(times) > max_frames:
+            times = times[np.round(np.linspace(0, len(times) - 1, max_frames)).astype(int)]
+        Tt, R, S = sample_clip(sk, clip, times)
+        from .transforms import trs_to_matrix
+
+        M = sk.world_matrices(trs_to_matrix(Tt, R, S)) @ rest_inv  # (F, J, 4, 4): rest world -> posed
+        Mo = M[:, src]  # (F, J_out, 4, 4)
+        A = np.einsum("nj,fjab->fnab", D, Mo[..., :3, :], optimize=True)  # (F, n, 3, 4)
+        err = np.linalg.norm(np.einsum("fnab,nb->fna", A[..., :3], V) + A[..., 3], axis=2) / diag
+        per_frame.extend(err.max(axis=1).tolist())
+        worst = max(worst, float(err.max()))
+        total += float(err.sum())
+        count += err.size
+    return {
+        "junction_weight_error_mean": float(l1.mean()) if len(l1) else 0.0,
+        "junction_weight_error_max": float(l1.max()) if len(l1) else 0.0,
+        "skinned_error_max": worst,
+        "skinned_error_mean": total / max(count, 1),
+        "frames": len(per_frame),
+        "junction_vertices": int(len(jrows)),
+    }
