@@ -1,0 +1,68 @@
+"""The smooth fills: ``nearest``, ``harmonic`` and ``inpaint`` (the Robust Skin Weights
+Transfer anchor). Each takes the welded mesh, welded weights ``W (k, J)`` and the unknown mask
+``unk (k,)`` and returns ``(k, J)`` with the known rows kept.
+"""
+
+from __future__ import annotations
+
+import igl
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..errors import InputError
+from .mesh import (
+    _Welded,
+    _bilaplacian,
+    _nearest_vertex,
+    _orphans,
+    _smooth,
+    _solvable,
+    _solve_fixed,
+)
+
+
+def _fill_nearest(g: _Welded, W, unk, *, mode="vertex"):
+    """Closest known welded vertex (``mode="vertex"``, the anchor protocol) or closest point of
+    the known surface (faces with three known corners), interpolated (``mode="surface"``)."""
+    out = W.copy()
+    rows = np.flatnonzero(unk)
+    if len(rows) == 0:
+        return out
+    Fk = g.F[~unk[g.F].any(axis=1)] if len(g.F) else g.F
+    if mode == "vertex" or len(Fk) == 0:
+        out[rows] = _nearest_vertex(g.V, W, unk, rows)
+        return out
+    if mode != "surface":
+        raise InputError(f"weights: unknown nearest mode {mode!r} (use 'surface' or 'vertex')")
+    P = g.V[rows]
+    sqd, fi, C = igl.point_mesh_squared_distance(P, g.V, Fk)
+    T = Fk[fi]
+    B = igl.barycentric_coordinates(C, g.V[T[:, 0]], g.V[T[:, 1]], g.V[T[:, 2]])
+    B = np.clip(np.nan_to_num(B, nan=1.0 / 3.0), 0.0, None)
+    B /= np.maximum(B.sum(axis=1, keepdims=True), 1e-300)
+    fill = np.einsum("nc,ncj->nj", B, W[T])
+    # a known vertex outside every known face (isolated, or only on faces touching the band)
+    # may be closer than the known surface
+    dv, iv = cKDTree(g.V[~unk]).query(P)
+    closer = dv**2 < sqd - 1e-15
+    fill[closer] = W[np.flatnonzero(~unk)[iv[closer]]]
+    out[rows] = fill
+    return out
+
+
+def _fill_harmonic(g: _Welded, W, unk):
+    solve = _solvable(g, unk)
+    out = _solve_fixed(-g.L, W, unk, solve)
+    return _orphans(g, out, unk, solve)
+
+
+def _fill_inpaint(g: _Welded, W, unk, *, iterations=10, alpha=0.8):
+    solve = _solvable(g, unk)
+    out = _solve_fixed(_bilaplacian(g), W, unk, solve)
+    out = _orphans(g, out, unk, solve)
+    return _smooth(g, out, unk, iterations=iterations, alpha=alpha)
+
+
+# --------------------------------------------------------------------------------------------
+# Public entry point
+# --------------------------------------------------------------------------------------------
