@@ -107,6 +107,20 @@ def time_scores(inputs, skel, n_frames_total, repeats=3):
     return wall, cpu
 
 
+#: (config, assets it needs) for the smoothness figures.
+CONFIGS = [("examples/centaur.toml", ()),
+           ("tests/configs/centaur.toml", ("Horse", "Knight")),
+           ("tests/configs/tail_graft.toml", ("CesiumMan", "Velociraptor")),
+           ("tests/configs/three_characters.toml", ("Knight", "Fox", "CesiumMan")),
+           ("tests/configs/fox_arm.toml", ("CesiumMan", "Fox")),
+           ("tests/configs/limb_swap.toml", ("CesiumMan", "RiggedFigure"))]
+
+#: Frame-choice rules compared: (label, options).
+RULES = [("paper: best frame per output frame", CompletionOptions(jump_penalty=0.0)),
+         ("Viterbi, jump penalty 0.05", CompletionOptions(jump_penalty=0.05)),
+         ("default: Viterbi, jump penalty 0.2", CompletionOptions())]
+
+
 def smoothness_figures():
     """Acceleration ratios (completed joints over their source clips) through the pipeline."""
     import rigmix
