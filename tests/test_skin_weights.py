@@ -1,0 +1,271 @@
+"""W_R (issue 6): retargeting, junction methods, invariants, self-composition, stretch ratio."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import ROOT, asset
+from rigmix.fusion import FusedSurface, FusionInput
+from rigmix.mapping import BoneMap
+from rigmix.skin_weights import (
+    WEIGHT_METHODS,
+    blend_weights,
+    closest_point_weights,
+    retarget_weights,
+    to_influences,
+)
+
+EXAMPLES = sorted((ROOT / "examples").glob("*.toml"))
+
+
+def _sphere(n=12, m=16, r=1.0, c=(0.0, 0.0, 0.0)):
+    """A closed UV sphere ``(V, F)`` with consistent outward orientation."""
+    th = np.linspace(0, np.pi, n + 1)[1:-1]
+    ph = np.linspace(0, 2 * np.pi, m, endpoint=False)
+    T, P = np.meshgrid(th, ph, indexing="ij")
+    V = np.c_[np.sin(T).ravel() * np.cos(P).ravel(), np.cos(T).ravel(), np.sin(T).ravel() * np.sin(P).ravel()]
+    V = np.r_[[[0, 1, 0]], V, [[0, -1, 0]]] * r + np.asarray(c)
+    F = []
+    idx = lambda i, j: 1 + i * m + (j % m)  # noqa: E731
+    for j in range(m):
+        F.append([0, idx(0, j + 1), idx(0, j)])
+        F.append([len(V) - 1, idx(n - 2, j), idx(n - 2, j + 1)])
+    for i in range(n - 2):
+        for j in range(m):
+            F.append([idx(i, j), idx(i, j + 1), idx(i + 1, j)])
+            F.append([idx(i, j + 1), idx(i + 1, j + 1), idx(i + 1, j)])
+    return V, np.array(F, np.int64)
+
+
+# ------------------------------------------------------------------------------------------
+# Small cases with a known answer
+# ------------------------------------------------------------------------------------------
+
+
+def test_retarget_sums_the_weights_of_joints_mapped_to_one_output_joint():
+    W = np.array([[0.5, 0.3, 0.2, 0.0], [0.0, 0.0, 0.4, 0.6], [1.0, 0.0, 0.0, 0.0]])
+    target = np.array([1, 1, 0, -1])  # joints 0 and 1 -> output 1; joint 3 unmapped
+    Wr, c = retarget_weights(W, target, 3, confidence=np.array([1.0, 0.5, 1.0, 0.0]))
+    assert np.allclose(Wr, [[0.2, 0.8, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    assert np.allclose(c, [0.5 + 0.15 + 0.2, 0.4, 1.0])
+    # a row that already sums to 1 is copied bit-identically
+    assert Wr[2].tobytes() == np.array([0.0, 1.0, 0.0]).tobytes()
+
+
+def test_closest_point_weights_follow_the_present_input():
+    W0 = np.array([[1.0, 0.0], [1.0, 0.0], [1.0, 0.0]])
+    W1 = np.array([[0.0, 1.0], [0.0, 1.0], [0.0, 1.0]])
+    F = np.array([[0, 1, 2]])
+    s0 = {"face": np.array([0, 0]), "bary": np.full((2, 3), 1 / 3), "distance": np.array([0.1, 0.1]),
+          "presence": np.array([1.0, 0.5])}
+    s1 = {"face": np.array([0, 0]), "bary": np.full((2, 3), 1 / 3), "distance": np.array([0.1, 0.1]),
+          "presence": np.array([0.0, 0.5])}
+    W, t = closest_point_weights([s0, s1], [W0, W1], [F, F], tolerance=1.0)
+    assert np.allclose(W, [[1.0, 0.0], [0.5, 0.5]])
+    assert np.allclose(t.sum(axis=1), 1)
+    # a far input does not contribute even with presence 1
+    s1far = {**s1, "distance": np.array([5.0, 5.0]), "presence": np.array([1.0, 1.0])}
+    W, _ = closest_point_weights([s0, s1far], [W0, W1], [F, F], tolerance=1.0)
+    assert np.allclose(W, [[1.0, 0.0], [1.0, 0.0]])
+
+
+def _isolated_junction_case():
+    """Input 0: a sphere weighted on 3 joints; the fused surface adds a far, separate sphere
+    made only of junction vertices (no vertex of it can be matched)."""
+    import igl
+
+    V0, F0 = _sphere()
+    rng = np.random.default_rng(0)
+    W0 = np.zeros((len(V0), 3))
+    W0[:, 0] = np.clip(V0[:, 1], 0, None)
+    W0[:, 1] = np.clip(-V0[:, 1], 0, None)
+    W0[:, 2] = 0.2 + 0.1 * rng.random(len(V0))
+    W0 /= W0.sum(axis=1, keepdims=True)
+    V1, F1 = _sphere(6, 8, r=0.3, c=(4.0, 0.0, 0.0))
+    x = FusionInput(V=V0, F=F0, W=W0, used=np.ones(3, bool))
+    n0, n1 = len(V0), len(V1)
+    d2, fid, C = igl.point_mesh_squared_distance(V1, V0, F0)
+    T = F0[fid]
+    B = igl.barycentric_coordinates(C, V0[T[:, 0]], V0[T[:, 1]], V0[T[:, 2]])
+    src = {"face": fid, "bary": B, "distance": np.sqrt(d2), "presence": np.ones(n1)}
+    surf = FusedSurface(
+        V=np.r_[V0, V1], F=np.r_[F0, F1 + n0], origin_input=np.r_[np.zeros(n0, int), -np.ones(n1, int)],
+        origin_vertex=np.r_[np.arange(n0), -np.ones(n1, int)],
+        face_origin_input=np.r_[np.zeros(len(F0), int), -np.ones(len(F1), int)],
+        face_origin_face=np.r_[np.arange(len(F0)), -np.ones(len(F1), int)],
+        junction_faces=np.r_[np.zeros(len(F0), bool), np.ones(len(F1), bool)], preserved=(np.ones(len(F0), bool),),
+        presence=(np.ones(n0),), mesh_of_vertex=np.r_[np.zeros(n0, int), -np.ones(n1, int)], uvs=None,
+        normals=None, colors=None, junction_sources=(src,))
+    return surf, x, BoneMap("a", np.arange(3), np.ones(3))
+
+
+@pytest.mark.parametrize("method", WEIGHT_METHODS)
+def test_junction_component_with_no_matched_vertex_gets_finite_normalized_weights(method):
+    surf, x, bm = _isolated_junction_case()
+    skin = blend_weights(surf, [x], [bm], 3, method=method)
+    j = skin.junction
+    assert j.sum() == len(surf.V) - len(x.V)
+    assert not skin.matched[j].any()  # too far from every input: nothing matched
+    W = skin.W[j]
+    assert np.all(np.isfinite(W)) and np.all(W >= 0)
+    assert np.allclose(W.sum(axis=1), 1.0)
+    assert np.all(np.count_nonzero(W > 0, axis=1) <= 4)
+    # preserved rows are the input's, bit-identical
+    assert skin.W[~j].tobytes() == x.W.tobytes()
+
+
+def test_geodesic_locality_keeps_weights_off_a_look_alike_part():
+    """Two identical spheres, each driven by its own joint; the right sphere's cap is unknown.
+    The filled cap must take the right sphere's joint only, never the left twin's."""
+    from rigmix.skin_weights import geodesic_locality
+
+    VA, F = _sphere(c=(-3.0, 0, 0))
+    VB, _ = _sphere(c=(3.0, 0, 0))
+    V = np.r_[VA, VB]
+    FF = np.r_[F, F + len(VA)]
+    W = np.zeros((len(V), 2))
+    W[: len(VA), 0] = 1.0
+    W[len(VA):, 1] = 1.0
+    unknown = np.zeros(len(V), bool)
+    unknown[len(VA):][VB[:, 1] > 0.5] = True
+    leaked = W.copy()
+    leaked[unknown] = [0.5, 0.5]  # a fill that borrowed from the look-alike
+    out = geodesic_locality(V, FF, leaked, unknown, radius=1.5)
+    assert np.allclose(out[unknown], [0.0, 1.0])
+    assert np.array_equal(out[~unknown], W[~unknown])
+
+
+def test_to_influences_keeps_the_largest_four():
+    W = np.array([[0.1, 0.2, 0.3, 0.4, 0.0], [1.0, 0, 0, 0, 0]])
+    J, w = to_influences(W, 4)
+    assert J.shape == (2, 4)
+    assert np.allclose(w[0], [0.4, 0.3, 0.2, 0.1]) and list(J[0]) == [3, 2, 1, 0]
+    assert list(J[1]) == [0, 0, 0, 0] and np.allclose(w[1], [1, 0, 0, 0])
+
+
+# ------------------------------------------------------------------------------------------
+# Every composition config: invariants (compositions cached per module)
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def example_compositions():
+    from rigmix.pipeline import compose
+
+    return {cfg.stem: compose(cfg, until="completion") for cfg in EXAMPLES}
+
+
+def _check_invariants(comp):
+    skin = comp.stages["weights"]
+    W = skin.W
+    assert np.all(np.isfinite(W)) and np.all(W >= 0)
+    assert np.allclose(W.sum(axis=1), 1.0, atol=1e-12)
+    assert np.count_nonzero(W > 0, axis=1).max() <= 4
+    assert skin.report["junction_vertices"] == int((comp.stages["surface"].origin_input < 0).sum())
+    # preserved vertices copy their retargeted weights exactly (inputs with <= 4 influences)
+    surf = comp.stages["surface"]
+    for i, (cid, x) in enumerate(zip(comp.stages["fusion_ids"], comp.stages["fusion_inputs"])):
+        bm = comp.maps[cid]
+        Wr, _ = retarget_weights(x.W, bm.target, comp.skeleton.num_joints)
+        rows = np.flatnonzero(surf.origin_input == i)
+        small = np.count_nonzero(Wr[surf.origin_vertex[rows]] > 0, axis=1) <= 4
+        assert np.array_equal(W[rows[small]], Wr[surf.origin_vertex[rows[small]]])
+
+
+@pytest.mark.parametrize("name", [c.stem for c in EXAMPLES])
+def test_weight_invariants_on_every_example_config(example_compositions, name):
+    _check_invariants(example_compositions[name])
+
+
+def test_weight_invariants_on_the_self_composition_config(self_cesium):
+    _check_invariants(self_cesium)
+
+
+# ------------------------------------------------------------------------------------------
+# Self-composition: the truth is known everywhere
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def self_cesium():
+    from rigmix.pipeline import compose
+
+    asset("CesiumMan")
+    return compose(ROOT / "tests" / "configs" / "self_composition.toml", until="weights")
+
+
+@pytest.fixture(scope="module")
+def self_cases(self_cesium):
+    """Per case, the figures of every method: CesiumMan's left arm (the config) and the Fox's tail."""
+    from benchmarks.self_composition import self_config
+    from rigmix.pipeline import compose
+    from rigmix.quality import self_composition_errors
+
+    comps = {"CesiumMan arm": self_cesium,
+             "Fox tail": compose(self_config(asset("Fox"), "b_Tail01_012"), until="fusion")}
+    out = {}
+    for name, comp in comps.items():
+        ids = comp.stages["fusion_ids"]
+        out[name] = {}
+        for method in WEIGHT_METHODS:
+            skin = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"],
+                                 [comp.maps[c] for c in ids], comp.skeleton.num_joints, method=method)
+            out[name][method] = self_composition_errors(comp, skin)
+    return out
+
+
+def test_self_composition_dfd_skinned_error_under_half_a_percent_at_every_frame(self_cases):
+    for name, figs in self_cases.items():
+        assert figs["dfd"]["frames"] > 0
+        assert figs["dfd"]["skinned_error_max"] < 0.005, (name, figs["dfd"])
+
+
+def test_self_composition_dfd_weight_error_no_worse_than_inpaint(self_cases):
+    for name, figs in self_cases.items():
+        assert figs["dfd"]["junction_weight_error_mean"] <= figs["inpaint"]["junction_weight_error_mean"] + 1e-12, \
+            (name, {m: f["junction_weight_error_mean"] for m, f in figs.items()})
+
+
+# ------------------------------------------------------------------------------------------
+# Junction stretch ratio
+# ------------------------------------------------------------------------------------------
+
+
+def test_face_stretch_matches_the_svd_reference_and_is_zero_for_rigid_motion():
+    from rigmix.quality import face_stretch
+
+    rng = np.random.default_rng(1)
+    V, F = _sphere(6, 8)
+    A = rng.normal(size=(3, 3))
+    U = (V @ A.T)[None]
+
+    def frame(P, f):
+        e1, e2 = P[f[1]] - P[f[0]], P[f[2]] - P[f[0]]
+        n = np.cross(e1, e2)
+        return np.stack([e1, e2, n / np.linalg.norm(n)], axis=1)
+
+    ref = [np.linalg.norm(np.log(np.linalg.svd(frame(U[0], f) @ np.linalg.inv(frame(V, f)), compute_uv=False)))
+           for f in F]
+    assert np.allclose(face_stretch(V, U, F)[0], ref, atol=1e-9)
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    assert np.abs(face_stretch(V, (V @ R.T + 2.0)[None], F)).max() < 1e-6
+
+
+@pytest.mark.parametrize("name", ["centaur", "tailed_humanoid"])
+def test_junction_stretch_ratio_of_the_builtin_compositions_for_every_method(example_compositions, name):
+    from rigmix.pipeline import assembly_stage, quality_stage
+
+    comp = example_compositions[name]
+    ids = comp.stages["fusion_ids"]
+    ratios = {}
+    for method in WEIGHT_METHODS:
+        skin = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
+                             comp.skeleton.num_joints, method=method)
+        c = quality_stage(assembly_stage(replace(comp, stages={**comp.stages, "weights": skin})))
+        ratios[method] = c.report["quality"]["junction_stretch_ratio"]
+    assert all(r is not None and np.isfinite(r) and r > 0 for r in ratios.values()), ratios
+    assert ratios["dfd"] <= 1.5, ratios
