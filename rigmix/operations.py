@@ -29,13 +29,13 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .character import Anchor, Character, Skeleton
+from .character import Anchor, Skeleton
 from .config import Config, closest_names
 from .errors import InputError
-from .positioning import pair_scale, position_character, smooth_translations
-from .transforms import matrix_to_trs, quat_to_matrix
+from .positioning import position_inputs
+from .transforms import matrix_to_trs
 
-__all__ = ["ResolvedAction", "FusedPair", "Plan", "resolve_actions", "plan_operations"]
+__all__ = ["ResolvedAction", "FusedPair", "Plan", "resolve_actions", "resolve_rotations", "plan_operations"]
 
 logger = logging.getLogger(__name__)
 
@@ -203,6 +203,15 @@ def resolve_actions(inputs, config: Config) -> tuple[ResolvedAction, ...]:
                     f"the target is inside the subtree (a subtree cannot be grafted onto itself)")
         out.append(r)
     return tuple(out)
+
+
+def resolve_rotations(inputs, config: Config) -> dict:
+    """The config's rest-pose rotations by joint index: ``{cid: {joint: (4,) quaternion xyzw}}``."""
+    out = {}
+    for cid, cc in config.characters.items():
+        out[cid] = {_joint(inputs, config, cid, name, f"characters.{cid}.rotations"):
+                    np.asarray(rot.as_quaternion(), dtype=np.float64) for name, rot in cc.rotations.items()}
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -395,99 +404,6 @@ def _structure(inputs, actions, config: Config) -> _Structure:
 
 
 # --------------------------------------------------------------------------------------------
-# Positioning
-# --------------------------------------------------------------------------------------------
-
-
-def _rotation_quat(rot):
-    return np.asarray(rot.as_quaternion(), dtype=np.float64)
-
-
-def _placement_matrix(placement):
-    if placement is None:
-        return None
-    M = np.eye(4)
-    if placement.rotation is not None:
-        M[:3, :3] = quat_to_matrix(_rotation_quat(placement.rotation))
-    M[:3, 3] = placement.translation
-    return M
-
-
-def _positioning_order(actions, config):
-    """Characters ordered so that every target is positioned before what is moved onto it."""
-    ids = list(config.characters)
-    deps = {cid: set() for cid in ids}
-    for a in actions:
-        if a.grafts and a.source != a.target:
-            deps[a.source].add(a.target)
-    order, done = [], set()
-    while len(order) < len(ids):
-        ready = [c for c in ids if c not in done and deps[c] <= done]
-        if not ready:
-            left = [c for c in ids if c not in done]
-            raise InputError(f"config {config.source}: characters {', '.join(map(repr, left))} are each "
-                             "moved onto another in a loop; one of them must stay in place (be only a target)")
-        order.append(ready[0])
-        done.add(ready[0])
-    return order
-
-
-def _position_all(inputs, actions, config, structure):
-    positioned, scales, translations, info = {}, {}, {}, {}
-    for cid in _positioning_order(actions, config):
-        ch = inputs[cid]
-        cc = config.characters[cid]
-        sk = ch.skeleton
-        pairs = [a for a in actions if a.grafts and a.source == cid and not a.identity]
-        moved = [a for a in pairs if a.target != cid]
-        if cc.scale != "auto":
-            s, method, ratios = float(cc.scale), "override", []
-        elif moved:
-            ratios = [pair_scale(a.op, positioned[a.target], a.target_joint, ch, a.source_joint) for a in moved]
-            s = float(np.exp(np.mean(np.log([r for r, _ in ratios]))))
-            method = "+".join(sorted({m for _, m in ratios}))
-        else:
-            s, method, ratios = 1.0, "body", []
-        rotations = {}
-        for name, rot in cc.rotations.items():
-            j = _joint(inputs, config, cid, name, f"characters.{cid}.rotations")
-            rotations[j] = _rotation_quat(rot)
-        placement = _placement_matrix(cc.placement)
-        posed = position_character(ch, scale=s, placement=placement, rotations=rotations)
-        t = np.zeros((sk.num_joints, 3))
-        if pairs and config.positioning.translate:
-            here = posed.skeleton.rest_worlds()[:, :3, 3]
-            fixed, values = [], []
-            if structure.body[cid]:
-                # a body keeps its own joints in place; only the subtrees it gives move
-                for j in np.flatnonzero(structure.part[cid] == -1):
-                    fixed.append(int(j))
-                    values.append(np.zeros(3))
-            for a in pairs:
-                tgt = positioned[a.target] if a.target != cid else posed
-                goal = tgt.skeleton.rest_worlds()[a.target_joint, :3, 3]
-                fixed.append(a.source_joint)
-                values.append(goal - here[a.source_joint])
-            t = smooth_translations(sk.parents, fixed, np.asarray(values))
-        positioned[cid] = position_character(ch, scale=s, placement=placement, rotations=rotations,
-                                             translations=t)
-        scales[cid] = s
-        translations[cid] = t
-        info[cid] = {
-            "scale": s,
-            "scale_method": method,
-            "scale_ratios": [float(r) for r, _ in ratios],
-            "role": "body" if structure.body[cid] else "source",
-            "moved": bool(np.any(t)) or s != 1.0 or bool(rotations) or placement is not None,
-        }
-        if method != "override" and s != 1.0:
-            logger.info("operations: %s scaled by %.4g (%s)", cid, s, method)
-    ids = list(config.characters)  # report in the config's order
-    return ({c: positioned[c] for c in ids}, {c: scales[c] for c in ids},
-            {c: translations[c] for c in ids}, {c: info[c] for c in ids})
-
-
-# --------------------------------------------------------------------------------------------
 # The output skeleton
 # --------------------------------------------------------------------------------------------
 
@@ -585,8 +501,10 @@ def plan_operations(inputs, config: Config) -> Plan:
     for cid in config.characters:
         inputs[cid].require_skinned("operations")
     actions = resolve_actions(inputs, config)
+    rotations = resolve_rotations(inputs, config)
     structure = _structure(inputs, actions, config)
-    positioned, scales, translations, info = _position_all(inputs, actions, config, structure)
+    positioned, scales, translations, info = position_inputs(
+        inputs, actions, config, body=structure.body, part=structure.part, rotations=rotations)
     skeleton, out_of_node, renamed = _build_skeleton(structure, positioned, config)
 
     provenance = tuple(structure.members[n] for n in structure.order)

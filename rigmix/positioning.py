@@ -34,6 +34,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from .errors import InputError
 from .skinning import linear_blend_skinning
 from .transforms import matrix_to_trs, quat_multiply, quat_to_matrix
 
@@ -48,6 +49,8 @@ __all__ = [
     "pose_worlds",
     "rebase",
     "position_character",
+    "positioning_order",
+    "position_inputs",
 ]
 
 logger = logging.getLogger(__name__)
@@ -427,3 +430,114 @@ def position_character(character, *, scale=1.0, placement=None, rotations=None, 
         logger.debug("position_character: %s roots hang from different anchors", character.name)
     clips = tuple(_scale_clip(c, sk, s, C) for c in character.clips)
     return replace(character, skeleton=skeleton, meshes=meshes, props=tuple(props), clips=clips)
+
+
+# --------------------------------------------------------------------------------------------
+# All the inputs of a composition
+# --------------------------------------------------------------------------------------------
+
+
+def _placement_matrix(placement):
+    if placement is None:
+        return None
+    M = np.eye(4)
+    if placement.rotation is not None:
+        M[:3, :3] = quat_to_matrix(np.asarray(placement.rotation.as_quaternion(), dtype=np.float64))
+    M[:3, 3] = placement.translation
+    return M
+
+
+def positioning_order(actions, config):
+    """Character ids ordered so that every target is positioned before what is moved onto it.
+
+    Raises
+    ------
+    InputError
+        Characters moved onto each other in a loop.
+    """
+    ids = list(config.characters)
+    deps = {cid: set() for cid in ids}
+    for a in actions:
+        if a.grafts and a.source != a.target:
+            deps[a.source].add(a.target)
+    order, done = [], set()
+    while len(order) < len(ids):
+        ready = [c for c in ids if c not in done and deps[c] <= done]
+        if not ready:
+            left = [c for c in ids if c not in done]
+            raise InputError(f"config {config.source}: characters {', '.join(map(repr, left))} are each "
+                             "moved onto another in a loop; one of them must stay in place (be only a target)")
+        order.append(ready[0])
+        done.add(ready[0])
+    return order
+
+
+def position_inputs(inputs, actions, config, *, body, part, rotations):
+    """Scale, pose and move every input of a composition (targets first).
+
+    Parameters
+    ----------
+    inputs : dict of str -> Character
+    actions : tuple of rigmix.operations.ResolvedAction
+    config : rigmix.config.Config
+        Scales (``"auto"`` or an override), placements, ``positioning.translate``.
+    body : dict of str -> bool
+        Whether each character is a body (its own joints stay in place).
+    part : dict of str -> (J,) int array
+        ``-1`` for a body's own joints (fixed at zero translation when it also gives subtrees).
+    rotations : dict of str -> dict of int -> (4,) float array
+        Rest-pose rotations by joint index.
+
+    Returns
+    -------
+    positioned, scales, translations, info : dicts by character id, in the config's order
+        ``info`` holds the report entry (scale, how it was chosen, the pair ratios, role).
+    """
+    positioned, scales, translations, info = {}, {}, {}, {}
+    for cid in positioning_order(actions, config):
+        ch = inputs[cid]
+        cc = config.characters[cid]
+        sk = ch.skeleton
+        pairs = [a for a in actions if a.grafts and a.source == cid and not a.identity]
+        moved = [a for a in pairs if a.target != cid]
+        if cc.scale != "auto":
+            s, method, ratios = float(cc.scale), "override", []
+        elif moved:
+            ratios = [pair_scale(a.op, positioned[a.target], a.target_joint, ch, a.source_joint) for a in moved]
+            s = float(np.exp(np.mean(np.log([r for r, _ in ratios]))))
+            method = "+".join(sorted({m for _, m in ratios}))
+        else:
+            s, method, ratios = 1.0, "body", []
+        rot = rotations.get(cid, {})
+        placement = _placement_matrix(cc.placement)
+        posed = position_character(ch, scale=s, placement=placement, rotations=rot)
+        t = np.zeros((sk.num_joints, 3))
+        if pairs and config.positioning.translate:
+            here = posed.skeleton.rest_worlds()[:, :3, 3]
+            fixed, values = [], []
+            if body[cid]:
+                # a body keeps its own joints in place; only the subtrees it gives move
+                for j in np.flatnonzero(part[cid] == -1):
+                    fixed.append(int(j))
+                    values.append(np.zeros(3))
+            for a in pairs:
+                tgt = positioned[a.target] if a.target != cid else posed
+                goal = tgt.skeleton.rest_worlds()[a.target_joint, :3, 3]
+                fixed.append(a.source_joint)
+                values.append(goal - here[a.source_joint])
+            t = smooth_translations(sk.parents, fixed, np.asarray(values))
+        positioned[cid] = position_character(ch, scale=s, placement=placement, rotations=rot, translations=t)
+        scales[cid] = s
+        translations[cid] = t
+        info[cid] = {
+            "scale": s,
+            "scale_method": method,
+            "scale_ratios": [float(r) for r, _ in ratios],
+            "role": "body" if body[cid] else "source",
+            "moved": bool(np.any(t)) or s != 1.0 or bool(rot) or placement is not None,
+        }
+        if method != "override" and s != 1.0:
+            logger.info("positioning: %s scaled by %.4g (%s)", cid, s, method)
+    ids = list(config.characters)  # report in the config's order
+    return ({c: positioned[c] for c in ids}, {c: scales[c] for c in ids},
+            {c: translations[c] for c in ids}, {c: info[c] for c in ids})
