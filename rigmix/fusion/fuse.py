@@ -644,7 +644,7 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
                 continue
             c = len(Vc) + len(extra_v)
             extra_v.append(L.positions.mean(axis=0))
-            extra_f += [(L.vertices[k], c, L.vertices[k - 1]) for k in range(len(L.vertices))]
+            extra_f += [(L.vertices[k], L.vertices[k - 1], c) for k in range(len(L.vertices))]
             info["unmatched_iso_loops"] += 1
         if extra_v:
             Vc = np.concatenate([Vc, np.asarray(extra_v)])

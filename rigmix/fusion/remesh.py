@@ -14,9 +14,24 @@ __all__ = ["is_edge_manifold", "remesh_junction", "smooth_interior"]
 
 
 def is_edge_manifold(F):
-    """True when every edge of the non-degenerate faces has one or two faces."""
+    """True when every edge has one or two faces and the faces are consistently oriented.
+
+    (Botsch-Kobbelt remeshing in gpytoolbox aborts the process on anything else.)
+    """
+    F = np.asarray(F, dtype=np.int64).reshape(-1, 3)
+    if not np.all(nondegenerate(F)):
+        return False
     _, cnt = edge_counts(F)
-    return bool(np.all(cnt <= 2))
+    if not np.all(cnt <= 2):
+        return False
+    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    if len(np.unique(E, axis=0)) != len(E):
+        return False
+    import igl
+
+    r = igl.is_vertex_manifold(F)
+    ok = r[0] if isinstance(r, tuple) else r
+    return bool(np.all(ok))
 
 
 def remesh_junction(V, F, fixed, *, target, iterations=5):

@@ -1,0 +1,133 @@
+"""Fusion benchmark: time per composition and voxel count (issue: mesh fusion).
+
+Cases: the example configs (built-in characters, through the pipeline up to the mapping, then
+the fusion stage), a centaur of two shared characters (Horse body, Knight rider) and limb
+self-compositions of the shared characters, whose ground truth is the character itself
+(Hausdorff distance relative to the bounding-box diagonal, share of faces preserved).
+
+Writes ``benchmarks/results/fusion.json`` and ``fusion.md``. Run: ``python -m benchmarks.fusion_bench``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = Path(__file__).resolve().parent / "results"
+ASSETS = Path(os.environ.get("RIGMIX_ASSETS", ROOT.parent / "shared" / "data" / "characters"))
+
+EXAMPLES = ["centaur", "self_arm", "beast_arms", "tailed_humanoid"]
+SELF = [
+    ("CesiumMan/CesiumMan.glb", "Skeleton_arm_joint_R"),
+    ("CesiumMan/CesiumMan.glb", "Skeleton_neck_joint_1"),
+    ("Fox/Fox.glb", "b_Neck_04"),
+    ("QuaterniusHorse/Horse.glb", "Head"),
+    ("QuaterniusKnight/KnightCharacter.glb", "UpperArm.R"),
+    ("QuaterniusWasp/Wasp.glb", "Abdomen"),
+    ("QuaterniusVelociraptor/Velociraptor.glb", "Neck"),
+]
+REAL_CENTAUR = f"""
+name = "horse_knight_centaur"
+[characters.body]
+path = "{ASSETS / 'QuaterniusHorse/Horse.glb'}"
+[characters.rider]
+path = "{ASSETS / 'QuaterniusKnight/KnightCharacter.glb'}"
+[[actions]]
+op = "replace"
+source = "rider"
+source_joint = "Abdomen"
+target = "body"
+target_joint = "Neck1"
+mode = "blend"
+"""
+
+
+def _row(name, rep, seconds, extra=None):
+    m, f = rep["mesh"], rep["fields"]
+    row = {
+        "case": name,
+        "fusion_s": round(seconds, 3),
+        "voxels": f["voxels"],
+        "voxel_size": f["voxel_size"],
+        "junction_faces": m["junction_faces"],
+        "junction_boundary_edges": m["junction_boundary_edges"],
+        "new_non_manifold_edges": m["new_non_manifold_edges"],
+        "junction_min_angle_p05": None if m["junction_min_angle_p05"] is None else round(m["junction_min_angle_p05"], 2),
+        "stages": rep["timings"],
+    }
+    row.update(extra or {})
+    return row
+
+
+def _compose_case(cfg):
+    from rigmix.fusion.stage import fusion_stage
+    from rigmix.pipeline import compose
+
+    comp = compose(cfg, until="mapping")
+    t0 = time.perf_counter()
+    comp = fusion_stage(comp)
+    return comp.report["fusion"], time.perf_counter() - t0
+
+
+def _self_case(path, joint):
+    import igl
+
+    from rigmix.fusion import FusionAction, fuse_surfaces
+    from rigmix.fusion.inputs import fusion_input
+    from rigmix.geometry import bounding_box_diagonal
+    from rigmix.io import load_character
+
+    c = load_character(ASSETS / path)
+    sub = c.skeleton.subtree(c.skeleton.index(joint))
+    a, b = fusion_input(c, ~sub), fusion_input(c, sub)
+    t0 = time.perf_counter()
+    out = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)])
+    dt = time.perf_counter() - t0
+    diag = bounding_box_diagonal(a.V)
+    h_out = np.sqrt(igl.point_mesh_squared_distance(out.V, a.V, a.F)[0]).max() / diag
+    h_in = np.sqrt(igl.point_mesh_squared_distance(a.V, out.V, out.F)[0]).max() / diag
+    kept = float((out.face_origin_input >= 0).sum() / len(a.F))
+    return out.report, dt, {"hausdorff_pct": round(100 * max(h_out, h_in), 3), "faces_preserved": round(kept, 3)}
+
+
+def main():
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for name in EXAMPLES:
+        rep, dt = _compose_case(ROOT / "examples" / f"{name}.toml")
+        rows.append(_row(f"example {name}", rep, dt))
+    if (ASSETS / "QuaterniusHorse/Horse.glb").exists():
+        with tempfile.TemporaryDirectory() as d:
+            cfg = Path(d) / "centaur.toml"
+            cfg.write_text(REAL_CENTAUR)
+            rep, dt = _compose_case(cfg)
+            rows.append(_row("Horse + Knight centaur", rep, dt))
+        for path, joint in SELF:
+            rep, dt, extra = _self_case(path, joint)
+            rows.append(_row(f"self {Path(path).stem}:{joint}", rep, dt, extra))
+    (RESULTS / "fusion.json").write_text(json.dumps({"cpu_count": os.cpu_count(), "cases": rows}, indent=2) + "\n")
+    lines = [
+        "Fusion time (s, fuse_surfaces only) and grid size per case; self-compositions also give the "
+        "Hausdorff distance to the original (% of the bounding-box diagonal) and the share of faces preserved.",
+        "",
+        "| case | fusion s | voxels | voxel | junction faces | gap edges | new non-manifold | min angle p05 | Hausdorff % | preserved |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['case']} | {r['fusion_s']} | {r['voxels']} | {r['voxel_size']:.4g} | {r['junction_faces']} | "
+            f"{r['junction_boundary_edges']} | {r['new_non_manifold_edges']} | {r['junction_min_angle_p05']} | "
+            f"{r.get('hausdorff_pct', '')} | {r.get('faces_preserved', '')} |"
+        )
+    (RESULTS / "fusion.md").write_text("\n".join(lines) + "\n")
+    return rows
+
+
+if __name__ == "__main__":
+    main()
