@@ -202,3 +202,25 @@ def test_cli_map_table_and_json(capsys):
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].split() == ["character", "input", "joint", "output", "joint", "confidence"]
     assert any(l.split()[:3] == ["cesium", "Skeleton_arm_joint_L__2_", "arm_joint_L_3"] for l in lines)
+
+
+def test_example_configs_compose_on_builtin_characters():
+    """Every examples/*.toml (built-in characters, no files) plans and maps."""
+    from rigmix.pipeline import compose
+
+    files = sorted((Path(__file__).parent.parent / "examples").glob("*.toml"))
+    assert files
+    for f in files:
+        comp = compose(f, until="mapping")
+        sk = comp.skeleton
+        assert len(set(sk.names)) == sk.num_joints and np.all(sk.parents < np.arange(sk.num_joints))
+        for cid, bm in comp.maps.items():
+            assert np.all(bm.target >= 0) and np.all((bm.confidence >= 0) & (bm.confidence <= 1))
+            assert np.all(bm.confidence[comp.plan.used[cid]] == 1)
+        if f.stem == "self_arm":
+            h = comp.inputs["body"].skeleton
+            assert sk.names == h.names and all(np.array_equal(bm.target, np.arange(h.num_joints))
+                                               for bm in comp.maps.values())
+        if f.stem == "beast_arms":  # two fused pairs moved the quadruped by a non-rigid field
+            t = comp.plan.translations["animal"]
+            assert not np.allclose(t, t[0])
