@@ -408,7 +408,8 @@ def test_compose_from_a_file_reports_and_progresses():
 
     asset("CesiumMan"), asset("RiggedFigure")
     seen = []
-    comp = rigmix.compose(CONFIGS / "limb_swap.toml", progress=lambda s, k, n: seen.append((s, k)))
+    comp = rigmix.compose(CONFIGS / "limb_swap.toml", progress=lambda s, k, n: seen.append((s, k)),
+                          until="mapping")
     assert [s for s, _ in seen][:3] == ["load", "operations", "mapping"]
     assert comp.skeleton is comp.plan.skeleton
     assert set(comp.maps) == {"cesium", "figure"}
@@ -429,7 +430,7 @@ def test_compose_builtin_config_in_code():
     cfg = rigmix.Config(characters={"body": {"path": "builtin:humanoid"}, "donor": {"path": "builtin:humanoid"}},
                         actions=[{"op": "replace", "source": "donor", "source_joint": "UpperArm.L",
                                   "target": "body", "target_joint": "UpperArm.L"}])
-    comp = rigmix.compose(cfg)
+    comp = rigmix.compose(cfg, until="mapping")
     h = comp.inputs["body"].skeleton
     assert comp.skeleton.names == h.names and np.array_equal(comp.skeleton.parents, h.parents)
     assert np.allclose(comp.skeleton.translations, h.translations)
@@ -447,3 +448,12 @@ def test_plan_dicts_follow_the_config_order():
     for d in (plan.positioned, plan.scales, plan.translations, plan.used, plan.image,
               plan.report["characters"]):
         assert list(d) == ["y", "x"]
+
+
+
+def test_compose_until_rejects_unknown_stages():
+    from rigmix import pipeline
+
+    cfg = Config(characters={"x": {"path": "x.glb"}})
+    with pytest.raises(ValueError, match="unknown stage"):
+        pipeline.compose(cfg, until="render")
