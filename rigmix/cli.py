@@ -532,6 +532,45 @@ def _json_default(o):
     raise TypeError(f"not JSON serializable: {type(o).__name__}")
 
 
+def _add_batch(parser):
+    parser.add_argument("configs", type=Path, nargs="+", metavar="CONFIG", help="composition configs (.toml)")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR",
+                        help="output folder: <config name>.glb, <config name>.report.json, manifest.jsonl")
+    parser.add_argument("--workers", type=int, default=None, metavar="N",
+                        help="worker processes (default: the CPU count; 0: in this process; with "
+                             "--scheduler local-dask: Dask workers, default 2)")
+    parser.add_argument("--scheduler", metavar="ADDRESS",
+                        help="run on a Dask cluster: a scheduler address (tcp://host:8786) or 'local-dask' "
+                             "(needs rigmix[dask]; the output folder must be shared with the workers)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _run_batch(args) -> int:
+    from tqdm import tqdm
+
+    from .batch import run_batch
+
+    if args.workers is not None and args.workers < 0:
+        from .errors import InputError
+
+        raise InputError(f"batch: --workers must be 0 or more, got {args.workers}")
+    with tqdm(total=len(args.configs), desc="batch", unit="config", disable=args.no_progress,
+              file=sys.stderr) as bar:
+        def progress(done, total, entry):
+            bar.set_postfix_str(f"{entry['stem']} {'skipped' if entry.get('skipped') else entry['status']}")
+            bar.update(done - bar.n)
+
+        entries = run_batch(args.configs, args.out, workers=args.workers, scheduler=args.scheduler,
+                            progress=progress)
+    failed = [e for e in entries if e["status"] != "ok"]
+    skipped = sum(bool(e.get("skipped")) for e in entries)
+    for e in failed:
+        _error(f"{Path(e['config']).name}: {e['error']}")
+    print(f"{args.out}: {len(entries) - len(failed) - skipped} composed, {skipped} skipped (done before), "
+          f"{len(failed)} failed; manifest {args.out / 'manifest.jsonl'}")
+    return 1 if failed else 0
+
+
 COMMANDS: list[Command] = [
     Command("inspect", "print a character's joints, meshes, clips, counts and repaired defects",
             _add_inspect, _run_inspect),
@@ -546,6 +585,8 @@ COMMANDS: list[Command] = [
     Command("schema", "print the JSON schema of composition configs", _add_schema, _run_schema),
     Command("compose", "compose a new character from a config: GLB (and USD), JSON report", _add_compose,
             _run_compose),
+    Command("batch", "compose many configs in parallel (process pool or Dask), resumable, with a JSONL manifest",
+            _add_batch, _run_batch),
 ]
 
 

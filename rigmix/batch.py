@@ -1,0 +1,363 @@
+"""Many compositions at once: ``rigmix batch CONFIG... --out DIR``.
+
+Each config is one independent job (:func:`run_one`): compose it, write ``<stem>.glb`` and
+``<stem>.report.json`` into the output folder. :func:`run_batch` runs the jobs
+
+* in a local process pool (default; ``spawn`` start method, so it is safe with threads and
+  on every platform), or
+* on a Dask distributed cluster (``scheduler="local-dask"`` starts a ``LocalCluster``, any
+  other string is a scheduler address; the optional dependency ``rigmix[dask]``; the output
+  folder must then be on a file system the workers share).
+
+Only paths travel between processes (never characters or arrays); each worker reads its
+inputs itself (built-in characters are built once per worker process).
+
+One failing job does not stop the others: its error is recorded and the batch goes on. Every
+finished job appends one JSON line to ``DIR/manifest.jsonl``::
+
+    {"config": "/abs/path/centaur.toml", "config_sha256": "...", "stem": "centaur",
+     "status": "ok" | "failed", "outputs": {"glb": "centaur.glb", "report": "centaur.report.json"},
+     "timings": {"compose": 3.2, "write": 0.1, "total": 3.3, "stages": {...}},
+     "error": null | "one-line message", "finished": "2026-11-22T01:02:03Z"}
+
+Outputs are named relative to ``DIR``. The batch is resumable: a config whose latest manifest
+entry is ``ok``, whose file has not changed since (same SHA-256) and whose outputs all exist is
+skipped; failed jobs are run again. Outputs are written atomically (temporary file, then
+rename), so an interrupted or failed job leaves no partial file.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+import traceback
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Callable, Iterable
+
+from .errors import InputError, RigmixError, UnsupportedError
+from .safety import atomic_write_text, file_digest
+
+__all__ = ["MANIFEST", "LOCAL_DASK", "run_one", "run_batch", "read_manifest", "plan_batch"]
+
+logger = logging.getLogger(__name__)
+
+#: Name of the manifest file in the output folder.
+MANIFEST = "manifest.jsonl"
+#: ``scheduler`` value that starts a local Dask cluster.
+LOCAL_DASK = "local-dask"
+
+#: ``progress(done, total, entry)``: called in the calling process as each job ends (skipped
+#: jobs included); the CLI turns it into a progress bar.
+BatchProgress = Callable[[int, int, dict], None]
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _outputs(stem: str) -> dict:
+    return {"glb": f"{stem}.glb", "report": f"{stem}.report.json"}
+
+
+def run_one(config_path, out_dir) -> dict:
+    """Compose one config and write its outputs; never raises for a failing composition.
+
+    Parameters
+    ----------
+    config_path : str or Path
+        A composition config (TOML).
+    out_dir : str or Path
+        Existing folder receiving ``<stem>.glb`` and ``<stem>.report.json`` (``stem``: the
+        config's file name without suffix).
+
+    Returns
+    -------
+    dict
+        The manifest entry (see the module docstring): ``status`` is ``"ok"`` or ``"failed"``
+        with ``error`` the one-line message (a :class:`RigmixError`'s text, or ``internal
+        error (...)`` for anything else, whose traceback is logged at debug level).
+    """
+    from .io.gltf import write_gltf
+    from .pipeline import compose
+
+    config_path, out_dir = Path(config_path).resolve(), Path(out_dir)
+    stem = config_path.stem
+    outputs = _outputs(stem)
+    entry = {"config": str(config_path), "config_sha256": None, "stem": stem, "status": "failed",
+             "outputs": outputs, "timings": {}, "error": None, "finished": None}
+    written = []
+    t_start = time.perf_counter()
+    try:
+        try:
+            entry["config_sha256"] = file_digest(config_path)
+        except OSError as exc:
+            raise InputError(f"batch: cannot read config {config_path}: {exc.strerror or exc}") from None
+        t0 = time.perf_counter()
+        composition = compose(config_path)
+        entry["timings"]["compose"] = round(time.perf_counter() - t0, 4)
+        entry["timings"]["stages"] = dict(composition.report.get("timings", {}))
+        if composition.character is None:
+            raise UnsupportedError(
+                f"batch: {config_path.name}: compose produced no character (the fusion, weight and "
+                "animation stages are not part of this build's pipeline); nothing to write")
+        t0 = time.perf_counter()
+        glb = out_dir / outputs["glb"]
+        write_gltf(composition.character, glb)
+        written.append(glb)
+        report = out_dir / outputs["report"]
+        atomic_write_text(report, json.dumps(composition.report, indent=2, sort_keys=True, default=_json_default)
+                          + "\n")
+        written.append(report)
+        entry["timings"]["write"] = round(time.perf_counter() - t0, 4)
+        entry["status"] = "ok"
+    except RigmixError as exc:
+        entry["error"] = _one_line(exc)
+    except Exception as exc:  # a bug in a stage: recorded, the batch goes on
+        logger.debug("batch: %s failed:\n%s", config_path, traceback.format_exc())
+        entry["error"] = _one_line(f"internal error ({type(exc).__name__}: {exc})")
+    if entry["status"] != "ok":
+        for p in written:  # all of a job's outputs, or none
+            p.unlink(missing_ok=True)
+    entry["timings"]["total"] = round(time.perf_counter() - t_start, 4)
+    entry["finished"] = _now()
+    return entry
+
+
+def _json_default(obj):
+    """numpy scalars and arrays, paths and sets in reports."""
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    if isinstance(obj, (Path, set, frozenset, tuple)):
+        return str(obj) if isinstance(obj, Path) else list(obj)
+    raise TypeError(f"not JSON serializable: {type(obj).__name__}")
+
+
+def read_manifest(out_dir) -> dict:
+    """The latest manifest entry per config.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+
+    Returns
+    -------
+    dict of str -> dict
+        Absolute config path -> its last entry (later lines win). A missing manifest gives
+        ``{}``; a line that is not valid JSON (e.g. cut by a crash) is skipped with a warning.
+    """
+    path = Path(out_dir) / MANIFEST
+    if not path.exists():
+        return {}
+    out = {}
+    with open(path, encoding="utf-8") as fh:
+        for k, line in enumerate(fh, start=1):
+            if not line.strip():
+                continue
+            try:
+                entry = json.loads(line)
+                out[entry["config"]] = entry
+            except (ValueError, KeyError, TypeError):
+                logger.warning("batch: %s line %d is not a manifest entry: ignored", path, k)
+    return out
+
+
+def _is_done(entry: dict | None, digest: str | None, out_dir: Path) -> bool:
+    return (entry is not None and entry.get("status") == "ok" and digest is not None
+            and entry.get("config_sha256") == digest
+            and all((out_dir / name).is_file() for name in entry.get("outputs", {}).values()))
+
+
+def plan_batch(configs: Iterable, out_dir) -> tuple[list[Path], list[dict]]:
+    """Split configs into those to run and the finished ones to skip.
+
+    Parameters
+    ----------
+    configs : iterable of str or Path
+    out_dir : str or Path
+
+    Returns
+    -------
+    todo : list of Path
+        Resolved config paths to run, in the given order.
+    skipped : list of dict
+        The manifest entries of the configs already done (see the module docstring).
+
+    Raises
+    ------
+    InputError
+        No configs, a config listed twice, or two configs with the same file name (their
+        outputs would collide).
+    """
+    out_dir = Path(out_dir)
+    paths = [Path(c).resolve() for c in configs]
+    if not paths:
+        raise InputError("batch: no config given")
+    seen: dict[str, Path] = {}
+    for p in paths:
+        if p.stem in seen:
+            what = "is listed twice" if seen[p.stem] == p else f"and {seen[p.stem]} have the same name"
+            raise InputError(f"batch: {p} {what}: outputs are named after the config file "
+                             f"({p.stem}.glb); rename one")
+        seen[p.stem] = p
+    manifest = read_manifest(out_dir)
+    todo, skipped = [], []
+    for p in paths:
+        entry = manifest.get(str(p))
+        digest = file_digest(p) if p.is_file() else None
+        if _is_done(entry, digest, out_dir):
+            skipped.append(dict(entry, skipped=True))
+        else:
+            todo.append(p)
+    return todo, skipped
+
+
+class _Manifest:
+    """Appends entries to ``manifest.jsonl`` (one writer: the calling process), flushed per line."""
+
+    def __init__(self, out_dir: Path):
+        self.path = out_dir / MANIFEST
+
+    def append(self, entry: dict) -> None:
+        line = json.dumps(entry, sort_keys=True, default=_json_default)
+        with open(self.path, "a", encoding="utf-8") as fh:
+            fh.write(line + "\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+
+
+def _failed_entry(config: Path, message: str) -> dict:
+    return {"config": str(config), "config_sha256": None, "stem": config.stem, "status": "failed",
+            "outputs": _outputs(config.stem), "timings": {}, "error": _one_line(message), "finished": _now()}
+
+
+def run_batch(configs, out_dir, *, workers: int | None = None, scheduler: str | None = None,
+              progress: BatchProgress | None = None) -> list[dict]:
+    """Run many compositions; failures are recorded, never raised.
+
+    Parameters
+    ----------
+    configs : iterable of str or Path
+        Config files (TOML); outputs are named after their file names, which must differ.
+    out_dir : str or Path
+        Output folder (created if missing), holding the outputs and ``manifest.jsonl``.
+    workers : int, optional
+        Worker processes (default: the CPU count, at most the number of jobs). ``0`` runs the
+        jobs one after the other in this process (debugging). With ``scheduler="local-dask"``:
+        the number of Dask workers (default 2).
+    scheduler : str, optional
+        ``None``: a local process pool; ``"local-dask"``: a Dask ``LocalCluster`` (processes,
+        one thread each); anything else: the address of a running Dask scheduler
+        (``tcp://host:8786``).
+    progress : callable, optional
+        ``progress(done, total, entry)`` after each job (and once per skipped job).
+
+    Returns
+    -------
+    list of dict
+        One entry per config, in the given order: the new manifest entry, or for a skipped job
+        its previous entry with ``"skipped": True``.
+
+    Raises
+    ------
+    InputError
+        No config, or colliding config names (see :func:`plan_batch`); an output folder that
+        cannot be created.
+    UnsupportedError
+        A Dask scheduler was asked for but ``dask.distributed`` is not installed.
+    """
+    out_dir = Path(out_dir)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"batch: cannot create the output folder {out_dir}: {exc.strerror or exc}") from None
+    order = [str(Path(c).resolve()) for c in configs]
+    todo, skipped = plan_batch(order, out_dir)
+    total = len(order)
+    results: dict[str, dict] = {}
+    done = 0
+    for entry in skipped:
+        results[entry["config"]] = entry
+        done += 1
+        if progress is not None:
+            progress(done, total, entry)
+    if skipped:
+        logger.info("batch: %d of %d configs already done: skipped", len(skipped), total)
+    manifest = _Manifest(out_dir)
+
+    def finish(entry):
+        nonlocal done
+        manifest.append(entry)
+        results[entry["config"]] = entry
+        done += 1
+        if entry["status"] != "ok":
+            logger.info("batch: %s failed: %s", Path(entry["config"]).name, entry["error"])
+        if progress is not None:
+            progress(done, total, entry)
+
+    if todo:
+        if scheduler is not None:
+            _run_dask(todo, out_dir, scheduler, workers, finish)
+        elif workers == 0:
+            for p in todo:
+                finish(run_one(p, out_dir))
+        else:
+            _run_pool(todo, out_dir, workers, finish)
+    return [results[c] for c in order]
+
+
+def _run_pool(todo: list[Path], out_dir: Path, workers: int | None, finish) -> None:
+    import multiprocessing
+
+    n = max(1, min(workers or os.cpu_count() or 1, len(todo)))
+    ctx = multiprocessing.get_context("spawn")  # no fork of a threaded parent
+    with ProcessPoolExecutor(max_workers=n, mp_context=ctx) as pool:
+        futures = {pool.submit(run_one, str(p), str(out_dir)): p for p in todo}
+        pending = set(futures)
+        while pending:
+            finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for f in finished:
+                try:
+                    entry = f.result()
+                except Exception as exc:  # the worker died (killed, out of memory...)
+                    entry = _failed_entry(futures[f], f"batch: worker process failed ({type(exc).__name__}: {exc})")
+                finish(entry)
+
+
+def _run_dask(todo: list[Path], out_dir: Path, scheduler: str, workers: int | None, finish) -> None:
+    try:
+        from dask.distributed import Client, LocalCluster, as_completed
+    except ImportError:
+        raise UnsupportedError(
+            "batch: --scheduler needs Dask distributed: pip install 'rigmix[dask]'") from None
+
+    cluster = None
+    try:
+        if scheduler == LOCAL_DASK:
+            cluster = LocalCluster(n_workers=workers or 2, threads_per_worker=1, processes=True,
+                                   dashboard_address=None)
+            client = Client(cluster)
+        else:
+            try:
+                client = Client(scheduler, timeout="20s")
+            except (OSError, TimeoutError, ValueError) as exc:
+                raise InputError(f"batch: cannot connect to the Dask scheduler {scheduler!r}: {exc}") from None
+        with client:
+            futures = {client.submit(run_one, str(p), str(out_dir), pure=False, key=f"rigmix-{p.stem}-{i}"): p
+                       for i, p in enumerate(todo)}
+            for f in as_completed(list(futures)):
+                try:
+                    entry = f.result()
+                except Exception as exc:  # a worker lost mid-job
+                    entry = _failed_entry(futures[f], f"batch: Dask job failed ({type(exc).__name__}: {exc})")
+                finish(entry)
+    finally:
+        if cluster is not None:
+            cluster.close()
