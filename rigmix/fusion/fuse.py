@@ -36,7 +36,7 @@ from .junction import (
 )
 from .meshutil import average_edge_length, boundary_halfedges, edge_counts, face_adjacency, undirected_edges
 from .presence import Presence, compute_presence
-from .remesh import flip_to_improve_angles, is_edge_manifold, relocate_poor_vertices, remesh_junction, smooth_interior
+from .remesh import flip_to_improve_angles, is_edge_manifold, relocate_poor_vertices, snap_to_points, remesh_junction, smooth_interior
 from .report import mesh_report
 
 log = logging.getLogger(__name__)
@@ -114,6 +114,9 @@ class FusionParams:
         presence-weighted closest input points (0 disables).
     min_seam_wedge : degrees; preserved faces around a seam vertex that leaves the junction a
         thinner wedge than this join the junction (no good triangle fits such a wedge).
+    snap_input_vertices : junction vertices move onto the nearby vertices of the replaced input
+        faces that lie on the blended surface (within a quarter voxel): corners of low-poly
+        inputs survive the remeshing.
     min_island_faces : preserved parts bordering a junction with fewer faces join it (specks
         left by the presence pattern have no isosurface hole to meet).
     backend : "numpy" (numpy + libigl) or "openvdb".
@@ -139,6 +142,7 @@ class FusionParams:
     project_voxels: float = 1.0
     min_seam_wedge: float = 60.0
     min_island_faces: int = 24
+    snap_input_vertices: bool = True
     backend: str = "numpy"
     keep_fields: bool = False
 
@@ -317,11 +321,13 @@ def _unpinch_preserved(pres: list[Presence], preserved, rounds=3):
 
 
 def _drop_specks(pres: list[Presence], preserved, min_faces):
-    """Un-preserve preserved parts bordering a junction that have fewer than ``min_faces``."""
+    """Un-preserve preserved parts bordering a junction with fewer than ``min_faces`` faces
+    (and under 2% of the input's faces: a low-poly limb of a dozen faces is no speck)."""
     out = [m.copy() for m in preserved]
     for i, P in enumerate(pres):
+        limit = min(min_faces, 0.02 * len(P.welded.F))
         for f in _seam_components(P, preserved[i]):
-            if len(f) < min_faces:
+            if len(f) < limit:
                 out[i][f] = False
     return out
 
@@ -580,8 +586,33 @@ def _preserved_edges_between(pres, preserved, keys, fid_to_final):
     return np.concatenate(out) if out else np.zeros((0, 2), np.int64)
 
 
+def _surface_input_vertices(pres, inputs_fields, junction_masks, grid, field3, h):
+    """Vertices of the inputs' replaced faces that lie on the blended surface (``|f| < h/4``)."""
+    from scipy.ndimage import map_coordinates
+
+    pts = []
+    for i in inputs_fields:
+        P = pres[i]
+        T = P.welded.F[junction_masks[i]]
+        if len(T) == 0:
+            continue
+        v = np.unique(T.ravel())
+        v = v[P.p_welded[v] > 0]
+        X = P.welded.V[v]
+        ijk = (X - grid.origin) / grid.voxel
+        inside = np.all((ijk >= 0) & (ijk <= np.asarray(grid.shape) - 1), axis=1)
+        X, ijk = X[inside], ijk[inside]
+        if len(X) == 0:
+            continue
+        f = map_coordinates(field3, ijk.T, order=1, mode="nearest")
+        pts.append(X[np.abs(f) < 0.25 * h])
+    if not pts:
+        return np.zeros((0, 3))
+    return np.unique(np.concatenate(pts), axis=0)
+
+
 def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields, actions, params, band, timings,
-                          local_edge=0.0):
+                          local_edge=0.0, junction_masks=None):
     """Isosurface, cut, bridges and remesh of one cluster.
 
     Returns
@@ -705,6 +736,10 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
             G = flip_to_improve_angles(U, G, forbidden=forb)
             U = relocate_poor_vertices(U, G, len(fx), surface=(JV, JF))
             G = flip_to_improve_angles(U, G, forbidden=forb)
+            if params.snap_input_vertices and field3 is not None:
+                targets = _surface_input_vertices(pres, inputs_fields, junction_masks, grid, field3, h)
+                U = snap_to_points(U, G, len(fx), targets, max_dist=0.5 * target)
+                G = flip_to_improve_angles(U, G, forbidden=forb)
             fkeys = [fixed_keys[int(old[v] - nI)] for v in fx]
             JV, JF = U, G
             info["remeshed"] = True
@@ -818,7 +853,8 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
         cl = [L for L in loops_all
               if np.all(L.positions.mean(axis=0) >= lo_g) and np.all(L.positions.mean(axis=0) <= hi_g)]
         JV, JF, fkeys, info, field3 = _junction_for_cluster(grid, pres, surfaces, preserved, cl, fields, actions, params,
-                                                            band, timings, _local_edge(pres, junction, grid))
+                                                            band, timings, _local_edge(pres, junction, grid),
+                                                            junction_masks=junction)
         info.update(voxel_size=grid.voxel, voxels=grid.size, shape=list(grid.shape), loops=len(cl))
         if info["unmatched_preserved_loops"] > 0 or len(JF) == 0:
             # no closed junction (open sheets have no inside; loops left unmatched): keep the

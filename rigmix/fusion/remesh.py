@@ -324,3 +324,64 @@ def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterat
         if not moved:
             break
     return V
+
+
+def snap_to_points(V, F, nfixed, P, *, max_dist, min_angle=15.0, min_normal_dot=0.5):
+    """Move free vertices onto nearby target points (input vertices lying on the surface).
+
+    Each target takes the nearest free vertex within ``max_dist`` (closest pairs first, one
+    vertex per target); a move is kept when it folds no triangle of the vertex's ring and
+    keeps its smallest angle at least ``min_angle`` degrees (or no worse than before).
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+    F : (m, 3) int array
+    nfixed : int
+        ``V[:nfixed]`` never move.
+    P : (k, 3) float array
+        Target points.
+
+    Returns
+    -------
+    (n, 3) float64
+    """
+    from scipy.spatial import cKDTree
+
+    V = np.asarray(V, dtype=np.float64).copy()
+    F = np.asarray(F, dtype=np.int64)
+    P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
+    if len(P) == 0 or len(V) <= nfixed or len(F) == 0:
+        return V
+    free = np.arange(nfixed, len(V))
+    dist, nn = cKDTree(V[free]).query(P, distance_upper_bound=max_dist)
+    ok = np.isfinite(dist)
+    order = np.flatnonzero(ok)[np.argsort(dist[ok])]
+    VF = [[] for _ in range(len(V))]
+    for f, tri in enumerate(F):
+        for v in tri:
+            VF[v].append(f)
+    taken = set()
+    for k in order:
+        v = int(free[nn[k]])
+        if v in taken:
+            continue
+        ring = F[VF[v]]
+        if len(ring) == 0:
+            continue
+        Q = V[ring]
+        n0 = np.cross(Q[:, 1] - Q[:, 0], Q[:, 2] - Q[:, 0])
+        n0 /= np.maximum(np.linalg.norm(n0, axis=1, keepdims=True), 1e-300)
+        before = _ring_min_angle(V, ring)
+        old = V[v].copy()
+        V[v] = P[k]
+        Q = V[ring]
+        n1 = np.cross(Q[:, 1] - Q[:, 0], Q[:, 2] - Q[:, 0])
+        ln = np.linalg.norm(n1, axis=1)
+        after = _ring_min_angle(V, ring)
+        good = np.all(ln > 0) and np.all(np.einsum("ij,ij->i", n1 / np.maximum(ln, 1e-300)[:, None], n0) >= min_normal_dot)
+        if not good or after < min(min_angle, before):
+            V[v] = old
+            continue
+        taken.add(v)
+    return V
