@@ -235,7 +235,9 @@ def format_description(d: dict) -> str:
         extra = ""
         if j["parent"] is None:
             extra = f"  [root, under anchor {j['anchor']!r}]" if j["anchor"] else "  [root]"
-        lines.append(f"  {'  ' * j['depth']}{j['name']}  t={_vec(j['translation'])}{extra}")
+        # indentation capped: a chain 100k joints deep would otherwise print ~10 GB of spaces
+        indent = "  " * j["depth"] if j["depth"] <= 40 else f"{'  ' * 40}[{j['depth']}] "
+        lines.append(f"  {indent}{j['name']}  t={_vec(j['translation'])}{extra}")
 
     lines.append(f"meshes ({len(d['meshes'])}):" if d["meshes"] else "meshes: none (no skinned mesh)")
     for m in d["meshes"]:
