@@ -1,0 +1,194 @@
+"""``rigmix batch``: 20 configs with one deliberately broken, on the local process pool and on a
+Dask LocalCluster: 19 outputs, 1 failure recorded, a second run does nothing new."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from conftest import ROOT
+from rigmix.batch import MANIFEST, plan_batch, read_manifest, run_batch, run_one
+from rigmix.errors import InputError
+from rigmix.io.gltf import read_gltf
+from rigmix.safety import file_digest
+
+EXAMPLES = ROOT / "examples"
+
+#: Cheap variations of the built-in example configs: (example, scale of the second character).
+_TAIL = """name = "tail_{k}"
+[characters.human]
+path = "builtin:humanoid"
+[characters.animal]
+path = "builtin:quadruped"
+scale = {scale}
+[[actions]]
+op = "attach"
+source = "animal"
+source_joint = "Tail.1"
+target = "human"
+target_joint = "Hips"
+[weights]
+method = "nearest"  # the junction weights by the cheapest method: the batch is what is tested
+"""
+_ARM = """name = "arm_{k}"
+[characters.body]
+path = "builtin:humanoid"
+[characters.donor]
+path = "builtin:humanoid"
+scale = {scale}
+[[actions]]
+op = "replace"
+source = "donor"
+source_joint = "UpperArm.{side}"
+target = "body"
+target_joint = "UpperArm.{side}"
+[weights]
+method = "nearest"
+"""
+_BROKEN = """name = "broken"
+[characters.human]
+path = "builtin:humanoid"
+[[actions]]
+op = "remove"
+target = "human"
+target_joint = "NoSuchJoint"
+"""
+
+
+def make_configs(folder, n=20, broken=7):
+    """``n`` config files in ``folder``, the one at index ``broken`` naming an unknown joint."""
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for k in range(n):
+        if k == broken:
+            text = _BROKEN
+        elif k % 2:
+            text = _TAIL.format(k=k, scale=round(0.6 + 0.05 * k, 3))
+        else:
+            text = _ARM.format(k=k, scale=round(0.9 + 0.01 * k, 3), side="LR"[k % 4 // 2])
+        p = folder / f"c{k:02d}.toml"
+        p.write_text(text)
+        paths.append(p)
+    return paths
+
+
+def check_first_run(entries, configs, out, broken=7):
+    assert [e["config"] for e in entries] == [str(p.resolve()) for p in configs]
+    failed = [e for e in entries if e["status"] != "ok"]
+    assert len(failed) == 1 and failed[0]["stem"] == configs[broken].stem
+    assert "NoSuchJoint" in failed[0]["error"] and "\n" not in failed[0]["error"]
+    glbs = sorted(p.name for p in out.glob("*.glb"))
+    assert glbs == sorted(f"{p.stem}.glb" for i, p in enumerate(configs) if i != broken)
+    assert len(list(out.glob("*.report.json"))) == 19
+    assert not list(out.glob(".*"))  # no temporary files left
+    lines = (out / MANIFEST).read_text().splitlines()
+    assert len(lines) == 20
+    for e in map(json.loads, lines):
+        assert set(e) >= {"config", "config_sha256", "stem", "status", "outputs", "timings", "error", "finished"}
+        assert e["timings"]["total"] >= 0
+        if e["status"] == "ok":
+            assert e["error"] is None and e["timings"]["compose"] > 0
+            assert all((out / name).is_file() for name in e["outputs"].values())
+            report = json.loads((out / e["outputs"]["report"]).read_text())
+            assert "timings" in report
+    # a written character reads back and is skinned
+    c = read_gltf(out / glbs[0])
+    assert c.skinned and c.skeleton.num_joints > 0
+
+
+def check_second_run(run, configs, out, broken=7):
+    """A second run skips the 19 finished jobs (outputs untouched) and retries the broken one."""
+    before = {p.name: (p.stat().st_mtime_ns, file_digest(p)) for p in out.glob("*.glb")}
+    n_lines = len((out / MANIFEST).read_text().splitlines())
+    entries = run()
+    assert sum(bool(e.get("skipped")) for e in entries) == 19
+    assert [e["status"] for e in entries].count("failed") == 1
+    after = {p.name: (p.stat().st_mtime_ns, file_digest(p)) for p in out.glob("*.glb")}
+    assert after == before
+    lines = (out / MANIFEST).read_text().splitlines()
+    assert len(lines) == n_lines + 1 and json.loads(lines[-1])["stem"] == configs[broken].stem
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1200)
+def test_batch_process_pool(tmp_path):
+    configs = make_configs(tmp_path / "configs")
+    out = tmp_path / "out"
+    seen = []
+    entries = run_batch(configs, out, workers=2, progress=lambda d, t, e: seen.append((d, t)))
+    assert seen[-1] == (20, 20) and sorted(d for d, _ in seen) == list(range(1, 21))
+    check_first_run(entries, configs, out)
+    check_second_run(lambda: run_batch(configs, out, workers=2), configs, out)
+    # an edited config is run again even though its entry is ok
+    configs[0].write_text(configs[0].read_text().replace("scale = 0.9", "scale = 0.95"))
+    todo, skipped = plan_batch(configs, out)
+    assert [p.name for p in todo] == [configs[0].name, configs[7].name] and len(skipped) == 18
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1200)
+def test_batch_dask_local_cluster(tmp_path):
+    pytest.importorskip("dask.distributed", reason="the rigmix[dask] extra is installed by `make env`")
+    configs = make_configs(tmp_path / "configs")
+    out = tmp_path / "out"
+    entries = run_batch(configs, out, scheduler="local-dask", workers=2)
+    check_first_run(entries, configs, out)
+    check_second_run(lambda: run_batch(configs, out, scheduler="local-dask", workers=2), configs, out)
+
+
+def test_run_one_failure_leaves_nothing(tmp_path):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(_BROKEN)
+    digest = file_digest(cfg)
+    out = tmp_path / "out"
+    out.mkdir()
+    entry = run_one(cfg, out)
+    assert entry["status"] == "failed" and "NoSuchJoint" in entry["error"]
+    assert entry["config_sha256"] == digest == file_digest(cfg)
+    assert list(out.iterdir()) == []
+
+
+def test_missing_config_is_recorded_not_raised(tmp_path):
+    out = tmp_path / "out"
+    entries = run_batch([tmp_path / "nope.toml"], out, workers=0)
+    (e,) = entries
+    assert e["status"] == "failed" and "nope.toml" in e["error"]
+    assert read_manifest(out)[str((tmp_path / "nope.toml").resolve())]["status"] == "failed"
+
+
+def test_colliding_names_are_refused(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    for d in "ab":
+        (tmp_path / d / "x.toml").write_text(_BROKEN)
+    with pytest.raises(InputError, match="same name"):
+        run_batch([tmp_path / "a" / "x.toml", tmp_path / "b" / "x.toml"], tmp_path / "out")
+    with pytest.raises(InputError, match="listed twice"):
+        plan_batch([tmp_path / "a" / "x.toml", tmp_path / "a" / "x.toml"], tmp_path / "out")
+    with pytest.raises(InputError, match="no config"):
+        plan_batch([], tmp_path / "out")
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_manifest_with_a_cut_last_line(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    good = {"config": "/x/a.toml", "status": "ok", "outputs": {}}
+    (out / MANIFEST).write_text(json.dumps(good) + "\n" + '{"config": "/x/b.toml", "sta')
+    assert read_manifest(out) == {"/x/a.toml": good}
+
+
+def test_batch_cli_reports_failures(tmp_path):
+    """The CLI: one broken config, exit status 1 (some jobs failed), no traceback."""
+    cfg = tmp_path / "broken.toml"
+    cfg.write_text(_BROKEN)
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "rigmix.cli", "batch", str(cfg), "--out", str(out), "--workers", "0"],
+                       capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert r.returncode == 1, r.stderr
+    assert "Traceback" not in r.stderr and "NoSuchJoint" in r.stderr
+    assert "1 failed" in r.stdout + r.stderr
+    assert read_manifest(out)[str(cfg.resolve())]["status"] == "failed"
