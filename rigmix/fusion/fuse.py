@@ -597,7 +597,9 @@ def _surface_input_vertices(pres, inputs_fields, junction_masks, grid, field3, h
         if len(T) == 0:
             continue
         v = np.unique(T.ravel())
-        v = v[P.p_welded[v] > 0]
+        on_kept = np.zeros(len(P.welded.V), bool)
+        on_kept[P.welded.F[~junction_masks[i]].ravel()] = True  # loop vertices stay where they are
+        v = v[(P.p_welded[v] > 0) & ~on_kept[v]]
         X = P.welded.V[v]
         ijk = (X - grid.origin) / grid.voxel
         inside = np.all((ijk >= 0) & (ijk <= np.asarray(grid.shape) - 1), axis=1)
@@ -608,7 +610,13 @@ def _surface_input_vertices(pres, inputs_fields, junction_masks, grid, field3, h
         pts.append(X[np.abs(f) < 0.25 * h])
     if not pts:
         return np.zeros((0, 3))
-    return np.unique(np.concatenate(pts), axis=0)
+    X = np.unique(np.concatenate(pts), axis=0)
+    # never onto a position a kept face of any input already has (it would weld into a seam)
+    kept = [P.welded.V[np.unique(P.welded.F[~junction_masks[i]].ravel())] for i, P in enumerate(pres)]
+    K = np.ascontiguousarray(np.concatenate(kept)) if kept else np.zeros((0, 3))
+    key = np.dtype((np.void, 24))
+    clash = np.isin(np.ascontiguousarray(X).view(key).ravel(), K.view(key).ravel())
+    return X[~clash]
 
 
 def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields, actions, params, band, timings,
