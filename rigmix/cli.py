@@ -373,6 +373,7 @@ def _add_render(parser):
     parser.add_argument("--elevation", type=float, default=15.0, help="camera degrees above the horizon")
     parser.add_argument("--backend", choices=("auto", "gl", "pil"), default="auto",
                         help="gl: OpenGL on EGL (Mesa, CPU); pil: Pillow fallback; auto: gl if it works")
+    parser.add_argument("--bones", action="store_true", help="draw the skeleton over the character")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -394,7 +395,8 @@ def _run_render(args) -> int:
 
         frames = render_clip(character, args.clip, gif=args.gif, mp4=args.mp4, sheet=args.sheet, fps=args.fps,
                              width=args.size[0], height=args.size[1], azimuth=args.azimuth,
-                             elevation=args.elevation, backend=args.backend, progress=progress)
+                             elevation=args.elevation, backend=args.backend, bones=args.bones,
+                             progress=progress)
     print(f"{', '.join(map(str, outputs))}: {len(frames)} frames of {args.size[0]}x{args.size[1]}")
     return 0
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -128,6 +129,28 @@ def test_gl_samples_the_texture():
         return ((img[..., 2] - img[..., 0] > 60) & foreground(img)).mean()
 
     assert blue(gl) > 0.003 and blue(pil) == 0  # the fallback draws the texture's mean colour
+
+
+def test_skeleton_overlay(fox_walk):
+    """Bones drawn over the frames: the overlay colour appears only with bones=True, at the joints."""
+    from rigmix.preview.render import BONE_COLOR, JOINT_COLOR, _project
+
+    scene = replace(fox_walk, times=fox_walk.times[:2], positions=[p[:2] for p in fox_walk.positions],
+                    joints=fox_walk.joints[:2])
+    plain = render_frames(scene, width=SIZE, height=SIZE, backend="pil")
+    boned = render_frames(scene, width=SIZE, height=SIZE, backend="pil", bones=True)
+
+    def has(img, color):
+        return (np.abs(img.astype(int) - np.array(color)).sum(axis=-1) < 30)
+
+    assert not has(plain, BONE_COLOR).any() and has(boned, BONE_COLOR).sum() > 20
+    assert scene.joints.shape == (2, 24, 3) and list(scene.parents[:2]) == [-1, 0]
+    view, proj = camera_matrices(*scene.bounds(), width=SIZE, height=SIZE)
+    xy = np.floor(_project(scene.joints[0], view, proj, SIZE, SIZE)).astype(int)  # (J, 2)
+    inside = (xy >= 0).all(axis=1) & (xy < SIZE).all(axis=1)
+    assert inside.all()
+    hits = has(boned[0], JOINT_COLOR)[xy[:, 1], xy[:, 0]]
+    assert hits.mean() > 0.9  # a dot on (nearly) every joint, drawn last
 
 
 def test_gif_mp4_and_sheet(tmp_path, fox):

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import io
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -68,6 +68,10 @@ class PosedScene:
         Encoded base colour image of each mesh's material.
     times : (F,) float64
         Seconds.
+    joints : (F, J, 3) float64
+        Posed joint positions (world), for the skeleton overlay.
+    parents : (J,) int64
+        Parent joint indices, ``-1`` for roots.
     """
 
     positions: list
@@ -76,6 +80,8 @@ class PosedScene:
     colors: list
     textures: list
     times: np.ndarray
+    joints: np.ndarray = field(default_factory=lambda: np.zeros((1, 0, 3)))
+    parents: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     def bounds(self):
         """``(lo, hi)``: the (3,) corners of the box around every vertex at every frame."""
@@ -141,7 +147,9 @@ def pose_scene(character, clip=None, times=None, *, fps=30.0):
         uvs.append(uv)
         textures.append(tex.data if uv is not None else None)
         colors.append(col)
-    return PosedScene(positions, [m.faces for m in meshes], uvs, colors, textures, times)
+    joints = worlds[..., :3, 3] if worlds is not None else np.zeros((F, 0, 3))
+    return PosedScene(positions, [m.faces for m in meshes], uvs, colors, textures, times, joints,
+                      np.asarray(sk.parents, dtype=np.int64))
 
 
 def camera_matrices(lo, hi, *, width, height, azimuth=30.0, elevation=15.0, fov=35.0):
@@ -208,7 +216,7 @@ def _srgb(c):
 
 
 def render_frames(scene, *, width=480, height=480, azimuth=30.0, elevation=15.0, fov=35.0,
-                  backend="auto", progress=None):
+                  backend="auto", bones=False, progress=None):
     """Rasterize every frame of a posed scene.
 
     Parameters
@@ -221,6 +229,8 @@ def render_frames(scene, *, width=480, height=480, azimuth=30.0, elevation=15.0,
         Camera, see :func:`camera_matrices`.
     backend : {"auto", "gl", "pil"}
         ``auto`` tries OpenGL (EGL) and falls back to Pillow with a warning.
+    bones : bool
+        Draw the skeleton on top: a line from each joint to its parent, a dot on each joint.
     progress : callable, optional
         ``progress(done, total)`` after each frame.
 
@@ -245,10 +255,45 @@ def render_frames(scene, *, width=480, height=480, azimuth=30.0, elevation=15.0,
             logger.warning("render: no OpenGL (EGL) context (%s); using the slower Pillow rasterizer", exc)
         else:
             try:
-                return _render_gl(ctx, scene, view, proj, width, height, progress)
+                frames = _render_gl(ctx, scene, view, proj, width, height, progress)
             finally:
                 ctx.release()
-    return _render_pil(scene, view, proj, width, height, progress)
+            return _draw_bones(frames, scene, view, proj) if bones else frames
+    frames = _render_pil(scene, view, proj, width, height, progress)
+    return _draw_bones(frames, scene, view, proj) if bones else frames
+
+
+def _project(P, view, proj, width, height):
+    """Pixel coordinates ``(..., 2)`` (x right, y down) of world points ``(..., 3)``."""
+    clip = P @ (proj @ view)[:, :3].T + (proj @ view)[:, 3]
+    ndc = clip[..., :2] / clip[..., 3:]
+    return np.stack([(ndc[..., 0] + 1) / 2 * width, (1 - ndc[..., 1]) / 2 * height], axis=-1)
+
+
+#: Skeleton overlay colours: bones and joints.
+BONE_COLOR, JOINT_COLOR = (255, 90, 30), (20, 60, 200)
+
+
+def _draw_bones(frames, scene, view, proj):
+    """The frames with the posed skeleton drawn over them (no depth test: always visible)."""
+    from PIL import Image, ImageDraw
+
+    F, H, W, _ = frames.shape
+    if scene.joints.shape[1] == 0:
+        return frames
+    xy = _project(scene.joints, view, proj, W, H)  # (F, J, 2)
+    radius = max(1.0, min(W, H) / 160)
+    out = np.empty_like(frames)
+    for f in range(F):
+        img = Image.fromarray(frames[f])
+        draw = ImageDraw.Draw(img)
+        for j, p in enumerate(scene.parents):
+            if p >= 0:
+                draw.line([tuple(xy[f, p]), tuple(xy[f, j])], fill=BONE_COLOR, width=max(1, int(radius)))
+        for x, y in xy[f]:
+            draw.ellipse([x - radius, y - radius, x + radius, y + radius], fill=JOINT_COLOR)
+        out[f] = np.asarray(img)
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -505,7 +550,7 @@ def write_png(image, path):
 
 
 def render_clip(character, clip=None, *, gif=None, mp4=None, sheet=None, fps=30.0, width=480, height=480,
-                azimuth=30.0, elevation=15.0, backend="auto", sheet_frames=12, progress=None):
+                azimuth=30.0, elevation=15.0, backend="auto", bones=False, sheet_frames=12, progress=None):
     """Render a clip once and write any of a GIF, an MP4 and a contact sheet PNG.
 
     Parameters
@@ -517,7 +562,7 @@ def render_clip(character, clip=None, *, gif=None, mp4=None, sheet=None, fps=30.
         Output files; at least one is needed. Each is written atomically.
     fps : float
         Frames per second of the rendering (the clip is sampled every ``1/fps`` s, end included).
-    width, height, azimuth, elevation, backend, progress
+    width, height, azimuth, elevation, backend, bones, progress
         See :func:`render_frames`.
     sheet_frames : int
         Frames shown on the contact sheet.
@@ -533,7 +578,7 @@ def render_clip(character, clip=None, *, gif=None, mp4=None, sheet=None, fps=30.
         clip = character.clips[0]
     scene = pose_scene(character, clip, fps=fps)
     frames = render_frames(scene, width=width, height=height, azimuth=azimuth, elevation=elevation,
-                           backend=backend, progress=progress)
+                           backend=backend, bones=bones, progress=progress)
     if gif is not None:
         write_gif(frames, gif, fps=fps)
     if mp4 is not None:
