@@ -599,3 +599,24 @@ def test_read_face_varying_quads(tmp_path):
     np.testing.assert_array_equal(m.joints[:, 0], [0, 0, 1, 1, 0, 0, 1, 1])  # follows the corners
     # the rest pose reproduces the points (bind = rest)
     np.testing.assert_allclose(rest_pose(ch)[0], m.positions, atol=1e-12)
+
+
+def test_composed_centaur_keeps_every_clip_in_usd(tmp_path):
+    """End to end (issue 7): the built-in centaur's completed clips, by source name, in a valid USD
+    file whose UsdSkel skinning matches ours on every clip."""
+    from pathlib import Path
+
+    from rigmix.pipeline import compose
+
+    config = Path(__file__).resolve().parent.parent / "examples" / "centaur.toml"
+    ch = compose(config).character
+    path = write_usd(ch, tmp_path / "centaur.usdc")
+    assert validation_errors(path) == []
+    stage = Usd.Stage.Open(str(path))
+    anims = [p for p in stage.Traverse() if p.IsA(UsdSkel.Animation)]
+    assert [p.GetCustomDataByKey("rigmix:clipName") for p in anims] == [c.name for c in ch.clips]
+    assert len(ch.clips) >= 2
+    for anim, clip in zip(anims, ch.clips):
+        select_clip(stage, anim.GetName())
+        t = ten_times(clip)
+        assert relative_error(usd_skinned_world(stage, t), ours_world(ch, clip, t)) < 1e-5, clip.name
