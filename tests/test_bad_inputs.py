@@ -324,6 +324,13 @@ def test_bad_glb_api(case, tmp_path):
     _unchanged(tmp_path, path, digest, listing)
 
 
+def _compose_config(tmp_path, character_file, name="cfg.toml") -> object:
+    """A config composing ``character_file`` (no actions: the file is loaded, then refused)."""
+    cfg = tmp_path / name
+    cfg.write_text(f'[characters.a]\npath = "{character_file.name}"\n')
+    return cfg
+
+
 @pytest.mark.parametrize("case", sorted(ERRORS))
 def test_bad_glb_cli(case, tmp_path):
     factory, match = ERRORS[case]
@@ -331,6 +338,12 @@ def test_bad_glb_cli(case, tmp_path):
     result = rigmix("inspect", path, "--json")
     assert_cli_error(result, path, match)
     assert result.stdout == ""
+    _unchanged(tmp_path, path, digest, listing)
+    # the same file as a composition input: the same error, no output, no report
+    cfg = _compose_config(tmp_path, path)
+    listing = sorted(p.name for p in tmp_path.iterdir())
+    result = rigmix("compose", cfg, "-o", tmp_path / "out.glb", "--report", tmp_path / "out.json", "--no-progress")
+    assert_cli_error(result, path, match)
     _unchanged(tmp_path, path, digest, listing)
 
 
@@ -466,3 +479,69 @@ def test_bad_config_api(case, tmp_path):
         load_config(path)
     assert "\n" not in str(e.value) and "bad.toml" in str(e.value)
     _unchanged(tmp_path, path, digest, listing)
+
+
+@pytest.mark.parametrize("case", sorted(BAD_CONFIGS))
+def test_bad_config_cli(case, tmp_path):
+    text, match = BAD_CONFIGS[case]
+    path, digest, listing = _write_config(tmp_path, text)
+    result = rigmix("compose", path, "-o", tmp_path / "out.glb", "--report", tmp_path / "out.json", "--no-progress")
+    assert_cli_error(result, path, match)
+    _unchanged(tmp_path, path, digest, listing)
+
+
+def test_input_without_skinned_mesh_cannot_be_composed(tmp_path):
+    path, digest, listing = _write(tmp_path, "static", ACCEPTED["mesh_without_primitives"]())
+    cfg = _compose_config(tmp_path, path)
+    listing = sorted(p.name for p in tmp_path.iterdir())
+    result = rigmix("compose", cfg, "-o", tmp_path / "out.glb", "--no-progress")
+    assert_cli_error(result, path, "no skinned mesh")
+    _unchanged(tmp_path, path, digest, listing)
+
+
+def _poke_nan_weights(raw: bytes, rows) -> bytes:
+    """Set the WEIGHTS_0 rows ``rows`` of the first primitive of a GLB to NaN (in the BIN chunk)."""
+    n = struct.unpack_from("<I", raw, 12)[0]
+    gl = json.loads(raw[20:20 + n])
+    acc = gl["accessors"][gl["meshes"][0]["primitives"][0]["attributes"]["WEIGHTS_0"]]
+    view = gl["bufferViews"][acc["bufferView"]]
+    assert acc["componentType"] == 5126 and view.get("byteStride", 16) == 16
+    start = 28 + n + view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+    b = bytearray(raw)
+    for r in rows:
+        b[start + 16 * r: start + 16 * r + 16] = np.full(4, np.nan, np.float32).tobytes()
+    return bytes(b)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1200)
+def test_compose_copes_with_repairable_defects(tmp_path):
+    """The built-in humanoid with duplicate faces (same and flipped winding), zero-area faces and
+    NaN weights, composed with a donor's arm: repaired, composed, the repairs in the report."""
+    import dataclasses
+
+    from rigmix.examples import humanoid
+    from rigmix.io.gltf import write_gltf
+
+    h = humanoid()
+    m = h.meshes[0]
+    F = m.faces
+    extra = np.concatenate([F[:50], F[100:110, ::-1], np.stack([F[:20, 0], F[:20, 0], F[:20, 1]], 1),
+                            np.repeat(F[:5, :1], 3, axis=1)])
+    messy = dataclasses.replace(h, meshes=(dataclasses.replace(m, faces=np.concatenate([F, extra])),) + h.meshes[1:])
+    clean = tmp_path / "clean.glb"
+    write_gltf(messy, clean)
+    path, digest, _ = _write(tmp_path, "messy", _poke_nan_weights(clean.read_bytes(), range(10)))
+    cfg = tmp_path / "messy.toml"
+    cfg.write_text('[characters.body]\npath = "messy.glb"\n[characters.donor]\npath = "builtin:humanoid"\n'
+                   '[[actions]]\nop = "replace"\nsource = "donor"\nsource_joint = "UpperArm.L"\n'
+                   'target = "body"\ntarget_joint = "UpperArm.L"\n[weights]\nmethod = "nearest"\n')
+    out, report = tmp_path / "out.glb", tmp_path / "out.json"
+    result = rigmix("compose", cfg, "-o", out, "--report", report, "--no-progress")
+    assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr[-3000:]
+    assert "10 vertices with NaN or infinite weights" in result.stderr  # the repair, on stderr
+    warnings = json.loads(report.read_text())["warnings"]
+    assert any("messy.glb" in w and "10 vertices with NaN or infinite weights" in w for w in warnings), warnings
+    c = read_gltf(out)
+    assert c.skinned and np.isfinite(c.meshes[0].positions).all()
+    assert file_digest(path) == digest

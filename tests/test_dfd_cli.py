@@ -92,3 +92,16 @@ def test_reads_gltf_characters():
     # the Z-up to Y-up node above the mesh is applied: the man stands along +Y, about 1.5 tall
     extent = c.V.max(axis=0) - c.V.min(axis=0)
     assert extent[1] == pytest.approx(1.507, abs=0.01)
+
+
+def test_dfd_never_imports_rigmix():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, dfd.cli, dfd.render, dfd.encoders, dfd.dinov2, dfd.field, dfd.distill, dfd.weights, "
+        "dfd.symmetry, dfd.deform, dfd.io, dfd.shapes; "
+        "print(sorted(m for m in sys.modules if m.split('.')[0] == 'rigmix'))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

@@ -1,7 +1,6 @@
 """Presence, secondary components and preserved faces (PIPELINE.md section 3)."""
 
 import numpy as np
-import pytest
 
 from rigmix.fusion.meshutil import face_adjacency, triangle_min_angles, edges_to_loops, boundary_halfedges
 from rigmix.fusion.presence import (

@@ -23,8 +23,6 @@ CASES = {
 
 @pytest.fixture(scope="module", params=sorted(CASES))
 def self_composition(request):
-    import igl
-
     from rigmix.io import load_character
 
     name = request.param

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from rigmix.fusion import FusionAction, FusionInput, FusionParams, fuse_surfaces
+from rigmix.fusion import FusionAction, FusionInput, fuse_surfaces
 from rigmix.geometry import weld
 
 from fusion_shapes import ellipsoid, split_faces, two_joint_weights

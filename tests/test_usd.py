@@ -597,6 +597,7 @@ def test_read_face_varying_quads(tmp_path):
     np.testing.assert_allclose(m.positions[m.faces[0]], [[0, 0, 0], [1, 0, 0], [1, 1, 0]])
     np.testing.assert_allclose(m.uvs[0][5], [0.5, 1.0])  # (s, 1 - t)
     np.testing.assert_array_equal(m.joints[:, 0], [0, 0, 1, 1, 0, 0, 1, 1])  # follows the corners
+    assert len(ch.warnings) == 1 and "one per face corner" in ch.warnings[0]
     # the rest pose reproduces the points (bind = rest)
     np.testing.assert_allclose(rest_pose(ch)[0], m.positions, atol=1e-12)
 

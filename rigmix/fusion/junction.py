@@ -278,7 +278,6 @@ def bridge_loops(P, Q):
     Ps = P[pi]
     qi0 = int(np.argmin(np.linalg.norm(Q - Ps[0], axis=1)))
     qi = np.roll(np.arange(m), -qi0)
-    Qs = Q[qi]
     # closing: index n of P' is P'[0], index m of Q' is Q'[0]
     pe = np.concatenate([pi, pi[:1]])
     qe = np.concatenate([qi, qi[:1]])

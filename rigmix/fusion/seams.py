@@ -1,0 +1,298 @@
+"""Preserved parts and junction regions: which faces are kept and where the junctions lie.
+
+Helpers of :func:`rigmix.fusion.fuse_surfaces` (PIPELINE.md section 3): attach and burial
+conflicts, seam separation, specks and pinches, thin wedges, junction clusters and their grids,
+seam loops, and the face-selection fallback.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .fields import Grid, prepare_surface
+from .junction import boundary_loops
+from .meshutil import boundary_halfedges, edge_counts, face_adjacency
+from .presence import Presence
+
+def _attach_conflicts(pres: list[Presence], actions, h):
+    """Preserved faces the fused surface must cut through or that it buries.
+
+    attach: faces of either input near or inside the other's present part. replace: faces of
+    one input buried inside the present part of the other (the rider's hips inside the horse):
+    their seams would have no isosurface to meet. Faces on the other surface itself (a
+    character composed with itself) are not buried.
+    """
+    import igl
+
+    out = [p.preserved.copy() for p in pres]
+    for act in actions:
+        for x, y in ((act.a, act.b), (act.b, act.a)):
+            Py = pres[y]
+            fp = Py.p_welded[Py.welded.F].mean(axis=1)
+            Fy = Py.welded.F[(fp >= 0.5) & ~Py.absent & ~Py.secondary]
+            Px = pres[x]
+            idx = np.flatnonzero(out[x] & ~Px.secondary)
+            if len(Fy) == 0 or len(idx) == 0:
+                continue
+            Vx = Px.welded.V
+            C = Vx[Px.welded.F[idx]].mean(axis=1)
+            Vy = Py.welded.V
+            d2, _, _ = igl.point_mesh_squared_distance(C, Vy, Fy)
+            if act.kind == "attach":
+                w = igl.fast_winding_number(Vy, Fy, C)
+                hit = (d2 < (h * 2.0) ** 2) | (np.abs(w) > 0.5)
+            else:
+                # inside the other's whole surface, nearest to a present part of it, not on it
+                Fall = prepare_surface(Vy, Py.welded.F[~Py.secondary])
+                w = igl.fast_winding_number(Vy, Fall, C)
+                d2a, fa, _ = igl.point_mesh_squared_distance(C, Vy, Fall)
+                pa = Py.p_welded[Fall[fa]].mean(axis=1)
+                hit = (w > 0.5) & (pa >= 0.5) & (d2a > (0.5 * h) ** 2)
+            out[x][idx[hit]] = False
+    return out
+
+
+def _seam_components(P: Presence, preserved):
+    """Face-connected components of the preserved faces that border the junction.
+
+    Returns
+    -------
+    list of (k,) int64 arrays of face indices.
+    """
+    from scipy.sparse.csgraph import connected_components
+
+    idx = np.flatnonzero(preserved & ~P.secondary)
+    if len(idx) == 0:
+        return []
+    A = face_adjacency(P.welded.F)[idx][:, idx]
+    _, lab = connected_components(A, directed=False)
+    B = boundary_halfedges(P.welded.F[idx])
+    if len(B) == 0:
+        return []
+    uE, cnt = edge_counts(P.welded.F)
+    n = len(P.welded.V) + 1
+    key_all = uE[:, 0] * n + uE[:, 1]
+    Bs = np.sort(B, axis=1)
+    pos = np.clip(np.searchsorted(key_all, Bs[:, 0] * n + Bs[:, 1]), 0, len(cnt) - 1)
+    seam_v = np.unique(B[cnt[pos] >= 2].ravel())
+    on_seam = np.zeros(len(P.welded.V), bool)
+    on_seam[seam_v] = True
+    comps = []
+    for c in range(lab.max() + 1):
+        f = idx[lab == c]
+        if on_seam[P.welded.F[f]].any():
+            comps.append(f)
+    return comps
+
+
+def _pinched(F):
+    """``(m,)`` bool: faces at a vertex where the boundary passes more than once."""
+    B = boundary_halfedges(F)
+    if len(B) == 0:
+        return np.zeros(len(F), bool)
+    n = int(np.max(F)) + 1
+    cnt = np.bincount(B[:, 0], minlength=n)
+    return (cnt[F] > 1).any(axis=1)
+
+
+def _unpinch_preserved(pres: list[Presence], preserved, rounds=3):
+    """Un-preserve the faces at seam vertices the preserved boundary visits twice.
+
+    Two seam loops through one vertex would both be bridged from it and give an edge of three
+    or four faces.
+    """
+    out = [m.copy() for m in preserved]
+    for i, P in enumerate(pres):
+        for _ in range(rounds):
+            idx = np.flatnonzero(out[i])
+            if len(idx) == 0:
+                break
+            bad = _pinched(P.welded.F[idx])
+            if not bad.any():
+                break
+            out[i][idx[bad]] = False
+    return out
+
+
+def _drop_specks(pres: list[Presence], preserved, min_faces):
+    """Un-preserve preserved parts bordering a junction with fewer than ``min_faces`` faces
+    (and under 2% of the input's faces: a low-poly limb of a dozen faces is no speck)."""
+    out = [m.copy() for m in preserved]
+    for i, P in enumerate(pres):
+        limit = min(min_faces, 0.02 * len(P.welded.F))
+        for f in _seam_components(P, preserved[i]):
+            if len(f) < limit:
+                out[i][f] = False
+    return out
+
+
+def _separate_seams(pres: list[Presence], preserved, delta):
+    """Un-preserve faces closer than ``delta`` to another preserved part bordering a junction.
+
+    Where two preserved parts (of two inputs, or two parts of one input on either side of a
+    junction) come closer than the isosurface cut leaves room for (the underside of a limb
+    against the body), the cut isosurface would pinch there and its boundary loops merge,
+    which no loop-to-loop bridge can close; widening the junction keeps every seam its own loop.
+    """
+    import igl
+
+    comps = [(i, f) for i, P in enumerate(pres) for f in _seam_components(P, preserved[i])]
+    out = [m.copy() for m in preserved]
+    if len(comps) < 2:
+        return out
+    for k, (i, fa) in enumerate(comps):
+        Pi = pres[i]
+        Pt = Pi.welded.V[Pi.welded.F[fa]]  # (a, 3, 3)
+        hit = np.zeros(len(fa), bool)
+        for j in range(len(pres)):
+            other = [f for (jj, f), kk in zip(comps, range(len(comps))) if jj == j and kk != k]
+            if not other:
+                continue
+            Fj = pres[j].welded.F[np.concatenate(other)]
+            Vj = pres[j].welded.V
+            lo = Vj[Fj].reshape(-1, 3).min(axis=0) - delta
+            hi = Vj[Fj].reshape(-1, 3).max(axis=0) + delta
+            near = np.all((Pt.max(axis=1) >= lo) & (Pt.min(axis=1) <= hi), axis=1) & ~hit
+            if not near.any():
+                continue
+            d2, _, _ = igl.point_mesh_squared_distance(Pt[near].reshape(-1, 3), Vj, Fj)
+            hit[np.flatnonzero(near)[(d2.reshape(-1, 3) < delta * delta).any(axis=1)]] = True
+        out[i][fa[hit]] = False
+    return out
+
+
+def _open_notches(P: Presence, preserved, *, min_wedge=60.0, rounds=3):
+    """Un-preserve the faces around seam vertices where the junction would be a thin wedge.
+
+    At a vertex of the preserved boundary, the junction gets what the preserved faces leave of
+    the angle around it; below ``min_wedge`` degrees no triangulation reaches a good minimum
+    angle there, so the preserved faces at that vertex join the junction.
+    """
+    Fw = P.welded.F
+    ok = ~P.absent | preserved
+    ang = np.degrees(_corner_angles(P.welded.V, Fw))
+    out = preserved.copy()
+    n = len(P.welded.V)
+    for _ in range(rounds):
+        tot = np.bincount(Fw[ok].ravel(), weights=ang[ok].ravel(), minlength=n)
+        kept = np.bincount(Fw[out].ravel(), weights=ang[out].ravel(), minlength=n)
+        B = boundary_halfedges(Fw[out])
+        if len(B) == 0:
+            break
+        seam = np.zeros(n, bool)
+        seam[B.ravel()] = True
+        bad = seam & (tot - kept < min_wedge) & (tot - kept > 1e-9)
+        if not bad.any():
+            break
+        out &= ~bad[Fw].any(axis=1)
+    return out
+
+
+def _corner_angles(V, F):
+    """Interior angle at each corner, ``(m, 3)`` radians (0 for degenerate corners)."""
+    P = V[F]
+    out = np.zeros(F.shape)
+    for c in range(3):
+        u = P[:, (c + 1) % 3] - P[:, c]
+        w = P[:, (c + 2) % 3] - P[:, c]
+        nu = np.linalg.norm(u, axis=1)
+        nw = np.linalg.norm(w, axis=1)
+        cos = np.einsum("ij,ij->i", u, w) / np.maximum(nu * nw, 1e-300)
+        out[:, c] = np.where((nu > 0) & (nw > 0), np.arccos(np.clip(cos, -1, 1)), 0.0)
+    return out
+
+
+def _clusters(pres, junction, margin):
+    """Boxes ``(lo, hi)`` around the junction faces, overlapping boxes merged."""
+    boxes = []
+    for i, P in enumerate(pres):
+        J = np.flatnonzero(junction[i])
+        if len(J) == 0:
+            continue
+        A = face_adjacency(P.welded.F)[J][:, J]
+        from scipy.sparse.csgraph import connected_components
+
+        _, lab = connected_components(A, directed=False)
+        pts = P.welded.V[P.welded.F[J]]
+        for c in range(lab.max() + 1):
+            q = pts[lab == c].reshape(-1, 3)
+            boxes.append([q.min(axis=0), q.max(axis=0)])
+    merged = True
+    while merged and len(boxes) > 1:
+        merged = False
+        for a in range(len(boxes)):
+            for b in range(a + 1, len(boxes)):
+                la, ha = boxes[a]
+                lb, hb = boxes[b]
+                if np.all(la - margin <= hb + margin) and np.all(lb - margin <= ha + margin):
+                    boxes[a] = [np.minimum(la, lb), np.maximum(ha, hb)]
+                    boxes.pop(b)
+                    merged = True
+                    break
+            if merged:
+                break
+    return boxes
+
+
+def _grid_for(lo, hi, h0, params):
+    ext = hi - lo
+    across = np.sort(ext)[1]
+    h = min(h0, across / max(params.min_voxels_across, 1)) if across > 0 else h0
+    for _ in range(20):
+        margin = max(params.margin_voxels * h, (params.cut_voxels + 4) * h)
+        glo = lo - margin
+        shape = tuple(int(x) for x in np.ceil((hi + margin - glo) / h) + 1)
+        if np.prod(shape) <= params.max_voxels:
+            break
+        h *= (np.prod(shape) / params.max_voxels) ** (1 / 3) * 1.02
+    return Grid(glo, float(h), shape)
+
+
+def _preserved_loops(P: Presence, preserved, source):
+    """Closed boundary loops of the preserved faces that run through the input's interior."""
+    Fw = P.welded.F
+    B = boundary_halfedges(Fw[preserved])
+    if len(B) == 0:
+        return [], 0
+    uE, cnt = edge_counts(Fw)
+    # keep the half-edges whose edge has other faces in the input (a seam, not an open border)
+    key_all = uE[:, 0] * (len(P.welded.V) + 1) + uE[:, 1]
+    Bs = np.sort(B, axis=1)
+    key = Bs[:, 0] * (len(P.welded.V) + 1) + Bs[:, 1]
+    pos = np.searchsorted(key_all, key)
+    interior = cnt[np.clip(pos, 0, len(cnt) - 1)] >= 2
+    loops, chains = boundary_loops(P.welded.V, None, source, halfedges=B[interior])
+    return loops, int(sum(len(c) - 1 for c in chains))
+
+
+def _select_faces(pres, junction, grid):
+    """Fallback junction: each input's junction faces in ``grid`` where it is the most present.
+
+    A face is kept from input ``i`` when its mean presence is above 0.5 (exactly 0.5: only for
+    the first input), so a character composed with itself gets each face exactly once.
+    """
+    out = []
+    for i, P in enumerate(pres):
+        T = P.welded.F
+        c = P.welded.V[T].mean(axis=1)
+        inside = np.all((c >= grid.origin) & (c <= grid.upper), axis=1)
+        fp = P.p_welded[T].mean(axis=1)
+        keep = (fp > 0.5) | ((fp == 0.5) & (i == 0))
+        out.append(junction[i] & inside & keep)
+    return out
+
+
+def _local_edge(pres, junction, grid):
+    """Mean edge length of the input faces replaced by the junction inside ``grid``."""
+    lens = []
+    for i, P in enumerate(pres):
+        T = P.welded.F[junction[i]]
+        if len(T) == 0:
+            continue
+        c = P.welded.V[T].mean(axis=1)
+        T = T[np.all((c >= grid.origin) & (c <= grid.upper), axis=1)]
+        E = np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]])
+        lens.append(np.linalg.norm(P.welded.V[E[:, 0]] - P.welded.V[E[:, 1]], axis=1))
+    return float(np.concatenate(lens).mean()) if lens else 0.0
+
+

@@ -1,0 +1,301 @@
+"""One junction: blended field, isosurface, cut, bridges, remesh (PIPELINE.md section 3).
+
+Helper of :func:`rigmix.fusion.fuse_surfaces`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from .fields import blend_attach, blend_cap, blend_replace
+from .junction import (
+    Loop,
+    boundary_loops,
+    bridge_loops,
+    clip_mesh,
+    isosurface,
+    keep_components_touching,
+    match_loops,
+    orientation_agrees,
+    remove_unreferenced,
+)
+from .remesh import (
+    flip_to_improve_angles,
+    is_edge_manifold,
+    relocate_poor_vertices,
+    remesh_junction,
+    smooth_interior,
+    snap_to_points,
+)
+from .seams import _pinched
+
+log = logging.getLogger(__name__)
+
+def _field_for_cluster(grid, inputs_fields, actions, band):
+    """Blend the per-input fields on one grid: dominant action per voxel."""
+    involved = [k for k, a in enumerate(actions) if a.a in inputs_fields and a.b in inputs_fields]
+    if not involved:
+        vals = [blend_cap(d, p, band=band) for d, p in inputs_fields.values()]
+        return np.min(np.stack(vals), axis=0)
+    best = np.full(grid.size, np.inf)
+    out = np.full(grid.size, band)
+    for k in involved:
+        a = actions[k]
+        d0, p0 = inputs_fields[a.a]
+        d1, p1 = inputs_fields[a.b]
+        f = blend_replace(d0, p0, d1, p1, band=band) if a.kind == "replace" else blend_attach(d0, p0, d1, p1, band=band)
+        s = np.where(p0 + p1 > 0, p1 / np.maximum(p0 + p1, 1e-12), 0.5)
+        score = 0.1 * np.abs(f) / band + 0.9 * 2.0 * np.abs(0.5 - s)
+        take = score < best
+        out[take] = f[take]
+        best[take] = score[take]
+    return out
+
+
+def _project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels):
+    """Pull free junction vertices onto the presence-weighted average of their closest points.
+
+    The isosurface is only accurate to a fraction of a voxel at creases; where the inputs agree
+    (a character composed with itself) this puts the junction back on the input surface. Moves
+    are limited to ``max_voxels`` voxels so that a wide blend between different shapes keeps
+    the field's shape.
+    """
+    import igl
+
+    if max_voxels <= 0 or len(U) <= nfixed:
+        return U
+    Q = U[nfixed:]
+    acc = np.zeros_like(Q)
+    wsum = np.zeros(len(Q))
+    for i in inputs_fields:
+        P = pres[i]
+        Fs = surfaces[i]
+        if len(Fs) == 0:
+            continue
+        d2, fid, C = igl.point_mesh_squared_distance(Q, P.welded.V, Fs)
+        T = Fs[fid]
+        B = igl.barycentric_coordinates(C, P.welded.V[T[:, 0]], P.welded.V[T[:, 1]], P.welded.V[T[:, 2]])
+        B = np.clip(np.nan_to_num(B, nan=1 / 3), 0, 1)
+        p = np.einsum("nk,nk->n", B / np.maximum(B.sum(axis=1, keepdims=True), 1e-12), P.p_welded[T])
+        w = p / (np.sqrt(d2) + h)
+        acc += w[:, None] * C
+        wsum += w
+    ok = wsum > 0
+    target = np.where(ok[:, None], acc / np.maximum(wsum, 1e-300)[:, None], Q)
+    move = target - Q
+    n = np.linalg.norm(move, axis=1)
+    lim = max_voxels * h
+    move *= np.minimum(1.0, lim / np.maximum(n, 1e-300))[:, None]
+    out = U.copy()
+    out[nfixed:] = Q + move
+    return out
+
+
+def _preserved_edges_between(pres, preserved, keys, fid_to_final):
+    """Edges of preserved faces whose two ends are junction border vertices, in final indices.
+
+    The junction must not contain them too (three faces on one edge).
+    """
+    nf = max(keys.values(), default=-1) + 1
+    final = np.full(nf, -1, np.int64)
+    for k, v in fid_to_final.items():
+        final[k] = v
+    out = []
+    for i, P in enumerate(pres):
+        T = P.welded.F[preserved[i]]
+        mine = [(w, k) for (src, w), k in keys.items() if src == i]
+        if len(T) == 0 or not mine:
+            continue
+        look = np.full(len(P.welded.V), -1, np.int64)
+        ws, ks = np.array(mine, np.int64).T
+        look[ws] = final[ks]
+        E = np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]])
+        L = look[E]
+        out.append(L[(L >= 0).all(axis=1)])
+    return np.concatenate(out) if out else np.zeros((0, 2), np.int64)
+
+
+def _surface_input_vertices(pres, inputs_fields, junction_masks, grid, field3, h):
+    """Vertices of the inputs' replaced faces that lie on the blended surface (``|f| < h/4``)."""
+    from scipy.ndimage import map_coordinates
+
+    pts = []
+    for i in inputs_fields:
+        P = pres[i]
+        T = P.welded.F[junction_masks[i]]
+        if len(T) == 0:
+            continue
+        v = np.unique(T.ravel())
+        on_kept = np.zeros(len(P.welded.V), bool)
+        on_kept[P.welded.F[~junction_masks[i]].ravel()] = True  # loop vertices stay where they are
+        v = v[(P.p_welded[v] > 0) & ~on_kept[v]]
+        X = P.welded.V[v]
+        ijk = (X - grid.origin) / grid.voxel
+        inside = np.all((ijk >= 0) & (ijk <= np.asarray(grid.shape) - 1), axis=1)
+        X, ijk = X[inside], ijk[inside]
+        if len(X) == 0:
+            continue
+        f = map_coordinates(field3, ijk.T, order=1, mode="nearest")
+        pts.append(X[np.abs(f) < 0.25 * h])
+    if not pts:
+        return np.zeros((0, 3))
+    X = np.unique(np.concatenate(pts), axis=0)
+    # never onto a position a kept face of any input already has (it would weld into a seam)
+    kept = [P.welded.V[np.unique(P.welded.F[~junction_masks[i]].ravel())] for i, P in enumerate(pres)]
+    K = np.ascontiguousarray(np.concatenate(kept)) if kept else np.zeros((0, 3))
+    key = np.dtype((np.void, 24))
+    clash = np.isin(np.ascontiguousarray(X).view(key).ravel(), K.view(key).ravel())
+    return X[~clash]
+
+
+def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields, actions, params, band, timings,
+                          local_edge=0.0, junction_masks=None):
+    """Isosurface, cut, bridges and remesh of one cluster.
+
+    Returns
+    -------
+    JV : (k, 3), JF : (q, 3), fixed_keys : list of (input, welded vertex) for ``JV[:len]``,
+    info : dict
+    """
+    import igl
+
+    t0 = time.perf_counter()
+    field3 = _field_for_cluster(grid, inputs_fields, actions, band).reshape(grid.shape)
+    timings["blend"] = timings.get("blend", 0.0) + time.perf_counter() - t0
+    t0 = time.perf_counter()
+    Vi, Fi = isosurface(field3, grid.origin, grid.voxel)
+    timings["isosurface"] = timings.get("isosurface", 0.0) + time.perf_counter() - t0
+    t0 = time.perf_counter()
+    h = grid.voxel
+    info = {"iso_faces": int(len(Fi)), "unmatched_preserved_loops": 0, "unmatched_iso_loops": 0,
+            "orientation_warnings": 0}
+    # cut: remove the isosurface where a preserved face is within cut_voxels
+    if len(Vi):
+        dmin = np.full(len(Vi), np.inf)
+        for i, P in enumerate(pres):
+            Fp = P.welded.F[preserved[i] & ~P.secondary]
+            if len(Fp) == 0:
+                continue
+            d2, _, _ = igl.point_mesh_squared_distance(Vi, P.welded.V, Fp)
+            dmin = np.minimum(dmin, np.sqrt(d2))
+        Vc, Fc, _ = clip_mesh(Vi, Fi, dmin - params.cut_voxels * h)
+        for _ in range(3):  # boundaries through one vertex twice: open them up
+            bad = _pinched(Fc) if len(Fc) else np.zeros(0, bool)
+            if not bad.any():
+                break
+            Vc, Fc, _ = remove_unreferenced(Vc, Fc[~bad])
+    else:
+        Vc, Fc = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    iso_loops, _ = boundary_loops(Vc, Fc, -1) if len(Fc) else ([], [])
+    # match preserved loops to isosurface loops (or to each other across inputs)
+    edge = np.mean([np.linalg.norm(np.diff(np.vstack([L.positions, L.positions[:1]]), axis=0), axis=1).mean()
+                    for L in loops]) if loops else h
+    max_cost = max(params.cut_voxels * h * 3.0 + 2.0 * h, 1.5 * edge)
+    pairs = match_loops(loops, iso_loops, max_cost=max_cost)
+    matched_iso = [j for i, kind, j in pairs if kind == "iso"]
+    matched_pres = {i for i, _, _ in pairs} | {j for _, kind, j in pairs if kind == "preserved"}
+    info["unmatched_preserved_loops"] = int(len(loops) - len(matched_pres))
+    # keep the isosurface components that meet a matched loop
+    if len(Fc) and matched_iso:
+        keepf = keep_components_touching(Fc, len(Vc), np.concatenate([iso_loops[j].vertices for j in matched_iso]))
+        Vc2, Fc2, old = remove_unreferenced(Vc, Fc[keepf])
+        new = np.full(len(Vc), -1, np.int64)
+        new[old] = np.arange(len(old))
+        iso_loops = [Loop(-1, new[L.vertices], L.positions) for L in iso_loops]
+        Vc, Fc = Vc2, Fc2
+        # isosurface holes no seam claims (cut around a preserved speck): closed by a fan
+        matched_sets = [frozenset(iso_loops[j].vertices.tolist()) for j in matched_iso]
+        remaining, _ = boundary_loops(Vc, Fc, -1)
+        extra_v, extra_f = [], []
+        for L in remaining:
+            if frozenset(L.vertices.tolist()) in matched_sets:
+                continue
+            c = len(Vc) + len(extra_v)
+            extra_v.append(L.positions.mean(axis=0))
+            extra_f += [(L.vertices[k], L.vertices[k - 1], c) for k in range(len(L.vertices))]
+            info["unmatched_iso_loops"] += 1
+        if extra_v:
+            Vc = np.concatenate([Vc, np.asarray(extra_v)])
+            Fc = np.concatenate([Fc, np.asarray(extra_f, np.int64)])
+    else:
+        Vc, Fc = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    # junction vertex table: isosurface vertices, then preserved loop vertices (fixed)
+    keys: dict[tuple[int, int], int] = {}
+    fixed_pos = []
+
+    def fixed_id(src, v, pos):
+        k = (int(src), int(v))
+        if k not in keys:
+            keys[k] = len(fixed_pos)
+            fixed_pos.append(pos)
+        return keys[k]
+
+    faces = []
+    nI = len(Vc)
+    for L in loops:
+        for v, pos in zip(L.vertices, L.positions):
+            fixed_id(L.source, v, pos)
+    for i, kind, j in pairs:
+        P = loops[i]
+        Q = iso_loops[j] if kind == "iso" else loops[j]
+        if not orientation_agrees(P.positions, Q.positions):
+            info["orientation_warnings"] += 1
+            log.warning("fusion: loops of different orientation bridged near %s", P.positions.mean(axis=0))
+        T = bridge_loops(P.positions, Q.positions)
+        pid = np.array([fixed_id(P.source, v, x) for v, x in zip(P.vertices, P.positions)]) + nI
+        if kind == "iso":
+            qid = Q.vertices
+        else:
+            qid = np.array([fixed_id(Q.source, v, x) for v, x in zip(Q.vertices, Q.positions)]) + nI
+        ids = np.concatenate([pid, qid])
+        faces.append(ids[T])
+    fixed_pos = np.asarray(fixed_pos, dtype=np.float64).reshape(-1, 3)
+    JV = np.concatenate([Vc, fixed_pos])
+    JF = np.concatenate([Fc] + faces) if (len(Fc) or faces) else np.zeros((0, 3), np.int64)
+    timings["cut_bridge"] = timings.get("cut_bridge", 0.0) + time.perf_counter() - t0
+    t0 = time.perf_counter()
+    # remesh the union with the preserved loops fixed (drop unused fixed vertices first)
+    JV, JF, old = remove_unreferenced(JV, JF)
+    isfixed = old >= nI
+    fixed_keys = {v: k for k, v in keys.items()}
+    if len(JF) and is_edge_manifold(JF):
+        fx = np.flatnonzero(isfixed)
+        # fine enough for the shape, never much finer than the fixed seam edges (slivers)
+        target = params.target_edge_factor * min(edge, local_edge if local_edge > 0 else edge)
+        target = max(target, 0.5 * edge)
+        try:
+            U, G = remesh_junction(JV, JF, fx, target=target, iterations=params.remesh_iterations)
+            U = smooth_interior(U, G, np.arange(len(fx)), iterations=params.taubin_iterations)
+            U = _project_to_inputs(U, len(fx), pres, surfaces, inputs_fields, h, params.project_voxels)
+            fid_to_final = {int(old[v] - nI): k for k, v in enumerate(fx)}
+            forb = _preserved_edges_between(pres, preserved, keys, fid_to_final)
+            G = flip_to_improve_angles(U, G, forbidden=forb)
+            U = relocate_poor_vertices(U, G, len(fx), surface=(JV, JF))
+            G = flip_to_improve_angles(U, G, forbidden=forb)
+            if params.snap_input_vertices and field3 is not None:
+                targets = _surface_input_vertices(pres, inputs_fields, junction_masks, grid, field3, h)
+                U = snap_to_points(U, G, len(fx), targets, max_dist=0.5 * target)
+                G = flip_to_improve_angles(U, G, forbidden=forb)
+            fkeys = [fixed_keys[int(old[v] - nI)] for v in fx]
+            JV, JF = U, G
+            info["remeshed"] = True
+        except Exception as exc:  # remeshing is an improvement, never a reason to fail
+            log.warning("fusion: junction remeshing failed (%s); keeping the bridged mesh", exc)
+            info["remeshed"] = False
+            fkeys = None
+    else:
+        info["remeshed"] = False
+        fkeys = None
+    if fkeys is None:
+        order = np.concatenate([np.flatnonzero(isfixed), np.flatnonzero(~isfixed)])
+        inv = np.empty_like(order)
+        inv[order] = np.arange(len(order))
+        JV, JF = JV[order], inv[JF]
+        fkeys = [fixed_keys[int(old[v] - nI)] for v in np.flatnonzero(isfixed)]
+    timings["remesh"] = timings.get("remesh", 0.0) + time.perf_counter() - t0
+    return JV, JF, fkeys, info, field3
+
+
