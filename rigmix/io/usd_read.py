@@ -97,6 +97,11 @@ def read_usd(path) -> Character:
         binding = UsdSkel.BindingAPI(prim)
         bound = skels and prim.HasAPI(UsdSkel.BindingAPI) and binding.GetJointIndicesPrimvar()
         mesh, point_of_vertex = _mesh(path, prim, mat_of.get(prim.GetPath(), -1))
+        if point_of_vertex is not None:  # vertex order changes: say so (Character.warnings)
+            note = (f"{path.name}: mesh '{mesh.name}': faceVarying primvars: {len(mesh.positions)} vertices, one "
+                    f"per face corner, from {int(point_of_vertex.max()) + 1 if len(point_of_vertex) else 0} points")
+            logger.info("usd: %s", note)
+            warnings.append(note)
         if not bound:
             M = _np_matrix(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
             props.append(Prop(mesh, -1, M))
