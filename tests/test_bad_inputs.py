@@ -280,6 +280,16 @@ def rigmix(*args, timeout=300):
                           capture_output=True, text=True, timeout=timeout, cwd=ROOT)
 
 
+def assert_main_error(capsys, argv, path=None, match=None):
+    """``rigmix.cli.main(argv)`` in this process: exit status 2 and one error line on stderr."""
+    from rigmix.cli import main
+
+    capsys.readouterr()
+    rc = main(argv)
+    out, err = capsys.readouterr()
+    return assert_cli_error(subprocess.CompletedProcess(argv, rc, out, err), path, match)
+
+
 def assert_cli_error(result, path=None, match=None):
     """Exit status 2, one line ``rigmix: error: ...`` (naming ``path``), no traceback."""
     assert result.returncode == 2, (result.returncode, result.stderr[-2000:])
@@ -339,11 +349,19 @@ def test_bad_glb_cli(case, tmp_path):
     assert_cli_error(result, path, match)
     assert result.stdout == ""
     _unchanged(tmp_path, path, digest, listing)
-    # the same file as a composition input: the same error, no output, no report
+
+
+
+@pytest.mark.parametrize("case", sorted(ERRORS))
+def test_bad_glb_compose(case, tmp_path, capsys):
+    """The same files as composition inputs (``rigmix compose`` in this process): the same
+    one-line error, exit status 2, no output, no report."""
+    factory, match = ERRORS[case]
+    path, digest, _ = _write(tmp_path, case, factory())
     cfg = _compose_config(tmp_path, path)
     listing = sorted(p.name for p in tmp_path.iterdir())
-    result = rigmix("compose", cfg, "-o", tmp_path / "out.glb", "--report", tmp_path / "out.json", "--no-progress")
-    assert_cli_error(result, path, match)
+    assert_main_error(capsys, ["compose", str(cfg), "-o", str(tmp_path / "out.glb"), "--report",
+                               str(tmp_path / "out.json"), "--no-progress"], path, match)
     _unchanged(tmp_path, path, digest, listing)
 
 
@@ -482,20 +500,29 @@ def test_bad_config_api(case, tmp_path):
 
 
 @pytest.mark.parametrize("case", sorted(BAD_CONFIGS))
-def test_bad_config_cli(case, tmp_path):
+def test_bad_config_cli(case, tmp_path, capsys):
     text, match = BAD_CONFIGS[case]
+    path, digest, listing = _write_config(tmp_path, text)
+    assert_main_error(capsys, ["compose", str(path), "-o", str(tmp_path / "out.glb"), "--report",
+                               str(tmp_path / "out.json"), "--no-progress"], path, match)
+    _unchanged(tmp_path, path, digest, listing)
+
+
+def test_bad_config_subprocess(tmp_path):
+    """One bad config through a fresh process: no traceback anywhere on stderr."""
+    text, match = BAD_CONFIGS["nan_scale"]
     path, digest, listing = _write_config(tmp_path, text)
     result = rigmix("compose", path, "-o", tmp_path / "out.glb", "--report", tmp_path / "out.json", "--no-progress")
     assert_cli_error(result, path, match)
     _unchanged(tmp_path, path, digest, listing)
 
 
-def test_input_without_skinned_mesh_cannot_be_composed(tmp_path):
+def test_input_without_skinned_mesh_cannot_be_composed(tmp_path, capsys):
     path, digest, listing = _write(tmp_path, "static", ACCEPTED["mesh_without_primitives"]())
     cfg = _compose_config(tmp_path, path)
     listing = sorted(p.name for p in tmp_path.iterdir())
-    result = rigmix("compose", cfg, "-o", tmp_path / "out.glb", "--no-progress")
-    assert_cli_error(result, path, "no skinned mesh")
+    assert_main_error(capsys, ["compose", str(cfg), "-o", str(tmp_path / "out.glb"), "--no-progress"], path,
+                      "no skinned mesh")
     _unchanged(tmp_path, path, digest, listing)
 
 
