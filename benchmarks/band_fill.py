@@ -210,8 +210,10 @@ def markdown(results, summary):
         d = summary["dfd_vs_inpaint_anchor"]
         lines += ["", f"`dfd` vs `inpaint-anchor`: {100 * d['relative_reduction']:.1f}% lower mean error, "
                   f"lower on {d['characters_lower']} of {len(summary['characters'])} characters."]
-    lines += ["", "Timings: seconds to fill all bands of a character (the DFD field is distilled once "
-              "per character and cached; `field s` is loading or distilling it)."]
+    lines += ["", "`dfd-geometry` is the ablation without the feature field (mirror prior from geometry "
+              "and the skeleton only). SimpleSkin is not in the mean (no anchor).",
+              "", "Timings: seconds to fill all bands of a character (the DFD field is distilled once "
+              f"per character with {DISTILL} and cached; `field s` is loading or distilling it)."]
     return "\n".join(lines) + "\n"
 
 
