@@ -108,3 +108,18 @@ def test_dinov2_rejects_foreign_state_dict(tmp_path):
     torch.save({"weight": torch.zeros(3)}, path)
     with pytest.raises(DfdInputError, match="not a DINOv2"):
         load_dinov2(path)
+
+
+def test_distill_with_a_dinov2_checkpoint(tmp_path):
+    from dfd.distill import distill
+    from dfd.shapes import icosphere
+
+    path = tmp_path / "tiny_dinov2.pth"
+    torch.save(_tiny_vit().state_dict(), path)
+    V, F = icosphere(2)
+    field = distill(
+        V, F, encoder="dinov2", encoder_kwargs={"checkpoint": path, "num_heads": 2},
+        n_views=3, resolution=28, steps=3, batch_size=64,
+    )
+    assert field.feature_dim == 64 and field.settings["encoder"]["name"] == "dinov2"
+    np.testing.assert_allclose(np.linalg.norm(field.evaluate(V), axis=1), 1.0, atol=1e-5)
