@@ -256,3 +256,30 @@ def test_real_fill_invariants_with_dfd_field(real):
     Wf = fill_weights(V, F, np.where(unknown[:, None], 0, W), unknown, method="dfd", field=field,
                       joint_names=names, joint_positions=positions)
     check_rows(Wf, np.where(unknown[:, None], 0, W), unknown)
+
+
+def test_symmetry_plane_rejects_an_asymmetric_shape():
+    rng = np.random.default_rng(6)
+    V = rng.normal(size=(300, 3)) * [1.0, 0.6, 0.3] + [0.0, 0.0, 0.0]
+    V[:, 0] += 0.5 * V[:, 1] ** 2  # bent: no mirror plane
+    assert symmetry_plane(V, tol=0.005) is None
+
+
+def test_dfd_infers_the_joint_mirror_from_known_weights():
+    """Without a skeleton, joints mirror by the centroids of their known weights."""
+    V, F, W, names, P = mirrored_arms()
+    band = (W[:, 1] > 0.05) & (W[:, 1] < 0.95)
+    hidden = np.where(band[:, None], 0.0, W)
+    Wf = fill_weights(V, F, hidden, band, method="dfd", field=False)
+    assert 0.5 * np.abs(Wf[band] - W[band]).sum(1).mean() < 0.02
+
+
+def test_nearest_surface_mode_interpolates():
+    """On a linear blend, the closest point of the known surface beats the closest vertex."""
+    V, F = tube(nx=41, nt=16)
+    s = np.clip((V[:, 0] + 1.0) / 2.0, 0, 1)
+    W = np.stack([1 - s, s], 1)
+    unknown = np.abs(V[:, 0] - 0.05) < 0.12
+    err = {m: np.abs(fill_weights(V, F, W, unknown, method="nearest", mode=m) - W)[unknown].mean()
+           for m in ("vertex", "surface")}
+    assert err["surface"] <= err["vertex"]

@@ -347,6 +347,7 @@ def _mirror_from_weights(g: _Welded, W, unk, plane):
     known = ~unk
     mass = W[known].sum(axis=0)
     cen = (W[known].T @ g.V[known]) / np.maximum(mass, 1e-12)[:, None]
-    m = mirror_joints(positions=cen, plane=plane)
+    # centroids of partly hidden joints are biased: a loose tolerance, mutual nearest still required
+    m = mirror_joints(positions=cen, plane=plane, tol=0.25)
     m[mass <= 1e-9] = np.flatnonzero(mass <= 1e-9)
     return np.where(m[m] == np.arange(len(m)), m, np.arange(len(m)))
