@@ -162,7 +162,9 @@ class FusedSurface:
     origin_input, origin_vertex : (N,) int64
         Source input and split vertex of each output vertex; ``-1`` for junction vertices.
     face_origin_input, face_origin_face : (M,) int64
-        Source of each face; ``-1`` for junction faces.
+        Source of each face; ``-1`` for generated junction faces. Where a junction could not be
+        closed by the isosurface (open sheets), the input faces kept instead keep their source
+        and are marked in ``junction_faces``.
     junction_faces : (M,) bool
     preserved : tuple of (m_i,) bool
         Per input, its faces copied into the output.

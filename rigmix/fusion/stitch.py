@@ -151,6 +151,31 @@ def _surface_input_vertices(pres, inputs_fields, junction_masks, grid, field3, h
     return X[~clash]
 
 
+def _separate_coincident(U, G, nfixed):
+    """Nudge free vertices that sit exactly on another vertex (a projection onto an input
+    corner): welded by position, they would pinch the surface into non-manifold edges."""
+    from ..geometry import weld
+    from .meshutil import vertex_adjacency
+
+    _, idx = weld(U)
+    cnt = np.bincount(idx, minlength=idx.max() + 1 if len(idx) else 0)
+    dup = np.flatnonzero(cnt[idx] > 1)
+    # keep one copy in place: a fixed vertex if the group has one, else the first
+    first = {}
+    for v in sorted(dup, key=lambda v: (v >= nfixed, v)):
+        first.setdefault(idx[v], v)
+    move = [v for v in dup if v >= nfixed and first[idx[v]] != v]
+    if not move:
+        return U
+    A = vertex_adjacency(G, len(U)).astype(np.float64)
+    deg = np.maximum(np.asarray(A.sum(axis=1)).ravel(), 1)
+    C = (A @ U) / deg[:, None]
+    U = U.copy()
+    move = np.asarray(move)
+    U[move] += 0.05 * (C[move] - U[move])
+    return U
+
+
 def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields, actions, params, band, timings,
                           local_edge=0.0, junction_masks=None):
     """Isosurface, cut, bridges and remesh of one cluster.
@@ -279,6 +304,7 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
                 targets = _surface_input_vertices(pres, inputs_fields, junction_masks, grid, field3, h)
                 U = snap_to_points(U, G, len(fx), targets, max_dist=0.5 * target)
                 G = flip_to_improve_angles(U, G, forbidden=forb)
+            U = _separate_coincident(U, G, len(fx))
             fkeys = [fixed_keys[int(old[v] - nI)] for v in fx]
             JV, JF = U, G
             info["remeshed"] = True
