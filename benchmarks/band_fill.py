@@ -14,7 +14,7 @@ Protocol, per character (all its skinned meshes concatenated into one ``(V, F, W
 Methods: ``nearest``, ``harmonic``, ``inpaint`` (the paper's post-smoothing, 10 iterations),
 ``inpaint-anchor`` (no post-smoothing: the protocol of the issue's anchor figures) and ``dfd``
 (with the character's distilled DFD feature field, cached on disk, and its bind-pose joint
-positions and names for the joint mirror). Nothing of the hidden band reaches any method: the
+positions, names and parents for the joint mirror and the bone prior). Nothing of the hidden band reaches any method: the
 weights passed for band vertices are zeros, and every method reads known rows only.
 
 Writes ``benchmarks/results/band_fill.json`` and ``band_fill.md``.
@@ -142,6 +142,7 @@ def run_character(name, path, methods=METHODS):
 
     character = load_character(path)
     V, F, W, names, positions = character_arrays(character)
+    parents = character.skeleton.parents
     result = {"vertices": len(V), "welded": int(len(weld(V)[0])), "joints": len(names), "methods": {}}
     for label, (method, options) in methods.items():
         options = dict(options)
@@ -154,7 +155,7 @@ def run_character(name, path, methods=METHODS):
                 options["field"] = False
             result["field_seconds"] = round(time.perf_counter() - t0, 2)
         if method == "dfd":
-            options.update(joint_positions=positions, joint_names=names)
+            options.update(joint_positions=positions, joint_names=names, joint_parents=parents)
         t0 = time.perf_counter()
         errors = band_errors(V, F, W, method, names=names, **options)
         seconds = time.perf_counter() - t0

@@ -283,3 +283,29 @@ def test_nearest_surface_mode_interpolates():
     err = {m: np.abs(fill_weights(V, F, W, unknown, method="nearest", mode=m) - W)[unknown].mean()
            for m in ("vertex", "surface")}
     assert err["surface"] <= err["vertex"]
+
+
+def test_bone_prior_is_gated_by_the_known_ring():
+    """The skeleton prior only acts where its bones explain the known weights around the hole:
+    bones that explain nothing (here, assigned to the wrong joints) leave the inpainting as is;
+    well-placed bones change the fill, within the invariants."""
+    V, F = tube(nx=81, nt=12, x0=0.0, x1=3.0)
+    V[:, 1:] *= (1.0 + 0.3 * V[:, :1])  # a cone: no mirror plane across the chain
+    x = V[:, 0]
+    W = np.stack([np.clip(1 - np.abs(x - c) / 1.2, 0, 1) for c in (0.5, 1.5, 2.5)], 1)
+    W[x < 0.5, 0] = 1.0
+    W[x > 2.5, 2] = 1.0
+    W /= W.sum(1, keepdims=True)
+    band = (W[:, 1] > 0.05) & (W[:, 1] < 0.95)
+    hidden = np.where(band[:, None], 0.0, W)
+    parents = np.array([-1, 0, 1])
+    base = fill_weights(V, F, hidden, band, method="dfd", field=False)
+    wrong = np.array([[3.0, 0, 0], [2.0, 0, 0], [0.0, 0, 0]])  # chain reversed
+    Ww = fill_weights(V, F, hidden, band, method="dfd", field=False, joint_positions=wrong,
+                      joint_parents=parents, joint_mirror=np.arange(3))
+    np.testing.assert_allclose(Ww, base, atol=1e-3)
+    right = np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]])
+    Wr = fill_weights(V, F, hidden, band, method="dfd", field=False, joint_positions=right,
+                      joint_parents=parents, joint_mirror=np.arange(3))
+    check_rows(Wr, hidden, band)
+    assert np.abs(Wr - base).max() > 1e-3

@@ -21,9 +21,10 @@ components are only meaningful after welding). Four methods, kept side by side a
     weights of its mirror point (symmetry plane of the welded mesh, joints mapped through the
     skeleton's mirror), trusted where the reflection lands on the known surface, where the
     known weights around it are painted symmetrically, and where the DFD feature field agrees;
-    the prior enters the inpainting energy as a data term
-    ``min w^T Q w + lam sum_v c_v m_v |w_v - P_v|^2``. Without a prior (a band across the
-    symmetry plane, an asymmetric character) it is the inpainting.
+    where the mirror is hidden too (a band across the symmetry plane) a soft nearest-bone
+    assignment from the skeleton is the prior, trusted only as far as it explains the known
+    weights around the region. The prior enters the inpainting energy as a data term
+    ``min w^T Q w + lam sum_v c_v m_v |w_v - P_v|^2``. Without a prior it is the inpainting.
 
 Degenerate geometry
 -------------------
@@ -49,7 +50,7 @@ import numpy as np
 
 from ..errors import InputError
 from .methods import _fill_harmonic, _fill_inpaint, _fill_nearest
-from .mesh import _weld_rows, _welded
+from .mesh import _weld_rows, _welded, sparsify
 from .mirror import Plane, _fill_dfd, feature_field, mirror_joints, symmetry_plane
 
 __all__ = [
@@ -60,41 +61,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 FILL_METHODS = ("nearest", "harmonic", "inpaint", "dfd")
-
-
-def sparsify(W, k=4):
-    """Keep the ``k`` largest weights of each row, clamp at zero and renormalize.
-
-    Parameters
-    ----------
-    W : (n, J) float array
-    k : int
-        Maximum number of non-zero weights per row (glTF: 4 per JOINTS_n set).
-
-    Returns
-    -------
-    W : (n, J) float64
-        Non-negative, at most ``k`` non-zeros per row, rows summing to 1. A row with no positive
-        entry gets weight 1 on its largest entry.
-    """
-    W = np.nan_to_num(np.asarray(W, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    n, J = W.shape
-    out = np.clip(W, 0.0, None)
-    if J > k:
-        drop = np.argpartition(-out, k - 1, axis=1)[:, k:]  # (n, J-k): all but the k largest
-        np.put_along_axis(out, drop, 0.0, axis=1)
-    s = out.sum(axis=1)
-    empty = s <= 0
-    if np.any(empty):
-        out[empty] = 0.0
-        out[np.flatnonzero(empty), np.argmax(W[empty], axis=1)] = 1.0
-        s[empty] = 1.0
-    return out / s[:, None]
-
-
-# --------------------------------------------------------------------------------------------
-# Operators on the welded mesh
-# --------------------------------------------------------------------------------------------
 
 
 def fill_weights(V, F, W, unknown, *, method="inpaint", max_influences=4, **options):
@@ -124,8 +90,10 @@ def fill_weights(V, F, W, unknown, *, method="inpaint", max_influences=4, **opti
         mesh's space) and ``joint_names`` for the joint mirror, or ``joint_mirror`` ((J,) int)
         directly (otherwise inferred from the known weights' centroids), ``plane``
         (:class:`Plane`, detected when omitted), ``mirror_tol`` (0.25 of the local edge
-        length), ``strength`` (10, the data term's weight), ``iterations`` / ``alpha`` (0:
-        no post-smoothing).
+        length), ``strength`` (10, the data term's weight), ``joint_parents`` ((J,) int, with
+        ``joint_positions``: enables the bone prior for hidden regions without a mirror),
+        ``bone_prior`` (0.1, its largest confidence), ``iterations`` / ``alpha`` (0: no
+        post-smoothing).
         All: ``uniform`` (1e-3), the weight of the uniform Laplacian regularizer.
 
     Returns

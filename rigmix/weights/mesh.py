@@ -204,3 +204,33 @@ def _edge_scale(g: _Welded):
     out = np.full(len(g.V), bounding_box_diagonal(g.V))
     out[count > 0] = total[count > 0] / count[count > 0]
     return out
+
+
+def sparsify(W, k=4):
+    """Keep the ``k`` largest weights of each row, clamp at zero and renormalize.
+
+    Parameters
+    ----------
+    W : (n, J) float array
+    k : int
+        Maximum number of non-zero weights per row (glTF: 4 per JOINTS_n set).
+
+    Returns
+    -------
+    W : (n, J) float64
+        Non-negative, at most ``k`` non-zeros per row, rows summing to 1. A row with no positive
+        entry gets weight 1 on its largest entry.
+    """
+    W = np.nan_to_num(np.asarray(W, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    n, J = W.shape
+    out = np.clip(W, 0.0, None)
+    if J > k:
+        drop = np.argpartition(-out, k - 1, axis=1)[:, k:]  # (n, J-k): all but the k largest
+        np.put_along_axis(out, drop, 0.0, axis=1)
+    s = out.sum(axis=1)
+    empty = s <= 0
+    if np.any(empty):
+        out[empty] = 0.0
+        out[np.flatnonzero(empty), np.argmax(W[empty], axis=1)] = 1.0
+        s[empty] = 1.0
+    return out / s[:, None]

@@ -20,7 +20,17 @@ from scipy.spatial import cKDTree
 from ..errors import InputError
 from ..geometry import bounding_box_diagonal
 from .methods import _fill_inpaint
-from .mesh import _Welded, _bilaplacian, _edge_scale, _key, _orphans, _smooth, _solvable, _welded
+from .mesh import (
+    _Welded,
+    _bilaplacian,
+    _edge_scale,
+    _key,
+    _orphans,
+    _smooth,
+    _solvable,
+    _welded,
+    sparsify,
+)
 
 
 @dataclass(frozen=True)
@@ -307,7 +317,8 @@ def _solve_prior(g: _Welded, W, unk, P, c, *, strength=10.0):
 
 def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
               joint_names=None, joint_positions=None, mirror_tol=0.25, strength=10.0,
-              iterations=0, alpha=0.8, field_cache=None, distill_options=None):
+              iterations=0, alpha=0.8, field_cache=None, distill_options=None,
+              joint_parents=None, bone_prior=0.1):
     """The project's fill: the inpainting energy pulled toward a prior from similar known parts.
 
     Prior: each unknown vertex reflected across the symmetry plane (given, or detected on the
@@ -338,8 +349,70 @@ def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
             joint_mirror = _mirror_from_weights(g, W, unk, plane)
     mirror = np.asarray(joint_mirror, dtype=np.int64).reshape(J)
     P, c = _mirror_prior(g, W, unk, plane, mirror, tol=mirror_tol, field=field)
+    if joint_parents is not None and joint_positions is not None and bone_prior > 0:
+        Pb, cb = _bone_prior(g, W, unk, joint_positions, joint_parents, confidence=bone_prior)
+        cb = cb * (1.0 - c)  # the mirror, where it exists, is the better witness
+        total = np.maximum(c + cb, 1e-12)
+        P = (c[:, None] * P + cb[:, None] * Pb) / total[:, None]
+        c = c + cb
     out = _solve_prior(g, W, unk, P, c, strength=strength)
     return _smooth(g, out, unk, iterations=iterations, alpha=alpha) if iterations else out
+
+
+def _bone_distances(V, positions, parents):
+    """``(k, J)`` distance from each point to each joint's bones (segments to its children;
+    a leaf joint is a point)."""
+    P = np.asarray(positions, dtype=np.float64)
+    parents = np.asarray(parents, dtype=np.int64)
+    D = np.full((len(V), len(P)), np.inf)
+    for j in range(len(P)):
+        kids = np.flatnonzero(parents == j)
+        ends = P[kids] if len(kids) else P[[j]]
+        for e in ends:
+            ab = e - P[j]
+            t = np.clip(((V - P[j]) @ ab) / max(float(ab @ ab), 1e-300), 0.0, 1.0)
+            D[:, j] = np.minimum(D[:, j], np.linalg.norm(V - (P[j] + t[:, None] * ab), axis=1))
+    return D
+
+
+def _bone_prior(g: _Welded, W, unk, positions, parents, *, confidence=0.1, width=0.5,
+                ring_scale=0.2, neighbours=8):
+    """A prior from the skeleton for hidden regions: a soft nearest-bone assignment.
+
+    The only witness of a joint whose weights are hidden everywhere is its bone. Per hidden
+    region, weights fall off as ``exp(-(d / s)^2)`` with the distance ``d`` to each joint's
+    bones, ``s`` = ``width`` x the region's median distance to its nearest bone; the region's
+    confidence is ``confidence x exp(-(e / ring_scale)^2)``, ``e`` the error of the same
+    assignment on the known vertices around the region (skeletons whose bones do not explain
+    the artist's weights nearby get no bone prior).
+
+    Returns
+    -------
+    P : (k, J) prior; c : (k,) confidence (unknown rows only).
+    """
+    k, J = W.shape
+    P = np.zeros_like(W)
+    c = np.zeros(k)
+    rows = np.flatnonzero(unk)
+    known = np.flatnonzero(~unk)
+    if len(rows) == 0 or len(known) == 0:
+        return P, c
+    D = _bone_distances(g.V, positions, parents)
+    _, region = connected_components(g.A[rows][:, rows], directed=False)
+    tree = cKDTree(g.V[known])
+    for r in range(region.max() + 1):
+        sel = rows[region == r]
+        _, nb = tree.query(g.V[sel], k=min(neighbours, len(known)))
+        ring = np.unique(known[np.asarray(nb).ravel()])
+        s = width * float(np.median(D[sel].min(axis=1))) + 1e-12
+        logit = -((D[np.r_[sel, ring]] / s) ** 2)
+        B = np.exp(logit - logit.max(axis=1, keepdims=True))
+        B /= B.sum(axis=1, keepdims=True)
+        B = sparsify(B)
+        e = 0.5 * np.abs(B[len(sel):] - W[ring]).sum(axis=1).mean()
+        P[sel] = B[: len(sel)]
+        c[sel] = confidence * np.exp(-((e / ring_scale) ** 2))
+    return P, c
 
 
 def _mirror_from_weights(g: _Welded, W, unk, plane):
