@@ -324,8 +324,10 @@ def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
     Prior: each unknown vertex reflected across the symmetry plane (given, or detected on the
     welded mesh) lands on the known surface of the other side; its weights, with joints mapped
     through the skeleton's mirror, are the prior, trusted by the reflection distance and, with a
-    DFD feature field, by the feature agreement of the two points. Where no prior exists (a
-    central joint, or the mirror point is hidden too), the fill is the inpainting.
+    DFD feature field, by the feature agreement of the two points. Where the mirror is hidden
+    too (a band across the plane) and ``joint_parents`` is given, the skeleton's bones give a
+    weaker prior (:func:`_bone_prior`). Where no prior exists, the fill is the inpainting.
+    Options are listed in :func:`rigmix.weights.fill_weights`.
     """
     J = W.shape[1]
     if field is False:  # ablation: geometry only
