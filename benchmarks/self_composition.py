@@ -91,6 +91,24 @@ def run_case(path: Path, joint: str, *, methods=WEIGHT_METHODS, max_frames=None)
     return out
 
 
+#: Address-space cap of the child process of one case (a runaway native allocation fails the case).
+MEMORY_CAP = 10 * 2**30
+
+
+def _cap_memory():
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_AS, (MEMORY_CAP, MEMORY_CAP))
+
+
+def run_isolated(path: Path, joint: str) -> dict:
+    """:func:`run_case` in a child process: a native abort fails this case only."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=1, initializer=_cap_memory) as pool:
+        return pool.submit(run_case, path, joint).result()
+
+
 def _fmt(x, spec):
     return "-" if x is None else format(x, spec)
 
@@ -109,7 +127,7 @@ def main(argv=None) -> int:
             continue
         for limb, joint in LIMBS[name].items():
             try:
-                res = run_case(path, joint)
+                res = run_isolated(path, joint)
             except Exception as e:  # a benchmark reports a failing case and goes on
                 rows.append({"character": name, "limb": limb, "joint": joint, "error": f"{type(e).__name__}: {e}"})
                 print(f"{name} {limb}: {type(e).__name__}: {e}", file=sys.stderr, flush=True)

@@ -213,8 +213,8 @@ def compose(config, *, progress: Progress | None = None, until: str | None = Non
     """
     if not isinstance(config, Config):
         config = load_config(Path(config))
-    if until is not None and until not in STAGE_NAMES:
-        raise ValueError(f"compose: unknown stage {until!r}; stages: {', '.join(STAGE_NAMES)}")
+    if until is not None and until not in STAGE_NAMES[2:]:  # a Composition starts with the mapping
+        raise ValueError(f"compose: unknown stage {until!r}; stages: {', '.join(STAGE_NAMES[2:])}")
     last = STAGE_NAMES.index(until) if until is not None else len(STAGE_NAMES) - 1
     total = last + 1
     timings = {}

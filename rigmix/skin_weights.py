@@ -44,7 +44,7 @@ from .geometry import bounding_box_diagonal, weld
 from .weights import fill_weights, sparsify
 
 __all__ = ["SkinWeights", "WEIGHT_METHODS", "retarget_weights", "closest_point_weights", "match_junction",
-           "geodesic_locality", "blend_weights", "to_influences"]
+           "geodesic_locality", "smooth_rows", "blend_weights", "to_influences"]
 
 log = logging.getLogger(__name__)
 
@@ -113,7 +113,7 @@ def retarget_weights(W, target, num_output_joints, *, confidence=None):
     return Wr, np.clip(c, 0.0, 1.0)
 
 
-def closest_point_weights(sources, retargeted, faces, *, tolerance):
+def closest_point_weights(sources, retargeted, faces, *, tolerance, return_spread=False):
     """The paper's junction weights: closest points of the inputs, blended.
 
     Parameters
@@ -136,6 +136,9 @@ def closest_point_weights(sources, retargeted, faces, *, tolerance):
         ``w_i`` the barycentric interpolation of the retargeted weights at the closest point.
     t : (q, I) float64
         The normalized blend factors.
+    spread : (q,) float64
+        Only with ``return_spread``: ``sum_i t_i |w_i - W|_1``, how much the blended inputs
+        disagree (0 where one input decides or where they agree, as in a self-composition).
     """
     q = len(sources[0]["face"]) if sources else 0
     J = retargeted[0].shape[1]
@@ -148,11 +151,17 @@ def closest_point_weights(sources, retargeted, faces, *, tolerance):
     t[none] = np.where(near[none], 1.0 / (D[none] + eps), 0.0)
     t /= t.sum(axis=1, keepdims=True)
     out = np.zeros((q, J))
+    parts = []
     for i, s in enumerate(sources):
         T = np.asarray(faces[i], np.int64)[np.asarray(s["face"], np.int64)]  # (q, 3)
         wi = np.einsum("qk,qkj->qj", np.asarray(s["bary"], np.float64), retargeted[i][T])
         out += t[:, i:i + 1] * wi
-    return out, t
+        if return_spread:
+            parts.append(wi)
+    if not return_spread:
+        return out, t
+    spread = sum(t[:, i] * np.abs(w - out).sum(axis=1) for i, w in enumerate(parts))
+    return out, t, spread
 
 
 def match_junction(JV, JN, sources, inputs_V, inputs_F, *, diagonal, match_distance=0.05, match_angle=30.0):
@@ -273,6 +282,47 @@ def geodesic_locality(V, F, W, unknown, *, radius, power=1.0, support=0.05):
     return W
 
 
+def smooth_rows(V, F, W, rows, *, iterations=10, alpha=0.5):
+    """``w <- (1 - alpha) w + alpha mean(neighbours)`` on ``rows`` (others fixed), on the welded mesh.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+    F : (m, 3) int array
+    W : (n, J) float array
+    rows : (n,) bool array
+        Rows to smooth; split vertices of one position move together.
+    iterations : int
+    alpha : float
+
+    Returns
+    -------
+    W : (n, J) float64
+        Smoothed rows renormalized; other rows unchanged.
+    """
+    W = np.asarray(W, np.float64).copy()
+    rows = np.asarray(rows, bool)
+    if not rows.any() or iterations <= 0:
+        return W
+    Vw, index, G = _welded_graph(V, F)
+    k = len(Vw)
+    A = (G > 0).astype(np.float64)
+    deg = np.asarray(A.sum(axis=1)).ravel()
+    Ww = np.zeros((k, W.shape[1]))
+    cnt = np.bincount(index, minlength=k).astype(np.float64)
+    np.add.at(Ww, index, W)
+    Ww /= np.maximum(cnt, 1)[:, None]
+    free = np.zeros(k, bool)
+    free[index[rows]] = True
+    free &= deg > 0
+    for _ in range(iterations):
+        mean = (A @ Ww) / np.maximum(deg, 1)[:, None]
+        Ww[free] = (1 - alpha) * Ww[free] + alpha * mean[free]
+    out = Ww[index[rows]]
+    W[rows] = out / np.maximum(out.sum(axis=1, keepdims=True), 1e-12)
+    return W
+
+
 def to_influences(W, k=4):
     """Dense weights -> ``(joints (n, k) int64, weights (n, k) float64)``, largest first, unused slots 0."""
     W = np.asarray(W, np.float64)
@@ -285,7 +335,8 @@ def to_influences(W, k=4):
 
 def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max_influences=4,
                   match_distance=0.05, match_angle=None, min_confidence=0.5, locality=0.1,
-                  locality_power=1.0, feature_field=False, **fill_options):
+                  locality_power=1.0, feature_field=False, smoothing=None, seam_spread=0.1, seam_rings=2,
+                  **fill_options):
     """W_R on the fused surface.
 
     Parameters
@@ -313,6 +364,16 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
         ``dfd``: geodesic radius as a fraction of the diagonal (at least twice the farthest
         unknown vertex's distance to a known one).
     locality_power : float
+    smoothing : int, optional
+        Iterations of ``w <- 0.5 w + 0.5 mean(neighbours)`` after the fill on the junction
+        vertices where the blended inputs disagree (``spread`` of :func:`closest_point_weights`
+        above ``seam_spread``, grown by ``seam_rings`` rings within the junction; preserved
+        vertices fixed): there the closest-point weights jump from one character's joints to the
+        other's. Where the inputs agree (a self-composition) nothing is smoothed. Default 0 for
+        ``nearest`` and ``inpaint``, 30 for ``dfd`` (measured on the Horse+Knight centaur: stretch
+        ratio 1.93 without, 1.21 with 30 iterations over the whole junction).
+    seam_spread : float
+    seam_rings : int
     feature_field : bool
         ``dfd``: distill the DFD feature field of the fused surface and use it to trust the
         mirror prior (minutes on a CPU; ``field_cache=DIR`` caches it). Without it the prior is
@@ -363,7 +424,8 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
     low = np.zeros(N, bool)
     if len(jrows):
         srcs = surface.junction_sources
-        Wn, t = closest_point_weights(srcs, retargeted, [x.F for x in inputs], tolerance=match_distance * diag)
+        Wn, t, spread = closest_point_weights(srcs, retargeted, [x.F for x in inputs],
+                                              tolerance=match_distance * diag, return_spread=True)
         cj = np.zeros(len(jrows))
         for i, s in enumerate(srcs):
             T = np.asarray(inputs[i].F, np.int64)[np.asarray(s["face"], np.int64)]
@@ -383,6 +445,15 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
                                  max_influences=max_influences, **fill_options)
                 if method == "dfd" and locality > 0:
                     W = _local(surface, W, unknown, diag, locality, locality_power, max_influences)
+    if smoothing is None:
+        smoothing = 30 if method == "dfd" else 0
+    seam = np.zeros(N, bool)
+    if len(jrows) and smoothing > 0:
+        seam[jrows] = spread > seam_spread
+        seam = _grow(surface.V, surface.F, seam, seam_rings) & junction
+        if seam.any():
+            W = smooth_rows(surface.V, surface.F, W, seam, iterations=smoothing)
+            W[seam] = sparsify(W[seam], max_influences)
     if not np.all(np.isfinite(W)):
         raise NumericalError(f"weights: method {method!r} produced non-finite weights on "
                              f"{int((~np.isfinite(W)).any(axis=1).sum())} vertices")
@@ -395,6 +466,7 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
         "junction_vertices": int(junction.sum()),
         "matched_vertices": int(matched.sum()),
         "low_confidence_vertices": int(low.sum()),
+        "seam_smoothed_vertices": int(seam.sum()),
     }
     log.debug("weights: %s", report)
     return SkinWeights(W=W, junction=junction, matched=matched, method=method, report=report)
@@ -417,6 +489,19 @@ def _local(surface, W, unknown, diag, locality, power, k):
     radius = max(locality * diag, 2.0 * reach)
     out = geodesic_locality(surface.V, surface.F, W, unknown, radius=radius, power=power)
     return np.where(unknown[:, None], sparsify(out, k), W)
+
+
+def _grow(V, F, mask, rings):
+    """``mask`` grown by ``rings`` rings of the welded mesh."""
+    if rings <= 0 or not mask.any():
+        return mask
+    Vw, index, G = _welded_graph(V, F)
+    m = np.zeros(len(Vw), bool)
+    m[index[mask]] = True
+    A = G > 0
+    for _ in range(rings):
+        m = m | (A @ m.astype(np.float64) > 0)
+    return m[index]
 
 
 def _vertex_normals(V, F):

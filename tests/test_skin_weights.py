@@ -152,13 +152,6 @@ def test_to_influences_keeps_the_largest_four():
 # ------------------------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def example_compositions():
-    from rigmix.pipeline import compose
-
-    return {cfg.stem: compose(cfg, until="completion") for cfg in EXAMPLES}
-
-
 def _check_invariants(comp):
     skin = comp.stages["weights"]
     W = skin.W
@@ -176,13 +169,25 @@ def _check_invariants(comp):
         assert np.array_equal(W[rows[small]], Wr[surf.origin_vertex[rows[small]]])
 
 
-@pytest.mark.parametrize("name", [c.stem for c in EXAMPLES])
-def test_weight_invariants_on_every_example_config(example_compositions, name):
-    _check_invariants(example_compositions[name])
+@pytest.mark.parametrize("cfg", EXAMPLES, ids=lambda c: c.stem)
+def test_every_example_config_weight_invariants_and_stretch_ratio_for_every_method(cfg):
+    """Composed once per config: W_R invariants (dfd), then every method's junction stretch ratio
+    (acceptance 3 on the built-in centaur and tail graft: dfd <= 1.5)."""
+    from rigmix.pipeline import assembly_stage, compose, quality_stage
 
-
-def test_weight_invariants_on_the_self_composition_config(self_cesium):
-    _check_invariants(self_cesium)
+    comp = compose(cfg, until="completion")
+    _check_invariants(comp)
+    ids = comp.stages["fusion_ids"]
+    ratios = {}
+    for method in WEIGHT_METHODS:
+        skin = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
+                             comp.skeleton.num_joints, method=method)
+        c = replace(comp, stages={**comp.stages, "weights": skin})
+        _check_invariants(c)
+        ratios[method] = quality_stage(assembly_stage(c)).report["quality"]["junction_stretch_ratio"]
+    assert all(r is not None and np.isfinite(r) and r > 0 for r in ratios.values()), ratios
+    if cfg.stem in ("centaur", "tailed_humanoid"):
+        assert ratios["dfd"] <= 1.5, ratios
 
 
 # ------------------------------------------------------------------------------------------
@@ -190,42 +195,29 @@ def test_weight_invariants_on_the_self_composition_config(self_cesium):
 # ------------------------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def self_cesium():
-    from rigmix.pipeline import compose
-
-    asset("CesiumMan")
-    return compose(ROOT / "tests" / "configs" / "self_composition.toml", until="weights")
-
-
-@pytest.fixture(scope="module")
-def self_cases(self_cesium):
-    """Per case, the figures of every method: CesiumMan's left arm (the config) and the Fox's tail."""
+def test_self_composition_against_the_original_weights():
+    """CesiumMan's left arm (tests/configs/self_composition.toml) and the Fox's tail, replaced by
+    themselves: invariants, dfd's skinned error under 0.5% of the diagonal at every frame of
+    every clip, dfd's mean junction weight error no worse than inpaint's. (dfd is not asserted
+    below nearest: the truth at a new vertex is the original's weights at its closest original
+    point, which is the nearest method's own rule.)"""
     from benchmarks.self_composition import self_config
     from rigmix.pipeline import compose
     from rigmix.quality import self_composition_errors
 
-    comps = {"CesiumMan arm": self_cesium,
-             "Fox tail": compose(self_config(asset("Fox"), "b_Tail01_012"), until="fusion")}
-    out = {}
+    asset("CesiumMan")
+    cesium = compose(ROOT / "tests" / "configs" / "self_composition.toml", until="weights")
+    _check_invariants(cesium)
+    comps = {"CesiumMan arm": cesium, "Fox tail": compose(self_config(asset("Fox"), "b_Tail01_012"), until="fusion")}
     for name, comp in comps.items():
         ids = comp.stages["fusion_ids"]
-        out[name] = {}
+        figs = {}
         for method in WEIGHT_METHODS:
             skin = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"],
                                  [comp.maps[c] for c in ids], comp.skeleton.num_joints, method=method)
-            out[name][method] = self_composition_errors(comp, skin)
-    return out
-
-
-def test_self_composition_dfd_skinned_error_under_half_a_percent_at_every_frame(self_cases):
-    for name, figs in self_cases.items():
-        assert figs["dfd"]["frames"] > 0
+            figs[method] = self_composition_errors(comp, skin)
+        assert figs["dfd"]["frames"] > 0 and figs["dfd"]["junction_vertices"] > 0
         assert figs["dfd"]["skinned_error_max"] < 0.005, (name, figs["dfd"])
-
-
-def test_self_composition_dfd_weight_error_no_worse_than_inpaint(self_cases):
-    for name, figs in self_cases.items():
         assert figs["dfd"]["junction_weight_error_mean"] <= figs["inpaint"]["junction_weight_error_mean"] + 1e-12, \
             (name, {m: f["junction_weight_error_mean"] for m, f in figs.items()})
 
@@ -253,19 +245,3 @@ def test_face_stretch_matches_the_svd_reference_and_is_zero_for_rigid_motion():
     assert np.allclose(face_stretch(V, U, F)[0], ref, atol=1e-9)
     R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
     assert np.abs(face_stretch(V, (V @ R.T + 2.0)[None], F)).max() < 1e-6
-
-
-@pytest.mark.parametrize("name", ["centaur", "tailed_humanoid"])
-def test_junction_stretch_ratio_of_the_builtin_compositions_for_every_method(example_compositions, name):
-    from rigmix.pipeline import assembly_stage, quality_stage
-
-    comp = example_compositions[name]
-    ids = comp.stages["fusion_ids"]
-    ratios = {}
-    for method in WEIGHT_METHODS:
-        skin = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
-                             comp.skeleton.num_joints, method=method)
-        c = quality_stage(assembly_stage(replace(comp, stages={**comp.stages, "weights": skin})))
-        ratios[method] = c.report["quality"]["junction_stretch_ratio"]
-    assert all(r is not None and np.isfinite(r) and r > 0 for r in ratios.values()), ratios
-    assert ratios["dfd"] <= 1.5, ratios
