@@ -59,9 +59,12 @@ def _compose(cfg: Path, out: Path):
         def cap():
             resource.setrlimit(resource.RLIMIT_AS, (MEMORY_CAP, MEMORY_CAP))
 
+        extra = []
+        if cfg.stem == "self_composition":  # the optional outputs, on the cheapest config
+            extra = ["--usd", str(out / "self_composition.usdc"), "--dump-fields", str(out / "fields")]
         res = subprocess.run([sys.executable, "-m", "rigmix.cli", "compose", str(cfg), "-o", str(glb),
-                              "--report", str(rep), "--no-progress"], cwd=ROOT, capture_output=True, text=True,
-                             timeout=1200, preexec_fn=cap)
+                              "--report", str(rep), "--no-progress", *extra], cwd=ROOT, capture_output=True,
+                             text=True, timeout=1200, preexec_fn=cap)
         _RUNS[cfg.stem] = (res.returncode, glb, rep, res.stderr[-2000:])
     status, glb, rep, err = _RUNS[cfg.stem]
     assert status == 0, f"rigmix compose {cfg.name} exited {status}: {err}"
@@ -89,6 +92,13 @@ def test_rigmix_compose_end_to_end(cfg, tmp_path):
     name = cfg.stem
     status, glb, rep = _compose(cfg, tmp_path)
     assert status == 0 and glb.is_file() and rep.is_file()
+
+    if name == "self_composition":
+        from pxr import Usd, UsdSkel
+
+        stage = Usd.Stage.Open(str(tmp_path / "self_composition.usdc"))
+        assert any(p.IsA(UsdSkel.Skeleton) for p in stage.Traverse())
+        assert list((tmp_path / "fields").glob("*.npz")) or list((tmp_path / "fields").glob("*.vdb"))
 
     # the report
     report = json.loads(rep.read_text())
