@@ -40,11 +40,7 @@ REPORT_KEYS = {
     "quality": ["junction_stretch_ratio"],
 }
 #: (config, figure) pairs the fusion does not meet yet, reported to the fusion issue; empty when all pass.
-FUSION_SHORTFALLS: set = {
-    # measured 2026-11-22 with the fusion of the working tree: one non-manifold edge at the
-    # Horse+Knight junction that neither input has
-    ("centaur", "new_non_manifold_edges"),
-}
+FUSION_SHORTFALLS: set = set()
 
 _RUNS: dict = {}
 
