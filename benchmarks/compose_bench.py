@@ -1,0 +1,194 @@
+"""End-to-end composition benchmark (issue 8): per-stage times and fusion scaling.
+
+1. Per-stage times of :func:`rigmix.compose` for every composition config (``tests/configs``
+   on the shared characters and ``examples`` on the built-in ones), with the fused mesh size and
+   voxel count. The SkinMixer paper reports 12 s on average per composition.
+2. Scaling of fusion time with mesh resolution: CesiumMan midpoint-subdivided 1, 2 and 4 times
+   (18,688 / 74,752 / 1,196,032 faces: the 10k, 100k and 1M orders of magnitude), its left arm
+   replaced by itself. Each case runs in a child process (its peak memory is reported) with a
+   time limit, so a case that runs away is recorded rather than stopping the benchmark.
+
+Writes ``benchmarks/results/compose_bench.json`` and ``compose_bench.md``.
+Usage: ``python -m benchmarks.compose_bench``.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import platform
+import resource
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = Path(__file__).resolve().parent / "results"
+CONFIGS = sorted((ROOT / "tests" / "configs").glob("*.toml")) + sorted((ROOT / "examples").glob("*.toml"))
+SUBDIVISIONS = (1, 2, 4)
+CASE_TIMEOUT = 900.0  # seconds per scaling case
+
+
+def subdivide_mesh(mesh, num_joints):
+    """One midpoint subdivision (each triangle into 4) of a :class:`rigmix.Mesh`.
+
+    Edge midpoints average every vertex attribute (normals renormalized, weights re-cut to the 4
+    largest), so the subdivided character deforms like the original.
+    """
+    from rigmix.weights import sparsify
+
+    F = mesh.faces
+    n = len(mesh.positions)
+    edges = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    uniq, inv = np.unique(edges, axis=0, return_inverse=True)
+    inv = inv.reshape(3, -1).T + n  # (m, 3) midpoint index of edges (01, 12, 20)
+
+    def mid(a):
+        return None if a is None else np.concatenate([a, 0.5 * (a[uniq[:, 0]] + a[uniq[:, 1]])])
+
+    a, b, c = F.T
+    ab, bc, ca = inv.T
+    faces = np.concatenate([np.stack(t, axis=1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+    normals = mid(mesh.normals)
+    if normals is not None:
+        normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    joints = weights = None
+    if mesh.skinned:
+        W = sparsify(mid(mesh.dense_weights(num_joints)), 4)
+        order = np.argsort(-W, axis=1, kind="stable")[:, :4]
+        joints = order
+        weights = np.take_along_axis(W, order, axis=1)
+    return replace(mesh, positions=mid(mesh.positions), faces=faces, normals=normals,
+                   uvs=tuple(mid(u) for u in mesh.uvs), colors=mid(mesh.colors), joints=joints, weights=weights)
+
+
+def subdivided_character(character, levels):
+    """``character`` with every mesh subdivided ``levels`` times."""
+    meshes = character.meshes
+    for _ in range(levels):
+        meshes = tuple(subdivide_mesh(m, character.skeleton.num_joints) for m in meshes)
+    return replace(character, meshes=meshes)
+
+
+def _compose_report(config_path):
+    from rigmix.pipeline import compose
+
+    t0 = time.perf_counter()
+    comp = compose(config_path)
+    wall = time.perf_counter() - t0
+    r = comp.report
+    return {"config": str(Path(config_path).relative_to(ROOT)) if str(config_path).startswith(str(ROOT)) else str(config_path),
+            "wall_s": round(wall, 3), "timings": r.get("timings", {}),
+            "vertices": r.get("mesh", {}).get("vertices"), "faces": r.get("mesh", {}).get("faces"),
+            "junction_faces": r.get("mesh", {}).get("junction_faces"),
+            "voxels": r.get("fields", {}).get("voxels"),
+            "junction_min_angle_p05": r.get("mesh", {}).get("junction_min_angle_p05"),
+            "junction_stretch_ratio": r.get("quality", {}).get("junction_stretch_ratio")}
+
+
+def _scaling_case(levels, queue):
+    """Child process: subdivide CesiumMan, self-compose its left arm, report times and memory."""
+    try:
+        sys.path.insert(0, str(ROOT / "tests"))
+        from conftest import ASSETS, CHARACTERS
+        from rigmix.config import Config
+        from rigmix.io.gltf import read_gltf, write_gltf
+
+        character = subdivided_character(read_gltf(ASSETS / CHARACTERS["CesiumMan"]), levels)
+        faces = int(sum(len(m.faces) for m in character.meshes))
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "CesiumMan_sub.glb"
+            write_gltf(character, path)
+            joint = "Skeleton_arm_joint_L__4_"
+            config = Config.model_validate({
+                "name": f"cesiumman_sub{levels}",
+                "characters": {"body": {"path": str(path)}, "donor": {"path": str(path)}},
+                "actions": [{"op": "replace", "source": "donor", "source_joint": joint,
+                             "target": "body", "target_joint": joint}],
+            })
+            row = _compose_report(config)
+        row.update(config=f"CesiumMan x{4 ** levels} (arm self-composition)", input_faces=faces,
+                   subdivisions=levels,
+                   peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1))
+        queue.put(row)
+    except Exception as exc:  # reported in the table, the other cases still run
+        queue.put({"subdivisions": levels, "error": f"{type(exc).__name__}: {exc}"})
+
+
+def run_scaling():
+    rows = []
+    ctx = mp.get_context("spawn")
+    for levels in SUBDIVISIONS:
+        q = ctx.Queue()
+        p = ctx.Process(target=_scaling_case, args=(levels, q))
+        t0 = time.perf_counter()
+        p.start()
+        p.join(CASE_TIMEOUT)
+        if p.is_alive():
+            p.kill()
+            p.join()
+            rows.append({"subdivisions": levels, "error": f"timed out after {CASE_TIMEOUT:.0f} s"})
+            continue
+        try:
+            rows.append(q.get(timeout=5))
+        except Exception:
+            rows.append({"subdivisions": levels, "error": f"child exited with code {p.exitcode} "
+                                                        f"after {time.perf_counter() - t0:.1f} s"})
+    return rows
+
+
+def _markdown(configs, scaling):
+    stages = ["load", "operations", "mapping", "fusion", "weights", "completion", "assembly", "quality", "total"]
+    lines = ["Per-stage times of `rigmix.compose` (seconds; the SkinMixer paper reports 12 s on average "
+             "per composition).", "",
+             "| config | " + " | ".join(stages) + " | faces | voxels | min angle p05 | stretch ratio |",
+             "|---|" + "---:|" * (len(stages) + 4)]
+    for r in configs:
+        if "error" in r:
+            lines.append(f"| {r['config']} | error: {r['error']} |")
+            continue
+        t = r["timings"]
+        cells = [f"{t[s]:.2f}" if s in t else "" for s in stages]
+        ang = r["junction_min_angle_p05"]
+        sr = r["junction_stretch_ratio"]
+        lines.append(f"| {r['config']} | " + " | ".join(cells) +
+                     f" | {r['faces']} | {r['voxels']} | {'' if ang is None else f'{ang:.1f}'} | "
+                     f"{'' if sr is None else f'{sr:.2f}'} |")
+    lines += ["", "Fusion time against mesh resolution (CesiumMan subdivided, left arm replaced by itself):", "",
+              "| input faces | fusion s | total s | output faces | voxels | peak RSS MB |", "|---:|---:|---:|---:|---:|---:|"]
+    for r in scaling:
+        if "error" in r:
+            lines.append(f"| x{4 ** r['subdivisions']} | error: {r['error']} | | | | |")
+            continue
+        lines.append(f"| {r['input_faces']} | {r['timings'].get('fusion', float('nan')):.2f} | "
+                     f"{r['timings'].get('total', float('nan')):.2f} | {r['faces']} | {r['voxels']} | {r['peak_rss_mb']} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None):
+    os.environ.setdefault("CI", "false")
+    configs = []
+    for path in CONFIGS:
+        try:
+            configs.append(_compose_report(path))
+        except Exception as exc:
+            configs.append({"config": str(path.relative_to(ROOT)), "error": f"{type(exc).__name__}: {exc}"})
+        print(json.dumps(configs[-1]), flush=True)
+    scaling = run_scaling()
+    for row in scaling:
+        print(json.dumps(row), flush=True)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    meta = {"machine": platform.platform(), "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%d %H:%M")}
+    (RESULTS / "compose_bench.json").write_text(json.dumps({"meta": meta, "configs": configs, "scaling": scaling},
+                                                           indent=2) + "\n")
+    (RESULTS / "compose_bench.md").write_text(_markdown(configs, scaling))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
