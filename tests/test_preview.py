@@ -80,41 +80,15 @@ def _need(what, ok):
 
 @pytest.fixture(scope="module")
 def composed_glb(tmp_path_factory):
-    """A composed character: examples/centaur.toml through operations, mapping and animation
-    completion; the positioned inputs' meshes skinned to S_R through the bone maps (until the
-    fusion stage, the surfaces are the inputs' own, overlapping)."""
+    """The built-in centaur (examples/centaur.toml) composed end to end: fused surface, junction
+    weights and completed clips, written as GLB."""
     import rigmix
-    from rigmix.character import Character, Mesh
-    from rigmix.completion import completion_stage
     from rigmix.io.gltf import write_gltf
 
-    comp = completion_stage(rigmix.compose(ROOT / "examples" / "centaur.toml", until="mapping"))
-    plan = comp.plan
-    J = plan.skeleton.num_joints
-    meshes, materials = [], []
-    for cid, ch in plan.positioned.items():
-        target = np.array(comp.maps[cid].target)
-        # an unmapped joint hands its weight to its nearest mapped ancestor
-        parents = ch.skeleton.parents
-        for j in range(len(target)):
-            k = j
-            while target[k] < 0 and parents[k] >= 0:
-                k = parents[k]
-            target[j] = target[k] if target[k] >= 0 else 0
-        for m in ch.meshes:
-            Wr = np.zeros((len(m.positions), J))
-            np.add.at(Wr, (np.repeat(np.arange(len(m.positions)), m.joints.shape[1]), target[m.joints.ravel()]),
-                      m.weights.ravel())
-            order = np.argsort(-Wr, axis=1)[:, :4]
-            w4 = np.take_along_axis(Wr, order, axis=1)
-            w4 /= w4.sum(axis=1, keepdims=True)
-            meshes.append(Mesh(f"{cid}.{m.name}", m.positions, m.faces, m.normals, m.uvs, m.colors,
-                               order, w4, m.material + len(materials) if m.material >= 0 else -1))
-        materials += list(ch.materials)
-    character = Character("centaur", plan.skeleton, tuple(meshes), comp.stages["clips"], tuple(materials))
+    character = rigmix.compose(ROOT / "examples" / "centaur.toml").character
     path = tmp_path_factory.mktemp("composed") / "centaur.glb"
     write_gltf(character, path)
-    return path, [c.name for c in comp.stages["clips"]]
+    return path, [c.name for c in character.clips]
 
 
 def test_write_viewer_is_self_contained(composed_glb, tmp_path):
