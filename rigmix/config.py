@@ -35,6 +35,7 @@ and ``${RIGMIX_ASSETS}`` defaults to ``../shared/data/characters`` beside the re
 from __future__ import annotations
 
 import difflib
+import json
 import os
 import re
 import tomllib
@@ -327,6 +328,9 @@ def _closest_hint(name: str, names) -> str:
     return f" (closest: {', '.join(close)})" if close else ""
 
 
+_PLAIN_KEY = re.compile(r"[A-Za-z0-9_.\-]+")
+
+
 def _loc(loc) -> str:
     out = ""
     for part in loc:
@@ -334,6 +338,8 @@ def _loc(loc) -> str:
             out += f"[{part}]"
         elif part in ("attach", "replace", "remove") and out.startswith("actions"):
             continue  # the discriminated union's tag: not a key the user wrote
+        elif isinstance(part, str) and not _PLAIN_KEY.fullmatch(part):
+            out += f"[{json.dumps(part)}]"  # quoted: a key with spaces or newlines stays one line
         else:
             out += ("." if out else "") + str(part)
     return out
@@ -346,7 +352,7 @@ def _error_text(err: ValidationError) -> str:
         if e["type"] == "extra_forbidden":
             parts.append(f"{loc}: unknown key")
         else:
-            msg = e["msg"].removeprefix("Value error, ")
+            msg = " ".join(e["msg"].removeprefix("Value error, ").splitlines())
             parts.append(f"{loc}: {msg}" if loc else msg)
     return "; ".join(parts)
 

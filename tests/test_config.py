@@ -216,3 +216,11 @@ def test_cli_bad_configs_fail_with_one_line_and_no_output(capsys, name, words):
     assert len(err) == 1 and f"{name}.toml" in err[0]
     for w in words:
         assert w in err[0]
+
+
+def test_error_naming_an_odd_key_stays_on_one_line():
+    # found by the fuzz test: a key holding a newline broke the one-line error contract
+    with pytest.raises(InputError) as info:
+        parse_config({"characters": {"\n": None}}, source="odd.toml")
+    message = str(info.value)
+    assert "odd.toml" in message and "\n" not in message and '"\\n"' in message

@@ -36,7 +36,7 @@ const fs = require('fs');
   const logs = [];
   page.on('console', (m) => logs.push(`${m.type()}: ${m.text()}`));
   page.on('pageerror', (e) => logs.push(`pageerror: ${e.message}`));
-  page.on('requestfailed', (r) => logs.push(`requestfailed: ${r.url()}`));
+  page.on('requestfailed', (r) => logs.push(`requestfailed: ${r.url()} ${r.failure() ? r.failure().errorText : ''}`));
   page.on('response', (r) => { if (r.status() >= 400) logs.push(`http ${r.status()}: ${r.url()}`); });
   await page.goto(url);
   await page.waitForFunction(() => window.rigmixViewer && (window.rigmixViewer.ready || window.rigmixViewer.error),
