@@ -180,7 +180,13 @@ def test_viewer_in_headless_chromium(composed_glb, tmp_path):
     result = json.loads((tmp_path / "result.json").read_text())
     assert result["error"] is None, result
     assert result["clips"] == names and result["options"] == names
-    assert not [m for m in result["logs"] if m.startswith(("error", "pageerror", "requestfailed", "http"))], result["logs"]
+    # Under load, Chromium sometimes reports the model's request as net::ERR_ABORTED after the
+    # viewer has read it (three.js consumes the body through a stream reader); the model did
+    # load (clips listed above, poses below differ), so only that report is tolerated.
+    benign = [m for m in result["logs"] if m.startswith("requestfailed") and m.endswith("/model.glb net::ERR_ABORTED")]
+    problems = [m for m in result["logs"]
+                if m.startswith(("error", "pageerror", "requestfailed", "http")) and m not in benign]
+    assert not problems, result["logs"]
     for name, info in zip(names, result["selected"]):
         assert info["current"] == info["bodyClip"] == info["selectValue"] == name
         assert info["playing"] is False and info["duration"] > 0
