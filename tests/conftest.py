@@ -26,6 +26,16 @@ CHARACTERS = {
 }
 
 
+def require(what: str, ok: bool) -> None:
+    """Skip (or, under CI=true, fail) when a test dependency such as Chromium or EGL is missing."""
+    if ok:
+        return
+    msg = f"missing {what}"
+    if os.environ.get("CI", "").lower() == "true":
+        pytest.fail(msg)
+    pytest.skip(msg)
+
+
 def asset(name: str) -> Path:
     """Path of a shared character; fails under CI=true, skips elsewhere, when it is missing."""
     path = ASSETS / CHARACTERS.get(name, name)

@@ -3,13 +3,14 @@ Dask LocalCluster: 19 outputs, 1 failure recorded, a second run does nothing new
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import subprocess
 import sys
 
 import pytest
 
-from conftest import ROOT
+from conftest import ROOT, require
 from rigmix.batch import MANIFEST, plan_batch, read_manifest, run_batch, run_one
 from rigmix.errors import InputError
 from rigmix.io.gltf import read_gltf
@@ -131,7 +132,8 @@ def test_batch_process_pool(tmp_path):
 @pytest.mark.slow
 @pytest.mark.timeout(1200)
 def test_batch_dask_local_cluster(tmp_path):
-    pytest.importorskip("dask.distributed", reason="the rigmix[dask] extra is installed by `make env`")
+    require("dask.distributed (the rigmix[dask] extra, installed by `make env`)",
+            importlib.util.find_spec("distributed") is not None)
     configs = make_configs(tmp_path / "configs")
     out = tmp_path / "out"
     entries = run_batch(configs, out, scheduler="local-dask", workers=2)

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import require
 from rigmix.errors import InputError
 from rigmix.cli import main
 from rigmix.preview.viewer import _RELATIVE_IMPORT, find_three, preview, serve, write_viewer
@@ -68,14 +69,6 @@ const fs = require('fs');
   await browser.close();
 })().catch((e) => { console.error(e); process.exit(1); });
 """
-
-
-def _need(what, ok):
-    if ok:
-        return
-    if os.environ.get("CI", "").lower() == "true":
-        pytest.fail(f"missing {what}")
-    pytest.skip(f"missing {what}")
 
 
 @pytest.fixture(scope="module")
@@ -163,10 +156,10 @@ def test_viewer_in_headless_chromium(composed_glb, tmp_path):
     from PIL import Image
 
     node = shutil.which("node")
-    _need("node", node)
-    _need(f"Chromium at {CHROMIUM}", Path(CHROMIUM).exists())
+    require("node", node)
+    require(f"Chromium at {CHROMIUM}", Path(CHROMIUM).exists())
     modules = find_three().parent
-    _need("playwright-core in node_modules", (modules / "playwright-core").is_dir())
+    require("playwright-core in node_modules", (modules / "playwright-core").is_dir())
     glb, names = composed_glb
     server, url = preview(glb, tmp_path / "viewer")
     script = tmp_path / "drive.cjs"
@@ -206,6 +199,6 @@ def test_composed_clips_round_trip_through_gltf(composed_glb):
     back = load_character(glb)
     assert [c.name for c in back.clips] == names
     assert all(c.duration > 0 for c in back.clips)
-    _need("the Khronos glTF-Validator (npm ci)", validator_available())
+    require("the Khronos glTF-Validator (npm ci)", validator_available())
     report = validate_gltf(glb)
     assert report["issues"]["numErrors"] == 0, [m for m in report["issues"]["messages"] if m["severity"] == 0][:5]
