@@ -179,24 +179,32 @@ def edges_to_loops(B):
     return loops, closed
 
 
-def triangle_min_angles(V, F):
-    """Smallest interior angle of each triangle, ``(m,)`` degrees (0 for degenerate ones)."""
-    V = np.asarray(V, dtype=np.float64)
-    F = np.asarray(F, dtype=np.int64).reshape(-1, 3)
-    if len(F) == 0:
-        return np.zeros(0)
-    P = V[F]  # (m, 3, 3)
-    ang = []
+def triangle_corner_angles(P):
+    """Interior angle at each corner of triangles ``P`` ``(m, 3, 3)``, ``(m, 3)`` radians.
+
+    Corner ``c`` is at ``P[:, c]``; a corner with a zero-length edge gets 0.
+    """
+    P = np.asarray(P, dtype=np.float64)
+    out = np.zeros(P.shape[:2])
     for c in range(3):
         u = P[:, (c + 1) % 3] - P[:, c]
         w = P[:, (c + 2) % 3] - P[:, c]
         nu = np.linalg.norm(u, axis=1)
         nw = np.linalg.norm(w, axis=1)
         cos = np.einsum("ij,ij->i", u, w) / np.maximum(nu * nw, 1e-300)
-        a = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-        a[(nu == 0) | (nw == 0)] = 0.0
-        ang.append(a)
-    return np.min(np.stack(ang, axis=1), axis=1)
+        out[:, c] = np.where((nu > 0) & (nw > 0), np.arccos(np.clip(cos, -1.0, 1.0)), 0.0)
+    return out
+
+
+def corner_angles(V, F):
+    """Interior angle at each corner of the faces ``F`` of ``V``, ``(m, 3)`` radians (0 if degenerate)."""
+    F = np.asarray(F, dtype=np.int64).reshape(-1, 3)
+    return triangle_corner_angles(np.asarray(V, dtype=np.float64)[F])
+
+
+def triangle_min_angles(V, F):
+    """Smallest interior angle of each triangle, ``(m,)`` degrees (0 for degenerate ones)."""
+    return np.degrees(corner_angles(V, F).min(axis=1, initial=np.pi))
 
 
 def average_edge_length(V, F):

@@ -6,7 +6,7 @@ import logging
 
 import numpy as np
 
-from .meshutil import edge_counts, nondegenerate, vertex_adjacency
+from .meshutil import corner_angles, edge_counts, nondegenerate, triangle_corner_angles, vertex_adjacency
 
 log = logging.getLogger(__name__)
 
@@ -107,13 +107,7 @@ def smooth_interior(V, F, fixed, *, iterations=3, lam=0.5, mu=-0.53):
 
 def _min_angles(A, B, C):
     """Smallest angle (radians) of triangles ``(A[i], B[i], C[i])``, each ``(k, 3)``."""
-    def ang(p, q, r):
-        u, w = q - p, r - p
-        nu = np.linalg.norm(u, axis=1)
-        nw = np.linalg.norm(w, axis=1)
-        cos = np.einsum("ij,ij->i", u, w) / np.maximum(nu * nw, 1e-300)
-        return np.where((nu > 0) & (nw > 0), np.arccos(np.clip(cos, -1.0, 1.0)), 0.0)
-    return np.minimum(np.minimum(ang(A, B, C), ang(B, C, A)), ang(C, A, B))
+    return triangle_corner_angles(np.stack([A, B, C], axis=1)).min(axis=1, initial=np.pi)
 
 
 def _unit_normals(A, B, C):
@@ -210,19 +204,8 @@ def flip_to_improve_angles(V, F, *, max_passes=10, min_normal_dot=0.7, forbidden
 
 
 def _ring_min_angle(V, tris):
-    """Smallest angle (degrees) over the triangles ``tris`` ``(k, 3)`` of ``V``."""
-    P = V[tris]
-    best = np.inf
-    for c in range(3):
-        u = P[:, (c + 1) % 3] - P[:, c]
-        w = P[:, (c + 2) % 3] - P[:, c]
-        nu = np.linalg.norm(u, axis=1)
-        nw = np.linalg.norm(w, axis=1)
-        if np.any(nu == 0) or np.any(nw == 0):
-            return 0.0
-        cos = np.einsum("ij,ij->i", u, w) / (nu * nw)
-        best = min(best, float(np.degrees(np.arccos(np.clip(cos, -1, 1))).min()))
-    return best
+    """Smallest angle (degrees) over the triangles ``tris`` ``(k, 3)`` of ``V`` (0 if one is degenerate)."""
+    return float(np.degrees(corner_angles(V, tris).min(initial=np.inf)))
 
 
 def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterations=4, min_normal_dot=0.5):

@@ -11,7 +11,7 @@ import numpy as np
 
 from .fields import Grid, prepare_surface
 from .junction import boundary_loops
-from .meshutil import boundary_halfedges, edge_counts, face_adjacency
+from .meshutil import boundary_halfedges, corner_angles, edge_counts, face_adjacency
 from .presence import Presence
 
 def _attach_conflicts(pres: list[Presence], actions, h):
@@ -170,7 +170,7 @@ def _open_notches(P: Presence, preserved, *, min_wedge=60.0, rounds=3):
     """
     Fw = P.welded.F
     ok = ~P.absent | preserved
-    ang = np.degrees(_corner_angles(P.welded.V, Fw))
+    ang = np.degrees(corner_angles(P.welded.V, Fw))
     out = preserved.copy()
     n = len(P.welded.V)
     for _ in range(rounds):
@@ -185,20 +185,6 @@ def _open_notches(P: Presence, preserved, *, min_wedge=60.0, rounds=3):
         if not bad.any():
             break
         out &= ~bad[Fw].any(axis=1)
-    return out
-
-
-def _corner_angles(V, F):
-    """Interior angle at each corner, ``(m, 3)`` radians (0 for degenerate corners)."""
-    P = V[F]
-    out = np.zeros(F.shape)
-    for c in range(3):
-        u = P[:, (c + 1) % 3] - P[:, c]
-        w = P[:, (c + 2) % 3] - P[:, c]
-        nu = np.linalg.norm(u, axis=1)
-        nw = np.linalg.norm(w, axis=1)
-        cos = np.einsum("ij,ij->i", u, w) / np.maximum(nu * nw, 1e-300)
-        out[:, c] = np.where((nu > 0) & (nw > 0), np.arccos(np.clip(cos, -1, 1)), 0.0)
     return out
 
 
