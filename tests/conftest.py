@@ -51,3 +51,15 @@ def asset(name: str) -> Path:
 def character_path(request) -> Path:
     """Each shared character in turn."""
     return asset(request.param)
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """One torch thread for a module: two xdist workers share two cores, and one thread each
+    trains a DFD field faster than two."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 from conftest import asset
 
 from dfd.cli import main
@@ -15,13 +14,7 @@ from dfd.shapes import ellipsoids
 QUICK = ["--views", "6", "--resolution", "40", "--steps", "10", "--batch-size", "256"]
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Two xdist workers share two cores: one torch thread each trains faster than two."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

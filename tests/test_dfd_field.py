@@ -16,13 +16,7 @@ from dfd.shapes import ellipsoids, icosphere
 QUICK = dict(n_views=12, resolution=48, steps=25, batch_size=512)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Two xdist workers share two cores: one torch thread each trains faster than two."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

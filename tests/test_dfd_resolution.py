@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 from conftest import asset
 
 from dfd.distill import distill
@@ -24,13 +23,7 @@ SETTINGS = dict(resolution=96, steps=300, batch_size=1024)
 TOLERANCE = 0.03
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Two xdist workers share two cores: one torch thread each trains faster than two."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 from dfd.distill import distill
 from dfd.shapes import ellipsoids
@@ -31,13 +30,7 @@ ASYMMETRIC = [
 SETTINGS = dict(resolution=64, steps=300, batch_size=1024, seed=0)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Two xdist workers share two cores: one torch thread each trains faster than two."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_reflect():
