@@ -14,6 +14,7 @@ error naming the key), or a :class:`Config` built in code. ``rigmix schema`` pri
     path = "knight.glb"                   # relative to this config file
     scale = "auto"                        # or a number (the override)
     placement = { translation = [0, 0, 0], rotation = [0, 90, 0] }
+    mirror = false                        # true, "x", "y" or "z": reflect it first (rigmix.mirror)
     [characters.knight.rotations]         # rest-pose rotations, degrees (XYZ) or xyzw quaternion
     "UpperArm.L" = [0, 0, -30]
     "UpperArm.R" = { quaternion = [0, 0, 0.2588, 0.9659] }
@@ -42,7 +43,7 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, StrictBool, ValidationError, model_validator
 
 from .errors import InputError
 
@@ -150,6 +151,13 @@ class CharacterConfig(BaseModel):
     placement: Placement | None = Field(
         None, description="Rigid placement of the whole character (a moved character is then "
                           "translated onto its target anyway; the rotation still counts).")
+    mirror: StrictBool | Literal["x", "y", "z"] = Field(
+        False, description="Mirror the character before composing (rigmix.mirror): true reflects it "
+                           "across its detected symmetry plane (the axis plane of the rest pose it is "
+                           "most symmetric about; x when none is), 'x', 'y' or 'z' across that axis "
+                           "plane through its centre of symmetry. Joint names swap sides (.L <-> .R, "
+                           "Left <-> Right, ...): actions and rotations name the mirrored joints, so "
+                           "the original right arm is the mirrored character's left arm.")
 
 
 class _ActionBase(BaseModel):

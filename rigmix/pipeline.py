@@ -2,7 +2,7 @@
 
 Reads like the paper's overview (PIPELINE.md):
 
-1. load the input characters (files or ``builtin:`` examples);
+1. load the input characters (files or ``builtin:`` examples), mirrored where the config says;
 2. operations: output skeleton S_R with provenance, scale matching, preliminary positioning
    (:func:`rigmix.operations.plan_operations`);
 3. bone-to-bone mappings B_i with confidence (:func:`rigmix.mapping.map_bones`);
@@ -165,7 +165,8 @@ def load_characters(config: Config) -> dict:
     Returns
     -------
     dict of str -> Character
-        By character id, in the config's order.
+        By character id, in the config's order; a character with ``mirror`` set in the config is
+        mirrored (:func:`rigmix.mirror.mirror_character`, joint sides swapped).
 
     Raises
     ------
@@ -185,6 +186,11 @@ def load_characters(config: Config) -> dict:
                                  f"{name!r}; known: {e.args[0]}") from None
         else:
             out[cid] = _load_file(str(p.resolve()), p.stat().st_mtime)
+        mirror = config.characters[cid].mirror
+        if mirror is not False:  # before everything else: actions name the mirrored joints
+            from .mirror import mirror_character
+
+            out[cid] = mirror_character(out[cid], axis=None if mirror is True else mirror)
     return out
 
 
