@@ -80,3 +80,48 @@ def test_flips_raise_the_minimum_angle_and_keep_the_border():
     b1 = {tuple(e) for e in boundary_halfedges(G)}
     assert b0 == b1
     assert triangle_min_angles(V2, G).min() >= triangle_min_angles(V2, F2).min()
+
+
+def test_refine_to_surface_follows_the_reference_both_ways():
+    """A coarse open cap refined against a fine bumpy one: within tolerance both ways, border
+    and original vertices untouched, still an edge-manifold, consistently oriented surface."""
+    import igl
+
+    from rigmix.fusion.remesh import is_edge_manifold, refine_to_surface
+
+    def cap(subdivisions, bump):
+        V, F = sphere(subdivisions)
+        # a sharp bump on top: what remeshing at a coarse edge length chords off
+        V = V * (1.0 + bump * np.exp(-((V[:, 0] ** 2 + V[:, 1] ** 2) / 0.02)) * (V[:, 2] > 0))[:, None]
+        keep = V[F].mean(axis=1)[:, 2] > 0.3
+        F = F[keep]
+        used = np.unique(F)
+        remap = np.full(len(V), -1)
+        remap[used] = np.arange(len(used))
+        return V[used], remap[F]
+
+    RV, RF = cap(5, 0.3)
+    V, F = cap(2, 0.0)
+    # border of the coarse cap fixed and first, as the junction gets it
+    border = np.unique(boundary_halfedges(F).ravel())
+    order = np.concatenate([border, np.setdiff1d(np.arange(len(V)), border)])
+    inv = np.empty_like(order)
+    inv[order] = np.arange(len(order))
+    V, F = V[order], inv[F]
+    tol = 0.02
+    before = np.sqrt(igl.point_mesh_squared_distance(RV, V, F)[0]).max()
+    assert before > 5 * tol  # the bump is missing
+    U, G, pinned = refine_to_surface(V, F, len(border), (RV, RF), tol=tol)
+    assert np.array_equal(U[: len(V)][: len(border)], V[: len(border)])
+    assert is_edge_manifold(G)
+    assert len(boundary_halfedges(G)) == len(boundary_halfedges(F))  # border edges unchanged
+    ref_to_mesh = np.sqrt(igl.point_mesh_squared_distance(RV, U, G)[0]).max()
+    assert ref_to_mesh <= tol * 1.01, ref_to_mesh
+    uE, cnt = edge_counts(G)
+    uE = uE[cnt == 2]  # border edges are the seam: never changed
+    mid = 0.5 * (U[uE[:, 0]] + U[uE[:, 1]])
+    assert np.sqrt(igl.point_mesh_squared_distance(mid, RV, RF)[0]).max() <= 2 * tol
+    assert pinned.sum() > 0
+    # orientation: normals still point outwards
+    N = np.cross(U[G[:, 1]] - U[G[:, 0]], U[G[:, 2]] - U[G[:, 0]])
+    assert np.all(np.einsum("ij,ij->i", N, U[G].mean(axis=1)) > 0)

@@ -220,10 +220,15 @@ def _clusters(pres, junction, margin):
     return boxes
 
 
-def _grid_for(lo, hi, h0, params):
+def _grid_for(lo, hi, h0, params, diagonal=0.0):
+    """The grid of one junction box: voxel ``h0``, refined so that ``min_voxels_across`` span
+    the box's second largest extent and one voxel is at most ``max_voxel_diagonal`` of the
+    smallest input's bounding-box diagonal, then coarsened to respect ``max_voxels``."""
     ext = hi - lo
     across = np.sort(ext)[1]
     h = min(h0, across / max(params.min_voxels_across, 1)) if across > 0 else h0
+    if diagonal > 0 and params.max_voxel_diagonal > 0:
+        h = min(h, params.max_voxel_diagonal * diagonal)
     for _ in range(20):
         margin = max(params.margin_voxels * h, (params.cut_voxels + 4) * h)
         glo = lo - margin

@@ -25,11 +25,13 @@ from .junction import (
 from .remesh import (
     flip_to_improve_angles,
     is_edge_manifold,
+    refine_to_surface,
     relocate_poor_vertices,
     remesh_junction,
     smooth_interior,
     snap_to_points,
 )
+from .meshutil import triangle_min_angles
 from .seams import _pinched
 
 log = logging.getLogger(__name__)
@@ -290,7 +292,7 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
         fx = np.flatnonzero(isfixed)
         # fine enough for the shape, never much finer than the fixed seam edges (slivers)
         target = params.target_edge_factor * min(edge, local_edge if local_edge > 0 else edge)
-        target = max(target, 0.5 * edge)
+        import os; target = max(target, float(os.environ.get('RM_FLOOR', 0.5)) * edge)
         try:
             U, G = remesh_junction(JV, JF, fx, target=target, iterations=params.remesh_iterations)
             U = smooth_interior(U, G, np.arange(len(fx)), iterations=params.taubin_iterations)
@@ -300,10 +302,29 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
             G = flip_to_improve_angles(U, G, forbidden=forb)
             U = relocate_poor_vertices(U, G, len(fx), surface=(JV, JF))
             G = flip_to_improve_angles(U, G, forbidden=forb)
+            targets = np.zeros((0, 3))
             if params.snap_input_vertices and field3 is not None:
                 targets = _surface_input_vertices(pres, inputs_fields, junction_masks, grid, field3, h)
                 U = snap_to_points(U, G, len(fx), targets, max_dist=0.5 * target)
                 G = flip_to_improve_angles(U, G, forbidden=forb)
+            if params.fidelity_voxels > 0:
+                on_point = np.zeros(len(U), bool)
+                if params.snap_input_vertices and len(targets):
+                    key = np.dtype((np.void, 24))
+                    on_point = np.isin(np.ascontiguousarray(U).view(key).ravel(),
+                                       np.ascontiguousarray(targets).view(key).ravel())
+                U2, G2, pinned = refine_to_surface(U, G, len(fx), (JV, JF), tol=params.fidelity_voxels * h,
+                                                   forbidden=forb, pinned=on_point)
+                U2 = relocate_poor_vertices(U2, G2, len(fx), surface=(JV, JF), frozen=pinned)
+                G2 = flip_to_improve_angles(U2, G2, forbidden=forb)
+                # fidelity never at the price of slivers: the refinement stands only while the
+                # junction's 5th-percentile minimum angle stays at the acceptance level (or
+                # at its level before, when that was already lower)
+                before = np.percentile(triangle_min_angles(U, G), 5) if len(G) else 0.0
+                after = np.percentile(triangle_min_angles(U2, G2), 5) if len(G2) else 0.0
+                info["fidelity_refined"] = bool(after >= min(params.min_angle_p05, before))
+                if info["fidelity_refined"]:
+                    U, G = U2, G2
             U = _separate_coincident(U, G, len(fx))
             fkeys = [fixed_keys[int(old[v] - nI)] for v in fx]
             JV, JF = U, G
