@@ -8,7 +8,8 @@ a surface's signed distance on a grid behind one interface (:class:`FieldBackend
   sign everywhere from the generalized winding number (``igl.fast_winding_number``), robust for
   open, non-manifold and multi-component meshes.
 * :class:`OpenVDBBackend`: OpenVDB's narrow-band level set from polygons (``pyopenvdb`` or
-  ``openvdb`` when importable), for parity and for writing ``.vdb`` files.
+  ``openvdb`` when importable) for the magnitude, the same winding-number sign, for parity
+  and for writing ``.vdb`` files.
 
 Both return, for every grid point, the signed distance clamped to ``[-band, band]`` (negative
 inside) and per-vertex values (presence) interpolated at the closest surface point.
@@ -278,9 +279,11 @@ def import_openvdb():
 class OpenVDBBackend:
     """OpenVDB narrow-band level sets (``FloatGrid.createLevelSetFromPolygons``).
 
-    The sign comes from OpenVDB's own inside/outside flood fill (meant for closed surfaces);
-    per-vertex values are taken at the nearest vertex (OpenVDB's Python API gives no closest
-    primitive).
+    The distance magnitude comes from OpenVDB's narrow band; the sign, as in the default
+    backend, from the generalized winding number (``igl.fast_winding_number``): OpenVDB's own
+    inside/outside flood fill is meant for closed surfaces and flips whole regions of open or
+    multi-component game meshes. Per-vertex values are taken at the nearest vertex (OpenVDB's
+    Python API gives no closest primitive).
     """
 
     name = "openvdb"
@@ -312,10 +315,16 @@ class OpenVDBBackend:
         )
         arr = np.zeros(grid.shape, dtype=np.float32)
         g.copyToArray(arr, ijk=(0, 0, 0))
-        d = np.clip(arr.astype(np.float64).ravel(), -band, band)
-        tree = cKDTree(V)
+        d = np.minimum(np.abs(arr.astype(np.float64).ravel()), band)
         Q = grid.points()
-        dist, nn = tree.query(Q)
+        if len(F):
+            import igl
+
+            bvh = igl.FastWindingNumberBVH()
+            bvh.init(np.ascontiguousarray(V), np.ascontiguousarray(F))
+            inside = np.asarray(bvh.winding_number(np.ascontiguousarray(Q))) > 0.5
+            d = np.where(inside, -d, d)
+        dist, nn = cKDTree(V).query(Q)
         return d, values[nn]
 
 
