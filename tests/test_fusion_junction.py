@@ -125,3 +125,12 @@ def test_refine_to_surface_follows_the_reference_both_ways():
     # orientation: normals still point outwards
     N = np.cross(U[G[:, 1]] - U[G[:, 0]], U[G[:, 2]] - U[G[:, 0]])
     assert np.all(np.einsum("ij,ij->i", N, U[G].mean(axis=1)) > 0)
+
+
+def test_cancelling_isosurface_faces_are_dropped():
+    from rigmix.fusion.junction import _drop_cancelling_faces
+
+    F = np.array([[0, 1, 2], [2, 1, 3], [3, 1, 2], [4, 5, 6], [5, 6, 4], [7, 8, 9]])
+    # (2,1,3) and (3,1,2) cancel (a fin); (4,5,6) and (5,6,4) are one face twice
+    G = _drop_cancelling_faces(F)
+    assert sorted(map(tuple, G)) == [(0, 1, 2), (4, 5, 6), (7, 8, 9)]

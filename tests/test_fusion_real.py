@@ -124,3 +124,17 @@ def test_fidelity_refinement_recovers_what_remeshing_chords_off():
     m = refined.report["mesh"]
     assert m["junction_boundary_edges"] == 0 and m["new_non_manifold_edges"] == 0
     assert m["junction_min_angle_p05"] >= 20.0
+
+
+def test_knight_leg_junction_is_remeshed_and_manifold():
+    """Marching cubes emitted a triangle and its reverse on the Knight's hip (grid points on a
+    planar face): four faces on one edge, the junction left unremeshed with 2-degree slivers."""
+    from rigmix.io import load_character
+
+    c = load_character(asset("Knight"))
+    sub = c.skeleton.subtree(c.skeleton.index("UpperLeg.L"))
+    out = fuse_surfaces([fusion_input(c, ~sub), fusion_input(c, sub)], [FusionAction("replace", 0, 1)])
+    m = out.report["mesh"]
+    assert all(g["remeshed"] for g in out.report["fields"]["grids"])
+    assert m["new_non_manifold_edges"] == 0 and m["junction_boundary_edges"] == 0
+    assert m["junction_min_angle_p05"] >= 20.0

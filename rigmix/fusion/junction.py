@@ -67,12 +67,37 @@ def isosurface(field, origin, voxel):
     field = np.asarray(field, dtype=np.float64)
     if field.min() >= 0 or field.max() <= 0 or min(field.shape) < 2:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    # samples exactly on the level (a planar input face through grid points) make the
+    # ambiguous cube cases that emit a triangle and its reverse: nudge them outside
+    tiny = np.finfo(np.float32).eps * max(float(np.abs(field).max()), 1e-30)
+    field = np.where(field == 0.0, tiny, field)
     V, F, _, _ = marching_cubes(field, level=0.0, spacing=(voxel, voxel, voxel), allow_degenerate=False)
     V = V.astype(np.float64) + np.asarray(origin, dtype=np.float64)
     # with gradient_direction="descent" (default) skimage's triangles face increasing values,
     # i.e. outward for a field negative inside (checked by the sphere test)
     F = np.ascontiguousarray(F.astype(np.int64))
-    return V, F
+    return V, _drop_cancelling_faces(F)
+
+
+def _drop_cancelling_faces(F):
+    """Remove a triangle together with its reverse (a zero-thickness fin, three or four faces
+    on one edge) and keep one copy of plain duplicates."""
+    if len(F) == 0:
+        return F
+    key = np.sort(F, axis=1)
+    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    keep = cnt[inv] == 1
+    for g in np.flatnonzero(cnt > 1):
+        rows = np.flatnonzero(inv == g)
+        # orientation: the cyclic order of the sorted triple, +1 or -1
+        sign = [1 if tuple(np.roll(F[r], -int(np.argmin(F[r])))) == tuple(key[r]) else -1 for r in rows]
+        net = sum(sign)
+        for r, sg in zip(rows, sign):
+            if net != 0 and sg == np.sign(net):
+                keep[r] = True
+                break
+    return F[keep]
 
 
 def clip_mesh(V, F, s):
