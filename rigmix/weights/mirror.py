@@ -330,6 +330,13 @@ def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
     Options are listed in :func:`rigmix.weights.fill_weights`.
     """
     J = W.shape[1]
+    if plane is None:
+        key = _key(g.V)
+        if key not in _PLANES:
+            _PLANES[key] = symmetry_plane(g.V)
+        plane = _PLANES[key]
+    if plane is None:  # no mirror prior, nothing for a field to judge: no distillation either
+        return _fill_inpaint(g, W, unk, iterations=iterations, alpha=alpha)
     if field is False:  # ablation: geometry only
         field = None
     elif field is None:
@@ -337,13 +344,6 @@ def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
 
         field = distill(g.V, g.F, cache=None if field_cache is None else str(field_cache),
                         **(distill_options or {}))
-    if plane is None:
-        key = _key(g.V)
-        if key not in _PLANES:
-            _PLANES[key] = symmetry_plane(g.V)
-        plane = _PLANES[key]
-    if plane is None:
-        return _fill_inpaint(g, W, unk, iterations=iterations, alpha=alpha)
     if joint_mirror is None:
         if joint_positions is not None or joint_names is not None:
             joint_mirror = mirror_joints(names=joint_names, positions=joint_positions, plane=plane)
