@@ -245,3 +245,57 @@ def test_face_stretch_matches_the_svd_reference_and_is_zero_for_rigid_motion():
     assert np.allclose(face_stretch(V, U, F)[0], ref, atol=1e-9)
     R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
     assert np.abs(face_stretch(V, (V @ R.T + 2.0)[None], F)).max() < 1e-6
+
+
+# ------------------------------------------------------------------------------------------
+# The DFD feature field in the default dfd
+# ------------------------------------------------------------------------------------------
+
+
+def test_default_dfd_distills_the_feature_field_of_the_fused_surface(tmp_path):
+    """The default dfd distills a field on the fused surface (with :data:`FIELD_DISTILL`) and the
+    field changes the filled weights; ``feature_field=False`` distills nothing."""
+    from dfd.field import load_field
+    from rigmix.pipeline import compose
+    from rigmix.skin_weights import FIELD_DISTILL
+
+    asset("Horse"), asset("Knight")
+    comp = compose(ROOT / "tests" / "configs" / "centaur.toml", until="fusion")
+    ids = comp.stages["fusion_ids"]
+    args = (comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
+            comp.skeleton.num_joints)
+    off = blend_weights(*args, method="dfd", feature_field=False, field_cache=tmp_path / "off")
+    assert not (tmp_path / "off").exists() and off.report["feature_field"] is False
+    on = blend_weights(*args, method="dfd", field_cache=tmp_path / "on")
+    assert on.report["feature_field"] is True
+    fields = sorted((tmp_path / "on").glob("field-*.pt"))
+    assert len(fields) == 1
+    field = load_field(fields[0])
+    for key, value in FIELD_DISTILL.items():
+        assert field.settings[key] == value
+    # the field is the fused surface's: the welded junction and preserved vertices, unit features
+    f = field.evaluate(comp.stages["surface"].V[:100])
+    assert np.allclose(np.linalg.norm(f, axis=1), 1.0, atol=1e-5)
+    for skin in (on, off):
+        W = skin.W
+        assert np.all(W >= 0) and np.allclose(W.sum(axis=1), 1.0) and np.count_nonzero(W, axis=1).max() <= 4
+    # preserved rows are the inputs' either way; the field moves some junction rows
+    assert np.array_equal(on.junction, off.junction)
+    assert np.array_equal(on.W[~on.junction], off.W[~off.junction])
+    assert np.abs(on.W - off.W).sum(axis=1).max() > 1e-6
+
+
+def test_cli_no_feature_field_option(tmp_path):
+    """``rigmix compose --no-feature-field`` reaches the weight stage (and the config key does too)."""
+    import json
+
+    from rigmix.cli import main
+
+    asset("CesiumMan"), asset("Velociraptor")
+    cfg = ROOT / "tests" / "configs" / "tail_graft.toml"
+    for extra, expected in (([], True), (["--no-feature-field"], False)):
+        report = tmp_path / f"report{len(extra)}.json"
+        assert main(["compose", str(cfg), "-o", str(tmp_path / "out.glb"), "--report", str(report),
+                     "--no-progress", *extra]) == 0
+        weights = json.loads(report.read_text())["weights"]
+        assert weights["method"] == "dfd" and weights["feature_field"] is expected
