@@ -124,6 +124,8 @@ class FusionParams:
         this many voxels of each other, both ways (:func:`.remesh.refine_to_surface`; 0
         disables). Remeshing to the neighbouring edge length alone chords off corners and thin
         parts: 1 to 3% of the bounding-box diagonal on self-compositions of low-poly characters.
+    feature_rounds : remeshing passes that keep, as fixed vertices, the isosurface vertices the
+        previous pass left farther than ``fidelity_voxels`` (corners, thin parts).
     min_angle_p05 : degrees; the refinement is kept only if the junction's 5th percentile of
         triangle minimum angles stays at least this (or its level before, if lower).
     min_seam_wedge : degrees; preserved faces around a seam vertex that leaves the junction a
@@ -156,6 +158,7 @@ class FusionParams:
     taubin_iterations: int = 3
     project_voxels: float = 1.0
     fidelity_voxels: float = 0.75
+    feature_rounds: int = 2
     min_angle_p05: float = 20.0
     min_seam_wedge: float = 60.0
     min_island_faces: int = 24

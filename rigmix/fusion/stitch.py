@@ -178,6 +178,50 @@ def _separate_coincident(U, G, nfixed):
     return U
 
 
+def _remesh_keeping_features(V, F, fixed, target, iterations, tol, rounds):
+    """Remesh with ``fixed`` kept, then again keeping the reference vertices the result lost.
+
+    Remeshing to the neighbouring edge length chords off the corners and thin parts of the
+    surface it follows. Vertices of ``(V, F)`` farther than ``tol`` from the remeshed surface
+    (farthest first, at least half a target edge apart and from the fixed vertices) become
+    fixed vertices of the next pass: the remesher then builds its isotropic triangles around
+    them. At most ``rounds`` more passes.
+
+    Returns
+    -------
+    U : (p, 3) float64, G : (q, 3) int64, nfix : int
+        ``U[:len(fixed)] == V[fixed]``, then the kept feature vertices, ``nfix`` in all.
+    """
+    import igl
+    from scipy.spatial import cKDTree
+
+    fixed = np.asarray(fixed, np.int64)
+    U, G = remesh_junction(V, F, fixed, target=target, iterations=iterations)
+    keep = fixed
+    for _ in range(rounds if tol > 0 else 0):
+        d = np.sqrt(igl.point_mesh_squared_distance(V, U, G)[0])
+        far = np.flatnonzero(d > tol)
+        far = far[~np.isin(far, keep)]
+        if len(far) == 0:
+            break
+        far = far[np.argsort(-d[far])]
+        taken = list(V[keep])
+        tree = cKDTree(np.asarray(taken)) if taken else None
+        pick = []
+        for v in far:
+            x = V[v]
+            if tree is not None and tree.query(x)[0] < 0.5 * target:
+                continue
+            if pick and np.min(np.linalg.norm(V[pick] - x, axis=1)) < 0.5 * target:
+                continue
+            pick.append(v)
+        if not pick:
+            break
+        keep = np.concatenate([keep, np.asarray(pick, np.int64)])
+        U, G = remesh_junction(V, F, keep, target=target, iterations=iterations)
+    return U, G, len(keep)
+
+
 def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields, actions, params, band, timings,
                           local_edge=0.0, junction_masks=None):
     """Isosurface, cut, bridges and remesh of one cluster.
@@ -292,27 +336,30 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
         fx = np.flatnonzero(isfixed)
         # fine enough for the shape, never much finer than the fixed seam edges (slivers)
         target = params.target_edge_factor * min(edge, local_edge if local_edge > 0 else edge)
-        import os; target = max(target, float(os.environ.get('RM_FLOOR', 0.5)) * edge)
+        target = max(target, 0.5 * edge)
         try:
-            U, G = remesh_junction(JV, JF, fx, target=target, iterations=params.remesh_iterations)
-            U = smooth_interior(U, G, np.arange(len(fx)), iterations=params.taubin_iterations)
-            U = _project_to_inputs(U, len(fx), pres, surfaces, inputs_fields, h, params.project_voxels)
+            U, G, nfix = _remesh_keeping_features(JV, JF, fx, target, params.remesh_iterations,
+                                                  params.fidelity_voxels * h, params.feature_rounds)
+            info["feature_vertices"] = int(nfix - len(fx))
+            U = smooth_interior(U, G, np.arange(nfix), iterations=params.taubin_iterations)
+            U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels)
             fid_to_final = {int(old[v] - nI): k for k, v in enumerate(fx)}
             forb = _preserved_edges_between(pres, preserved, keys, fid_to_final)
             G = flip_to_improve_angles(U, G, forbidden=forb)
-            U = relocate_poor_vertices(U, G, len(fx), surface=(JV, JF))
+            U = relocate_poor_vertices(U, G, nfix, surface=(JV, JF))
             G = flip_to_improve_angles(U, G, forbidden=forb)
             targets = np.zeros((0, 3))
             if params.snap_input_vertices and field3 is not None:
                 targets = _surface_input_vertices(pres, inputs_fields, junction_masks, grid, field3, h)
-                U = snap_to_points(U, G, len(fx), targets, max_dist=0.5 * target)
+                U = snap_to_points(U, G, nfix, targets, max_dist=0.5 * target)
                 G = flip_to_improve_angles(U, G, forbidden=forb)
             if params.fidelity_voxels > 0:
                 on_point = np.zeros(len(U), bool)
+                on_point[len(fx):nfix] = True
                 if params.snap_input_vertices and len(targets):
                     key = np.dtype((np.void, 24))
-                    on_point = np.isin(np.ascontiguousarray(U).view(key).ravel(),
-                                       np.ascontiguousarray(targets).view(key).ravel())
+                    on_point |= np.isin(np.ascontiguousarray(U).view(key).ravel(),
+                                        np.ascontiguousarray(targets).view(key).ravel())
                 U2, G2, pinned = refine_to_surface(U, G, len(fx), (JV, JF), tol=params.fidelity_voxels * h,
                                                    forbidden=forb, pinned=on_point)
                 U2 = relocate_poor_vertices(U2, G2, len(fx), surface=(JV, JF), frozen=pinned)
