@@ -120,7 +120,7 @@ def test_fidelity_refinement_recovers_what_remeshing_chords_off():
     refined = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)])
     assert hausdorff(plain) > 0.005
     assert hausdorff(refined) <= 0.005
-    assert refined.report["fields"]["grids"][0]["fidelity_refined"] is True
+    assert refined.report["fields"]["grids"][0]["fidelity"] is True
     m = refined.report["mesh"]
     assert m["junction_boundary_edges"] == 0 and m["new_non_manifold_edges"] == 0
     assert m["junction_min_angle_p05"] >= 20.0

@@ -124,6 +124,11 @@ class FusionParams:
         this many voxels of each other, both ways (:func:`.remesh.refine_to_surface`; 0
         disables). Remeshing to the neighbouring edge length alone chords off corners and thin
         parts: 1 to 3% of the bounding-box diagonal on self-compositions of low-poly characters.
+    keep_input_corners : vertices of the replaced input faces that the exact blended field puts
+        on the surface (within a tenth of a voxel) but the isosurface misses are inserted into it
+        and kept by the remeshing (at most one per half target edge): corners and thin parts of
+        low-poly inputs that marching cubes rounds off.
+    fidelity_diagonal : and at most this fraction of the smallest input's bounding-box diagonal.
     feature_rounds : remeshing passes that keep, as fixed vertices, the isosurface vertices the
         previous pass left farther than ``fidelity_voxels`` (corners, thin parts).
     min_angle_p05 : degrees; the refinement is kept only if the junction's 5th percentile of
@@ -158,7 +163,9 @@ class FusionParams:
     taubin_iterations: int = 3
     project_voxels: float = 1.0
     fidelity_voxels: float = 0.75
+    fidelity_diagonal: float = 0.0025
     feature_rounds: int = 2
+    keep_input_corners: bool = True
     min_angle_p05: float = 20.0
     min_seam_wedge: float = 60.0
     min_island_faces: int = 24
@@ -337,7 +344,7 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
               if np.all(L.positions.mean(axis=0) >= lo_g) and np.all(L.positions.mean(axis=0) <= hi_g)]
         JV, JF, fkeys, info, field3 = _junction_for_cluster(grid, pres, surfaces, preserved, cl, fields, actions, params,
                                                             band, timings, _local_edge(pres, junction, grid),
-                                                            junction_masks=junction)
+                                                            junction_masks=junction, diagonal=diagonal)
         info.update(voxel_size=grid.voxel, voxels=grid.size, shape=list(grid.shape), loops=len(cl))
         if info["unmatched_preserved_loops"] > 0 or len(JF) == 0:
             # no closed junction (open sheets have no inside; loops left unmatched): keep the

@@ -375,18 +375,19 @@ def snap_to_points(V, F, nfixed, P, *, max_dist, min_angle=15.0, min_normal_dot=
     return V
 
 
-def _insert_point(V, F, f, bary, x, nfixed, inner, snap=0.75, edge_bary=0.15):
+def _insert_point(V, F, f, bary, x, is_fixed, inner, snap=0.75, edge_bary=0.15, slivers=False):
     """Insert point ``x`` into face ``f`` (its projection has barycentric coordinates ``bary``).
 
     Near a free vertex (``bary`` above ``snap``) that vertex moves to ``x``; near an interior
     edge (a coordinate below ``edge_bary``) the edge is split at ``x``; else the face is split
     in three. Returns ``(V, F, vertex)``, or ``None`` next to a fixed vertex or a border edge:
-    those must not change, and a split beside them leaves a sliver no flip can repair.
+    those must not change, and a split beside them leaves a sliver no flip can repair (with
+    ``slivers``, for a mesh that is remeshed afterwards, the triangle is split in three there).
     """
     tri = F[f]
     k = int(np.argmax(bary))
-    if bary[k] > snap:
-        if tri[k] < nfixed:
+    if bary[k] > snap and not (slivers and is_fixed(int(tri[k]))):
+        if is_fixed(int(tri[k])):
             return None
         V = V.copy()
         V[int(tri[k])] = x
@@ -394,10 +395,11 @@ def _insert_point(V, F, f, bary, x, nfixed, inner, snap=0.75, edge_bary=0.15):
     j = int(np.argmin(bary))
     n = len(V)
     a, b = int(tri[(j + 1) % 3]), int(tri[(j + 2) % 3])
-    if bary[j] < edge_bary and (min(a, b), max(a, b)) not in inner:
+    border = (min(a, b), max(a, b)) not in inner
+    if bary[j] < edge_bary and border and not slivers:
         return None
     V = np.concatenate([V, x[None]])
-    if bary[j] < edge_bary:
+    if bary[j] < edge_bary and not border:
         new, drop = [], []
         for g in np.flatnonzero(np.isin(F, [a, b]).sum(axis=1) == 2):
             t = F[g]
@@ -495,7 +497,7 @@ def refine_to_surface(V, F, nfixed, reference, *, tol, max_rounds=12, forbidden=
                 continue
             if bary.max() > 0.75 and pinned[int(tri[int(np.argmax(bary))])]:
                 continue  # never drag a vertex off the point it was put on
-            r = _insert_point(V, G, int(rows[0]), bary, x, nfixed, inner)
+            r = _insert_point(V, G, int(rows[0]), bary, x, lambda v: v < nfixed, inner)
             if r is None:
                 continue
             V, G, v = r
@@ -508,3 +510,67 @@ def refine_to_surface(V, F, nfixed, reference, *, tol, max_rounds=12, forbidden=
             break
         G = flip_to_improve_angles(V, G, forbidden=forbidden)
     return V, G, pinned
+
+
+def insert_points(V, F, fixed, X, *, max_dist, passes=4):
+    """Insert points lying on the surface ``(V, F)`` represents into it (one pass).
+
+    Each point of ``X`` within ``max_dist`` of the mesh goes into its closest triangle
+    (:func:`_insert_point`: a nearby free vertex moves onto it, or the nearby interior edge or
+    the triangle is split; next to a fixed vertex or a border edge, the triangle: the result
+    is meant to be remeshed); a point whose triangle another one changed waits for the next of
+    at most ``passes`` passes.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+    F : (m, 3) int array
+        Edge-manifold, consistently oriented.
+    fixed : (n,) bool
+        Vertices that must not move.
+    X : (k, 3) float array
+    max_dist : float
+
+    Returns
+    -------
+    U : (p, 3) float64, G : (q, 3) int64, placed : (r,) int64
+        ``U[:n]`` are the old vertices (moved ones excepted); ``placed``: the vertices now at
+        points of ``X``.
+    """
+    import igl
+
+    V = np.asarray(V, dtype=np.float64)
+    G = np.asarray(F, dtype=np.int64)
+    X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
+    fixed = np.asarray(fixed, bool)
+    if len(X) == 0 or len(G) == 0:
+        return V, G, np.zeros(0, np.int64)
+    placed: list[int] = []
+    n0 = len(V)
+    for _ in range(passes):
+        if len(X) == 0:
+            break
+        d2, fid, C = igl.point_mesh_squared_distance(X, V, G)
+        ok = d2 <= max_dist * max_dist
+        X, fid, C = X[ok], fid[ok], C[ok]
+        T = G[fid]
+        B = np.nan_to_num(np.asarray(igl.barycentric_coordinates(C, V[T[:, 0]], V[T[:, 1]], V[T[:, 2]])), nan=1 / 3)
+        uE, cnt = edge_counts(G)
+        inner = {(int(a), int(b)) for a, b in uE[cnt == 2]}
+        touched: set[int] = set()
+        waiting = np.zeros(len(X), bool)
+        for k, (x, tri, bary) in enumerate(zip(X, T, B)):
+            if touched.intersection(int(t) for t in tri):
+                waiting[k] = True  # its triangle changed: next pass
+                continue
+            rows = np.flatnonzero((G == tri[0]).any(axis=1) & (G == tri[1]).any(axis=1) & (G == tri[2]).any(axis=1))
+            if len(rows) != 1:
+                continue
+            r = _insert_point(V, G, int(rows[0]), bary, x, lambda v: v < n0 and bool(fixed[v]), inner, slivers=True)
+            if r is None:
+                continue
+            V, G, v = r
+            touched.add(v)
+            placed.append(v)
+        X = X[waiting]
+    return V, G, np.asarray(placed, np.int64)
