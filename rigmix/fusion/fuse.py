@@ -120,19 +120,19 @@ class FusionParams:
     taubin_iterations : smoothing of the remeshed junction interior.
     project_voxels : junction vertices are then pulled at most this many voxels towards the
         presence-weighted closest input points (0 disables).
-    fidelity_voxels : the remeshed junction is refined until it and the isosurface are within
-        this many voxels of each other, both ways (:func:`.remesh.refine_to_surface`; 0
-        disables). Remeshing to the neighbouring edge length alone chords off corners and thin
-        parts: 1 to 3% of the bounding-box diagonal on self-compositions of low-poly characters.
+    fidelity_voxels, fidelity_diagonal : the junction may stray from the isosurface by at
+        most the smaller of this many voxels and this fraction of the smallest input's
+        bounding-box diagonal (0 disables): remeshing to the neighbouring edge length alone
+        chords off corners and thin parts (1 to 3% of the diagonal on self-compositions of
+        low-poly characters); see :func:`.stitch._remesh_keeping_features`.
     keep_input_corners : vertices of the replaced input faces that the exact blended field puts
         on the surface (within a tenth of a voxel) but the isosurface misses are inserted into it
-        and kept by the remeshing (at most one per half target edge): corners and thin parts of
-        low-poly inputs that marching cubes rounds off.
-    fidelity_diagonal : and at most this fraction of the smallest input's bounding-box diagonal.
-    feature_rounds : remeshing passes that keep, as fixed vertices, the isosurface vertices the
-        previous pass left farther than ``fidelity_voxels`` (corners, thin parts).
-    min_angle_p05 : degrees; the refinement is kept only if the junction's 5th percentile of
-        triangle minimum angles stays at least this (or its level before, if lower).
+        and kept by the remeshing: corners and thin parts of low-poly inputs that marching cubes
+        rounds off.
+    feature_rounds : remeshing passes that keep, as fixed vertices, what the previous pass left
+        farther than the tolerance.
+    min_angle_p05 : degrees; the fidelity path is kept only if the junction's 5th percentile of
+        triangle minimum angles stays at least this, or above the plain remeshing's.
     min_seam_wedge : degrees; preserved faces around a seam vertex that leaves the junction a
         thinner wedge than this join the junction (no good triangle fits such a wedge).
     snap_input_vertices : junction vertices move onto the nearby vertices of the replaced input

@@ -208,8 +208,7 @@ def _ring_min_angle(V, tris):
     return float(np.degrees(corner_angles(V, tris).min(initial=np.inf)))
 
 
-def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterations=4, min_normal_dot=0.5,
-                           frozen=None):
+def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterations=4, min_normal_dot=0.5):
     """Move free vertices of poor triangles where it raises the worst angle around them.
 
     For each free vertex of a triangle whose minimum angle is below ``threshold`` degrees, try
@@ -226,8 +225,6 @@ def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterat
         ``V[:nfixed]`` never move.
     surface : (SV, SF), optional
         Candidates are projected onto this mesh (the surface being remeshed).
-    frozen : (n,) bool, optional
-        Further vertices that never move (placed on corners of ``surface``).
 
     Returns
     -------
@@ -256,8 +253,6 @@ def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterat
         bad = np.flatnonzero(ang < threshold)
         verts = np.unique(F[bad].ravel())
         verts = verts[verts >= nfixed]
-        if frozen is not None:
-            verts = verts[~frozen[verts]]
         if len(verts) == 0:
             break
         # candidates of every vertex first, projected in one call
@@ -375,31 +370,28 @@ def snap_to_points(V, F, nfixed, P, *, max_dist, min_angle=15.0, min_normal_dot=
     return V
 
 
-def _insert_point(V, F, f, bary, x, is_fixed, inner, snap=0.75, edge_bary=0.15, slivers=False):
+def _insert_point(V, F, f, bary, x, is_fixed, inner, snap=0.75, edge_bary=0.15):
     """Insert point ``x`` into face ``f`` (its projection has barycentric coordinates ``bary``).
 
     Near a free vertex (``bary`` above ``snap``) that vertex moves to ``x``; near an interior
-    edge (a coordinate below ``edge_bary``) the edge is split at ``x``; else the face is split
-    in three. Returns ``(V, F, vertex)``, or ``None`` next to a fixed vertex or a border edge:
-    those must not change, and a split beside them leaves a sliver no flip can repair (with
-    ``slivers``, for a mesh that is remeshed afterwards, the triangle is split in three there).
+    edge (a coordinate below ``edge_bary``) the edge is split at ``x``; else, and next to a
+    fixed vertex or a border edge (neither may change), the face is split in three.
+
+    Returns
+    -------
+    V, F, vertex : the new mesh and the vertex now at ``x``.
     """
     tri = F[f]
     k = int(np.argmax(bary))
-    if bary[k] > snap and not (slivers and is_fixed(int(tri[k]))):
-        if is_fixed(int(tri[k])):
-            return None
+    if bary[k] > snap and not is_fixed(int(tri[k])):
         V = V.copy()
         V[int(tri[k])] = x
         return V, F, int(tri[k])
     j = int(np.argmin(bary))
     n = len(V)
     a, b = int(tri[(j + 1) % 3]), int(tri[(j + 2) % 3])
-    border = (min(a, b), max(a, b)) not in inner
-    if bary[j] < edge_bary and border and not slivers:
-        return None
     V = np.concatenate([V, x[None]])
-    if bary[j] < edge_bary and not border:
+    if bary[j] < edge_bary and (min(a, b), max(a, b)) in inner:
         new, drop = [], []
         for g in np.flatnonzero(np.isin(F, [a, b]).sum(axis=1) == 2):
             t = F[g]
@@ -417,109 +409,14 @@ def _insert_point(V, F, f, bary, x, is_fixed, inner, snap=0.75, edge_bary=0.15, 
     return V, np.concatenate([F[keep], np.asarray([(a, b, n), (b, c, n), (c, a, n)], np.int64)]), n
 
 
-def refine_to_surface(V, F, nfixed, reference, *, tol, max_rounds=12, forbidden=None, pinned=None):
-    """Insert reference points until the mesh and ``reference`` are within ``tol``, both ways.
-
-    Isotropic remeshing at the neighbouring edge length chords off creases, corners and thin
-    parts of the surface it follows (measured on self-compositions of low-poly characters: 1 to
-    3% of the bounding-box diagonal, against 0.2 to 0.4% for the isosurface itself). Per round,
-    largest deviation first and at most one change per triangle: each reference vertex farther
-    than ``tol`` from the mesh, and the closest reference point of each edge midpoint farther
-    than ``tol`` from the reference, is inserted into the closest triangle
-    (:func:`_insert_point`); then edge flips restore the angles. Border edges never change, so
-    the seams with the preserved faces stay exactly as they are.
-
-    Parameters
-    ----------
-    V : (n, 3) float array
-    F : (m, 3) int array
-        Edge-manifold, consistently oriented.
-    nfixed : int
-        ``V[:nfixed]`` never move.
-    reference : (RV, RF)
-        The surface the mesh must follow (the bridged isosurface).
-    tol : float
-        Distance, in model units.
-    forbidden : (k, 2) int array, optional
-        Edges flips must not create (see :func:`flip_to_improve_angles`).
-    pinned : (n,) bool, optional
-        Vertices already on reference points (they are not moved onto others).
-
-    Returns
-    -------
-    U : (p, 3) float64, G : (q, 3) int64, pinned : (p,) bool
-        New vertices appended; ``pinned`` marks the vertices placed on reference points (later
-        quality passes must not move them off).
-    """
-    import igl
-    from scipy.spatial import cKDTree
-
-    V = np.asarray(V, dtype=np.float64)
-    G = np.asarray(F, dtype=np.int64)
-    pinned = np.zeros(len(V), bool) if pinned is None else np.asarray(pinned, bool).copy()
-    RV = np.ascontiguousarray(reference[0], dtype=np.float64)
-    RF = np.ascontiguousarray(reference[1], dtype=np.int64)
-    if len(G) == 0 or len(RF) == 0 or tol <= 0:
-        return V, G, pinned
-    for _ in range(max_rounds):
-        uE, cnt = edge_counts(G)
-        inner = {(int(a), int(b)) for a, b in uE[cnt == 2]}
-        d2, _, _ = igl.point_mesh_squared_distance(RV, V, G)
-        pts = [RV[d2 > tol * tol]]
-        dev = [np.sqrt(d2[d2 > tol * tol])]
-        if len(uE):
-            mid = 0.5 * (V[uE[:, 0]] + V[uE[:, 1]])
-            e2, _, C = igl.point_mesh_squared_distance(mid, RV, RF)
-            far = (e2 > tol * tol) & (cnt == 2)
-            pts.append(C[far])
-            dev.append(np.sqrt(e2[far]))
-        X = np.concatenate(pts)
-        if len(X) == 0:
-            break
-        X = X[np.argsort(-np.concatenate(dev))]
-        # one insertion per position, never onto a vertex already there (it would weld into a pinch)
-        _, first = np.unique(np.round(X / (1e-3 * tol)), axis=0, return_index=True)
-        X = X[np.sort(first)]
-        X = X[cKDTree(V).query(X)[0] > 1e-3 * tol]
-        if len(X) == 0:
-            break
-        _, fid, C = igl.point_mesh_squared_distance(X, V, G)
-        T = G[fid]
-        B = igl.barycentric_coordinates(C, V[T[:, 0]], V[T[:, 1]], V[T[:, 2]])
-        B = np.nan_to_num(np.asarray(B), nan=1 / 3)
-        touched: set[int] = set()  # vertices of this round's changes: their faces wait a round
-        changes = 0
-        for x, tri, bary in zip(X, T, B):
-            if touched.intersection(int(t) for t in tri):
-                continue
-            rows = np.flatnonzero((G == tri[0]).any(axis=1) & (G == tri[1]).any(axis=1) & (G == tri[2]).any(axis=1))
-            if len(rows) != 1:
-                continue
-            if bary.max() > 0.75 and pinned[int(tri[int(np.argmax(bary))])]:
-                continue  # never drag a vertex off the point it was put on
-            r = _insert_point(V, G, int(rows[0]), bary, x, lambda v: v < nfixed, inner)
-            if r is None:
-                continue
-            V, G, v = r
-            if v >= len(pinned):
-                pinned = np.concatenate([pinned, np.zeros(v + 1 - len(pinned), bool)])
-            pinned[v] = True
-            touched.add(v)
-            changes += 1
-        if changes == 0:
-            break
-        G = flip_to_improve_angles(V, G, forbidden=forbidden)
-    return V, G, pinned
-
-
 def insert_points(V, F, fixed, X, *, max_dist, passes=4):
     """Insert points lying on the surface ``(V, F)`` represents into it (one pass).
 
     Each point of ``X`` within ``max_dist`` of the mesh goes into its closest triangle
     (:func:`_insert_point`: a nearby free vertex moves onto it, or the nearby interior edge or
     the triangle is split; next to a fixed vertex or a border edge, the triangle: the result
-    is meant to be remeshed); a point whose triangle another one changed waits for the next of
-    at most ``passes`` passes.
+    is meant to be remeshed, slivers do not matter); a point whose triangle another one
+    changed waits for the next of at most ``passes`` passes.
 
     Parameters
     ----------
@@ -566,10 +463,7 @@ def insert_points(V, F, fixed, X, *, max_dist, passes=4):
             rows = np.flatnonzero((G == tri[0]).any(axis=1) & (G == tri[1]).any(axis=1) & (G == tri[2]).any(axis=1))
             if len(rows) != 1:
                 continue
-            r = _insert_point(V, G, int(rows[0]), bary, x, lambda v: v < n0 and bool(fixed[v]), inner, slivers=True)
-            if r is None:
-                continue
-            V, G, v = r
+            V, G, v = _insert_point(V, G, int(rows[0]), bary, x, lambda v: v < n0 and bool(fixed[v]), inner)
             touched.add(v)
             placed.append(v)
         X = X[waiting]

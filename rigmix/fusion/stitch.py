@@ -26,7 +26,6 @@ from .remesh import (
     flip_to_improve_angles,
     insert_points,
     is_edge_manifold,
-    refine_to_surface,
     relocate_poor_vertices,
     remesh_junction,
     smooth_interior,
@@ -458,18 +457,6 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
                 U = snap_to_points(U, G, nfix, targets, max_dist=0.5 * target)
                 G = flip_to_improve_angles(U, G, forbidden=forb)
             if tol > 0:
-                on_point = np.zeros(len(U), bool)
-                on_point[len(fx):nfix] = True
-                if len(targets):
-                    key = np.dtype((np.void, 24))
-                    on_point |= np.isin(np.ascontiguousarray(U).view(key).ravel(),
-                                        np.ascontiguousarray(targets).view(key).ravel())
-                U2, G2, pinned = refine_to_surface(U, G, len(fx), (RV, RF), tol=tol, forbidden=forb, pinned=on_point)
-                U2 = relocate_poor_vertices(U2, G2, len(fx), surface=(RV, RF), frozen=pinned)
-                G2 = flip_to_improve_angles(U2, G2, forbidden=forb)
-                # refinement never at the price of slivers (see below)
-                if _angle_p05(U2, G2) >= min(params.min_angle_p05, _angle_p05(U, G)):
-                    U, G = U2, G2
                 # the quality moves above slide vertices along the reference, whose bridge
                 # strips chord across a voxel or two: back onto the inputs where they agree
                 U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels)
