@@ -15,8 +15,30 @@ junction weight method (``nearest``, ``inpaint``, ``dfd``) then fills W_R, and w
 * junction stretch ratio (:func:`rigmix.quality.junction_stretch_ratio`; the completed clips of a
   self-composition are the character's own).
 
+Two protocols (PIPELINE.md section 7):
+
+``identity``
+    the limb is replaced by the same limb of the same character. The truth at a junction vertex
+    is then the original weights at the closest original point, which is exactly ``nearest``'s
+    rule: ``nearest`` scores 0 by construction, and the protocol checks that the fills do not
+    damage what the closest point already knows.
+``mirrored``
+    for each left/right limb pair, limb X of the body is replaced by limb X of the *mirrored*
+    character (``mirror = true`` in the config, :mod:`rigmix.mirror`), which is the original's
+    opposite limb reflected onto X's side. The truth is still the original character's weights
+    at the closest original point (cut to 4), but the donor's surface and weights are the other
+    side's, so no method can copy the truth (they differ wherever the character or its painting
+    is not symmetric). Output joints from the donor's limb are matched to the original's limb X
+    joint by joint (same subtree order, checked by the reflected rest positions:
+    ``pairing_distance``). Preserved vertices copy their input's row under every method, so the
+    skinned error is measured with the truth on the junction vertices only (the donor's own
+    asymmetry is not the weight stage's error).
+
+Each method is run with its defaults; ``dfd_no_field`` is ``dfd`` with ``feature_field=False``
+(no distilled DFD field), to measure what the field does.
+
 Writes ``benchmarks/results/self_composition.json`` and ``self_composition.md``.
-Usage: ``python -m benchmarks.self_composition [CHARACTER ...]``.
+Usage: ``python -m benchmarks.self_composition [--protocol identity|mirrored|both] [CHARACTER ...]``.
 """
 
 from __future__ import annotations
@@ -38,7 +60,13 @@ sys.path.insert(0, str(ROOT / "tests"))
 from rigmix.config import Config  # noqa: E402
 from rigmix.pipeline import assembly_stage, compose, quality_stage  # noqa: E402
 from rigmix.quality import self_composition_errors  # noqa: E402
-from rigmix.skin_weights import WEIGHT_METHODS, blend_weights  # noqa: E402
+from rigmix.skin_weights import blend_weights  # noqa: E402
+
+#: (label, blend_weights options): every method with its defaults, and dfd without the DFD field.
+METHODS = (("nearest", {"method": "nearest"}), ("inpaint", {"method": "inpaint"}), ("dfd", {"method": "dfd"}),
+           ("dfd_no_field", {"method": "dfd", "feature_field": False}))
+LABELS = tuple(label for label, _ in METHODS)
+PROTOCOLS = ("identity", "mirrored")
 
 #: Limb roots per shared character (SimpleSkin has no limb; the Wasp's body is 13 parts).
 LIMBS = {
@@ -58,6 +86,19 @@ LIMBS = {
 }
 
 
+
+
+def mirror_pairs(name: str) -> list[tuple[str, str]]:
+    """``(limb, opposite limb)`` keys of :data:`LIMBS` for a character (``arm.L``/``arm.R``, ``leg.FL``/``leg.FR``)."""
+    limbs = LIMBS[name]
+    out = []
+    for k in limbs:
+        other = k[:-1] + {"L": "R", "R": "L"}.get(k[-1], "")
+        if other != k and other in limbs:
+            out.append((k, other))
+    return out
+
+
 def self_config(path: Path, joint: str) -> Config:
     """The config replacing ``joint``'s subtree of a character with the same subtree of itself."""
     return Config.model_validate({
@@ -68,31 +109,207 @@ def self_config(path: Path, joint: str) -> Config:
     })
 
 
-def run_case(path: Path, joint: str, *, methods=WEIGHT_METHODS, max_frames=None) -> dict:
-    """Fuse once, fill W_R with every method, measure. Returns ``{method: figures}`` + fusion info."""
+def mirror_config(path: Path, joint: str, donor_joint: str) -> Config:
+    """The config replacing ``joint``'s subtree by ``donor_joint``'s subtree of the mirrored character.
+
+    The donor keeps unit scale: the truth is the original, not a rescaled copy.
+    """
+    return Config.model_validate({
+        "name": f"mirror_{path.stem}_{joint}",
+        "characters": {"body": {"path": str(path)},
+                       "donor": {"path": str(path), "mirror": True, "scale": 1.0}},
+        "actions": [{"op": "replace", "source": "donor", "source_joint": donor_joint, "target": "body",
+                     "target_joint": joint, "mode": "blend"}],
+    })
+
+
+def _measure(comp, skin, errors) -> dict:
+    figures = dict(errors)
+    c2 = replace(comp, stages={**comp.stages, "weights": skin})
+    c2 = quality_stage(assembly_stage(c2))
+    figures["junction_stretch_ratio"] = c2.report["quality"]["junction_stretch_ratio"]
+    figures["max_influences"] = skin.report["max_influences"]
+    return figures
+
+
+def _weights(comp, options):
+    ids = comp.stages["fusion_ids"]
+    t1 = time.perf_counter()
+    skin = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
+                         comp.skeleton.num_joints, **options)
+    return skin, round(time.perf_counter() - t1, 3)
+
+
+def _case_info(comp, t_fuse) -> dict:
+    return {"fusion_s": round(t_fuse, 2),
+            "junction_vertices": int((comp.stages["surface"].origin_input < 0).sum()),
+            "mesh": {k: comp.report["mesh"].get(k) for k in ("vertices", "junction_faces", "junction_boundary_edges",
+                                                             "junction_min_angle_p05")},
+            "methods": {}}
+
+
+def run_case(path: Path, joint: str, *, methods=METHODS, max_frames=None) -> dict:
+    """Identity protocol: fuse once, fill W_R with every method, measure."""
     t0 = time.perf_counter()
     comp = compose(self_config(path, joint), until="completion")
-    t_fuse = time.perf_counter() - t0
-    ids = comp.stages["fusion_ids"]
-    out = {"fusion_s": round(t_fuse, 2), "junction_vertices": int((comp.stages["surface"].origin_input < 0).sum()),
-           "mesh": {k: comp.report["mesh"].get(k) for k in ("vertices", "junction_faces", "junction_boundary_edges",
-                                                            "junction_min_angle_p05")},
-           "methods": {}}
-    for method in methods:
-        t1 = time.perf_counter()
-        skin = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
-                             comp.skeleton.num_joints, method=method)
-        t_w = time.perf_counter() - t1
+    out = _case_info(comp, time.perf_counter() - t0)
+    for label, options in methods:
+        skin, t_w = _weights(comp, options)
         figures = self_composition_errors(comp, skin, max_frames=max_frames)
         full = self_composition_errors(comp, skin, max_frames=max_frames, truth_influences=None)
         figures["full_truth"] = {k: full[k] for k in ("junction_weight_error_mean", "junction_weight_error_max",
                                                       "skinned_error_max")}
-        c2 = replace(comp, stages={**comp.stages, "weights": skin})
-        c2 = quality_stage(assembly_stage(c2))
-        figures["junction_stretch_ratio"] = c2.report["quality"]["junction_stretch_ratio"]
-        figures["weights_s"] = round(t_w, 3)
-        figures["max_influences"] = skin.report["max_influences"]
-        out["methods"][method] = figures
+        out["methods"][label] = {**_measure(comp, skin, figures), "weights_s": t_w}
+    return out
+
+
+def limb_pairing(skeleton, x: int, y: int, plane) -> tuple[np.ndarray, float]:
+    """Joint ``k`` of the subtree at ``y`` <-> joint of the subtree at ``x`` (the other side).
+
+    Paired in index order when the two subtrees have the same shape (parents at the same
+    places), else by the closest reflected rest position.
+
+    Returns
+    -------
+    pair : (J,) int64
+        ``pair[k]`` for ``k`` in the subtree at ``y``, ``-1`` elsewhere.
+    distance : float
+        Largest distance between a reflected joint of ``y``'s subtree and its pair, relative to
+        the skeleton's extent (0 for an exactly symmetric rig).
+    """
+    sx, sy = np.flatnonzero(skeleton.subtree(x)), np.flatnonzero(skeleton.subtree(y))
+    P = skeleton.rest_worlds()[:, :3, 3]
+    R = plane.reflect(P)
+
+    def shape(sub):
+        pos = {j: i for i, j in enumerate(sub)}
+        return [pos.get(int(skeleton.parents[j]), -1) for j in sub]
+
+    pair = np.full(skeleton.num_joints, -1)
+    if len(sx) == len(sy) and shape(sx) == shape(sy):
+        pair[sy] = sx
+    else:
+        D = np.linalg.norm(R[sy][:, None] - P[sx][None], axis=2)
+        pair[sy] = sx[np.argmin(D, axis=1)]
+    extent = float(np.linalg.norm(np.ptp(P, axis=0))) or 1.0
+    return pair, float(np.linalg.norm(R[sy] - P[pair[sy]], axis=1).max() / extent)
+
+
+def mirrored_errors(comp, skin, pair, *, fps=30.0, max_frames=None, truth_influences=4, tolerance=None) -> dict:
+    """Junction weight and skinned errors of a mirrored-limb composition against the original.
+
+    Parameters
+    ----------
+    comp : rigmix.pipeline.Composition
+        Of :func:`mirror_config`, after the fusion.
+    skin : rigmix.skin_weights.SkinWeights
+    pair : (J,) int array
+        :func:`limb_pairing`: donor joint (= original joint index, mirrored) -> original joint.
+    tolerance : float, optional
+        The truth holds at junction vertices within this distance of the original surface
+        (default: one voxel of the fusion grid). Where the rest pose is not symmetric the
+        mirrored limb does not lie on the original one: the shared Knight's mirrored hand
+        reaches 2.5 voxels into its thigh, and a junction vertex there, on the donor's thumb, has
+        the thigh as its closest original point; there is no truth for it.
+
+    Returns
+    -------
+    dict
+        As :func:`rigmix.quality.self_composition_errors`: ``junction_weight_error_mean`` /
+        ``_max`` (L1 against the original weights at the closest original point, cut to
+        ``truth_influences``), ``skinned_error_max`` / ``_mean`` (the original's clips, every
+        vertex and frame, truth on the measured junction rows, relative to the diagonal),
+        ``frames``, ``junction_vertices``, ``measured_vertices`` (within ``tolerance``).
+    """
+    from rigmix.animation import clip_times, sample_clip
+    from rigmix.transforms import trs_to_matrix
+    from rigmix.weights import sparsify
+
+    plan = comp.plan
+    surface = comp.stages["surface"]
+    ids = list(comp.stages["fusion_ids"])
+    b = ids.index("body")
+    original = comp.inputs["body"]
+    body_in = comp.stages["fusion_inputs"][b]
+    J_out = plan.skeleton.num_joints
+    # original joint -> output joint: the body's own, else (the replaced limb) the donor's paired joint
+    t = np.asarray(plan.image["body"]).copy()
+    img_d = np.asarray(plan.image["donor"])
+    for k in np.flatnonzero(pair >= 0):
+        if t[pair[k]] < 0 and img_d[k] >= 0:
+            t[pair[k]] = img_d[k]
+    # output joint -> original joint whose animation drives it
+    src = np.full(J_out, -1)
+    for j in np.flatnonzero(t >= 0):
+        src[t[j]] = j
+    if np.any(src < 0):
+        raise RuntimeError(f"mirrored truth: output joints {np.flatnonzero(src < 0).tolist()} have no original joint")
+    W = np.asarray(skin.W)
+    G = W.copy()  # preserved rows: their input's weights under every method (not measured)
+    jall = np.flatnonzero(np.asarray(surface.origin_input) < 0)
+    if tolerance is None:
+        tolerance = float(comp.report["fields"]["voxel_size"])
+    s = surface.junction_sources[b]  # closest point on the whole original surface
+    near = np.asarray(s["distance"]) <= tolerance
+    jrows = jall[near]
+    if len(jrows):
+        T = np.asarray(body_in.F)[np.asarray(s["face"])[near]]
+        Wc = np.einsum("qk,qkj->qj", np.asarray(s["bary"])[near], np.asarray(body_in.W)[T])
+        Gj = np.zeros((len(jrows), J_out))
+        for j in range(Wc.shape[1]):
+            if t[j] >= 0:
+                Gj[:, t[j]] += Wc[:, j]
+        Gj /= np.maximum(Gj.sum(axis=1, keepdims=True), 1e-12)
+        G[jrows] = sparsify(Gj, truth_influences) if truth_influences is not None else Gj
+    l1 = np.abs(W[jrows] - G[jrows]).sum(axis=1) if len(jrows) else np.zeros(0)
+    V = np.asarray(surface.V)
+    diag = float(np.linalg.norm(np.ptp(V, axis=0)))
+    sk = original.skeleton
+    rest_inv = np.linalg.inv(sk.rest_worlds())
+    D = (W - G)[jrows]
+    Vj = V[jrows]
+    worst, total, count, frames = 0.0, 0.0, 0, 0
+    for clip in original.clips:
+        times = clip_times(clip, fps)
+        if max_frames is not None and len(times) > max_frames:
+            times = times[np.round(np.linspace(0, len(times) - 1, max_frames)).astype(int)]
+        M = sk.world_matrices(trs_to_matrix(*sample_clip(sk, clip, times))) @ rest_inv  # rest world -> posed
+        A = np.einsum("nj,fjab->fnab", D, M[:, src, :3, :], optimize=True)
+        err = np.linalg.norm(np.einsum("fnab,nb->fna", A[..., :3], Vj) + A[..., 3], axis=2) / diag
+        frames += len(times)
+        if err.size:
+            worst = max(worst, float(err.max()))
+            total += float(err.sum())
+            count += err.size
+    return {"junction_weight_error_mean": float(l1.mean()) if len(l1) else 0.0,
+            "junction_weight_error_max": float(l1.max()) if len(l1) else 0.0,
+            "skinned_error_max": worst, "skinned_error_mean": total / max(count, 1) * len(jrows) / max(len(V), 1),
+            "frames": frames, "junction_vertices": int(len(jall)), "measured_vertices": int(len(jrows))}
+
+
+def run_mirror_case(path: Path, limb_joint: str, opposite_joint: str, *, methods=METHODS, max_frames=None) -> dict:
+    """Mirrored protocol: limb X of the body replaced by X of the mirrored character."""
+    from rigmix.mirror import mirror_plane
+    from rigmix.pipeline import load_characters
+
+    t0 = time.perf_counter()
+    probe = self_config(path, limb_joint)  # the unmirrored character, for the joint indices
+    original = load_characters(probe)["body"]
+    x, y = original.skeleton.index(limb_joint), original.skeleton.index(opposite_joint)
+    cfg = mirror_config(path, limb_joint, "")
+    donor_joint = load_characters(cfg)["donor"].skeleton.names[y]  # the opposite limb, reflected onto X's side
+    cfg = mirror_config(path, limb_joint, donor_joint)
+    comp = compose(cfg, until="completion")
+    pair, dist = limb_pairing(original.skeleton, x, y, mirror_plane(original))
+    out = _case_info(comp, time.perf_counter() - t0)
+    out.update(donor_joint=donor_joint, pairing_distance=round(dist, 5))
+    for label, options in methods:
+        skin, t_w = _weights(comp, options)
+        figures = mirrored_errors(comp, skin, pair, max_frames=max_frames)
+        full = mirrored_errors(comp, skin, pair, max_frames=max_frames, truth_influences=None)
+        figures["full_truth"] = {k: full[k] for k in ("junction_weight_error_mean", "junction_weight_error_max",
+                                                      "skinned_error_max")}
+        out["methods"][label] = {**_measure(comp, skin, figures), "weights_s": t_w}
     return out
 
 
@@ -106,90 +323,158 @@ def _cap_memory():
     resource.setrlimit(resource.RLIMIT_AS, (MEMORY_CAP, MEMORY_CAP))
 
 
-def run_isolated(path: Path, joint: str) -> dict:
-    """:func:`run_case` in a child process: a native abort fails this case only."""
+def run_isolated(fn, *args) -> dict:
+    """``fn(*args)`` (a case) in a child process: a native abort fails this case only."""
     from concurrent.futures import ProcessPoolExecutor
 
     with ProcessPoolExecutor(max_workers=1, initializer=_cap_memory) as pool:
-        return pool.submit(run_case, path, joint).result()
+        return pool.submit(fn, *args).result()
 
 
 def _fmt(x, spec):
     return "-" if x is None else format(x, spec)
 
 
-def main(argv=None) -> int:
-    """Run every case (or the characters named on the command line) and write the results."""
-    from conftest import ASSETS, CHARACTERS
-
-    logging.basicConfig(level=logging.ERROR)
-    names = list(argv if argv is not None else sys.argv[1:]) or list(LIMBS)
-    rows, t_all = [], time.perf_counter()
-    for name in names:
-        path = ASSETS / CHARACTERS[name]
-        if not path.exists():
-            print(f"self_composition: missing {path}; skipped", file=sys.stderr)
-            continue
-        for limb, joint in LIMBS[name].items():
-            try:
-                res = run_isolated(path, joint)
-            except Exception as e:  # a benchmark reports a failing case and goes on
-                rows.append({"character": name, "limb": limb, "joint": joint, "error": f"{type(e).__name__}: {e}"})
-                print(f"{name} {limb}: {type(e).__name__}: {e}", file=sys.stderr, flush=True)
-                continue
-            rows.append({"character": name, "limb": limb, "joint": joint, **res})
-            m = res["methods"]
-            print(f"{name} {limb}: " + "  ".join(
-                f"{k} {v['junction_weight_error_mean']:.3f}/{v['skinned_error_max'] * 100:.3f}%" for k, v in m.items()),
-                flush=True)
+def _summary(rows) -> dict:
     ok = [r for r in rows if "methods" in r]
     summary = {}
-    for method in WEIGHT_METHODS:
-        vals = [r["methods"][method] for r in ok if method in r["methods"]]
+    for label in LABELS:
+        vals = [r["methods"][label] for r in ok if label in r["methods"]]
         if vals:
             ratios = [v["junction_stretch_ratio"] for v in vals if v["junction_stretch_ratio"] is not None]
-            summary[method] = {
+            summary[label] = {
                 "junction_weight_error_mean": float(np.mean([v["junction_weight_error_mean"] for v in vals])),
                 "junction_weight_error_max": float(np.max([v["junction_weight_error_max"] for v in vals])),
                 "skinned_error_max": float(np.max([v["skinned_error_max"] for v in vals])),
                 "junction_stretch_ratio_median": float(np.median(ratios)) if ratios else None,
+                "junction_stretch_ratio_max": float(np.max(ratios)) if ratios else None,
+                "weights_s_mean": float(np.mean([v["weights_s"] for v in vals])),
             }
-    dfd_wins = sum(1 for r in ok if r["methods"]["dfd"]["junction_weight_error_mean"]
-                   < r["methods"]["nearest"]["junction_weight_error_mean"])
-    dfd_not_worse = sum(1 for r in ok if r["methods"]["dfd"]["junction_weight_error_mean"]
-                        <= r["methods"]["inpaint"]["junction_weight_error_mean"] + 1e-9)
-    under = sum(1 for r in ok if r["methods"]["dfd"]["skinned_error_max"] < 0.005)
-    result = {"cases": rows, "summary": summary,
-              "acceptance": {"cases": len(ok), "dfd_lower_than_nearest": dfd_wins,
-                             "dfd_not_worse_than_inpaint": dfd_not_worse, "dfd_skinned_under_0.5%": under},
-              "seconds": round(time.perf_counter() - t_all, 1), "machine": platform.platform(),
-              "python": platform.python_version()}
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "self_composition.json").write_text(json.dumps(result, indent=2) + "\n")
-    lines = ["# Self-composition: junction weights against the original (issue 6)", "",
-             "Weight error: L1 over output joints at junction vertices (mean / max) against the original weights at the "
-             "closest original point cut to 4 influences (JSON `full_truth`: uncut). Skinned error: max over all "
-             "vertices, frames (30 fps) and clips, % of the bounding-box diagonal. Stretch: junction stretch ratio.", "",
-             "| character | limb | junction verts | " + " | ".join(
-                 f"{m} err mean / max | {m} skinned max % | {m} stretch" for m in WEIGHT_METHODS) + " |",
-             "|---|---|---:|" + "---:|---:|---:|" * len(WEIGHT_METHODS)]
+    return summary
+
+
+def _acceptance(rows) -> dict:
+    ok = [r for r in rows if "methods" in r]
+    err = lambda r, m: r["methods"][m]["junction_weight_error_mean"]  # noqa: E731
+    return {"cases": len(ok),
+            "dfd_lower_than_nearest": sum(1 for r in ok if err(r, "dfd") < err(r, "nearest")),
+            "dfd_not_worse_than_nearest": sum(1 for r in ok if err(r, "dfd") <= err(r, "nearest") + 1e-9),
+            "dfd_not_worse_than_inpaint": sum(1 for r in ok if err(r, "dfd") <= err(r, "inpaint") + 1e-9),
+            "dfd_skinned_under_0.5%": sum(1 for r in ok if r["methods"]["dfd"]["skinned_error_max"] < 0.005)}
+
+
+def _table(rows, *, limb_header="limb") -> list[str]:
+    lines = [f"| character | {limb_header} | junction verts | " + " | ".join(
+                 f"{m} err mean / max | {m} skinned max % | {m} stretch" for m in LABELS) + " |",
+             "|---|---|---:|" + "---:|---:|---:|" * len(LABELS)]
     for r in rows:
         if "methods" not in r:
             lines.append(f"| {r['character']} | {r['limb']} | failed: {r['error'][:80]} |")
             continue
         cells = []
-        for m in WEIGHT_METHODS:
+        for m in LABELS:
             v = r["methods"][m]
             cells += [f"{v['junction_weight_error_mean']:.3f} / {v['junction_weight_error_max']:.3f}",
                       f"{v['skinned_error_max'] * 100:.3f}", _fmt(v["junction_stretch_ratio"], ".2f")]
-        lines.append(f"| {r['character']} | {r['limb']} | {r['junction_vertices']} | " + " | ".join(cells) + " |")
-    lines += ["", f"dfd mean error lower than nearest in {dfd_wins}/{len(ok)} cases, not worse than inpaint in "
-              f"{dfd_not_worse}/{len(ok)}; dfd skinned error under 0.5% of the diagonal in {under}/{len(ok)}.",
-              "", "Summary: " + json.dumps(summary), "", f"{result['seconds']} s on {result['machine']}."]
+        nv = r["junction_vertices"]
+        measured = r["methods"][LABELS[0]].get("measured_vertices")
+        nv = f"{measured} of {nv}" if measured is not None else nv
+        lines.append(f"| {r['character']} | {r['limb']} | {nv} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _run(name, limb, joint, fn, *args) -> dict:
+    try:
+        res = run_isolated(fn, *args)
+    except Exception as e:  # a benchmark reports a failing case and goes on
+        print(f"{name} {limb}: {type(e).__name__}: {e}", file=sys.stderr, flush=True)
+        return {"character": name, "limb": limb, "joint": joint, "error": f"{type(e).__name__}: {e}"}
+    m = res["methods"]
+    print(f"{name} {limb}: " + "  ".join(
+        f"{k} {v['junction_weight_error_mean']:.3f}/{v['skinned_error_max'] * 100:.3f}%" for k, v in m.items()),
+        flush=True)
+    return {"character": name, "limb": limb, "joint": joint, **res}
+
+
+#: What the mirrored table's outliers are (diagnosed on these assets, 2026-11-22; not a method error).
+MIRRORED_NOTES = (
+    "Diagnosed outliers. Knight arm.L (skinned ~59% for every method): the Knight's rest pose is not "
+    "symmetric, and the mirrored right hand lies in the left thigh; the fusion makes junction vertices "
+    "on the donor's thumb within half a voxel of the thigh, whose truth is UpperLeg.L. "
+    "Horse back legs (13.4% for nearest and inpaint): the bone mapping sends the mirrored donor's "
+    "IKBackLeg.L (a separate root, the original IKBackLeg.R reflected) to the body's IKBackLeg.R "
+    "(confidence 0.7), so the donor's foot weights go to the other leg's IK joint "
+    "(rigmix.mapping, not the weight stage).")
+
+
+def main(argv=None) -> int:
+    """Run every case (or the characters named on the command line) and write the results."""
+    import argparse
+
+    from conftest import ASSETS, CHARACTERS
+
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.self_composition")
+    parser.add_argument("--protocol", choices=(*PROTOCOLS, "both"), default="both")
+    parser.add_argument("characters", nargs="*", help=f"default: {' '.join(LIMBS)}")
+    # argv None (``benchmarks.run`` calls main()): every character, both protocols; the runner's
+    # own command line names benchmarks, not characters
+    args = parser.parse_args(list(argv or []))
+    logging.basicConfig(level=logging.ERROR)
+    names = args.characters or list(LIMBS)
+    protocols = PROTOCOLS if args.protocol == "both" else (args.protocol,)
+    rows = {p: [] for p in protocols}
+    seconds = {}
+    for protocol in protocols:
+        t_p = time.perf_counter()
+        for name in names:
+            path = ASSETS / CHARACTERS[name]
+            if not path.exists():
+                print(f"self_composition: missing {path}; skipped", file=sys.stderr)
+                continue
+            if protocol == "identity":
+                for limb, joint in LIMBS[name].items():
+                    rows[protocol].append(_run(name, limb, joint, run_case, path, joint))
+            else:
+                for limb, other in mirror_pairs(name):
+                    joint = LIMBS[name][limb]
+                    rows[protocol].append(_run(name, limb, joint, run_mirror_case, path, joint, LIMBS[name][other]))
+        seconds[protocol] = round(time.perf_counter() - t_p, 1)
+    result = {"protocols": {p: {"cases": rows[p], "summary": _summary(rows[p]), "acceptance": _acceptance(rows[p]),
+                                "seconds": seconds[p]} for p in protocols},
+              "machine": platform.platform(), "python": platform.python_version()}
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "self_composition.json").write_text(json.dumps(result, indent=2) + "\n")
+    lines = ["# Self-composition: junction weights against the original (issue 6)", "",
+             "Weight error: L1 over output joints at junction vertices (mean / max) against the original weights at the "
+             "closest original point cut to 4 influences (JSON `full_truth`: uncut). Skinned error: max over all "
+             "vertices, frames (30 fps) and clips, % of the bounding-box diagonal. Stretch: junction stretch ratio. "
+             "`dfd_no_field`: dfd with `feature_field = false` (no distilled DFD field)."]
+    for p in protocols:
+        acc = result["protocols"][p]["acceptance"]
+        if p == "identity":
+            lines += ["", "## Identity: a limb replaced by itself", "",
+                      "The truth is the closest original point's weights, which is `nearest`'s own rule: nearest "
+                      "scores 0 by construction.", ""]
+        else:
+            lines += ["", "## Mirrored: limb X replaced by X of the mirrored character (the opposite limb, reflected)",
+                      "", "Truth: the original's weights at the closest original point, at the junction vertices "
+                      "within one fusion voxel of the original surface (`measured of` all junction vertices: "
+                      "where the rest pose is not symmetric the mirrored limb leaves the original surface and "
+                      "there is no truth); skinned error with the truth on those vertices (preserved vertices "
+                      "copy their input under every method).", ""]
+        lines += _table(rows[p])
+        if p == "mirrored":
+            lines += ["", MIRRORED_NOTES]
+        lines += ["", f"dfd mean error lower than nearest in {acc['dfd_lower_than_nearest']}/{acc['cases']} cases "
+                  f"(not worse in {acc['dfd_not_worse_than_nearest']}), not worse than inpaint in "
+                  f"{acc['dfd_not_worse_than_inpaint']}/{acc['cases']}; dfd skinned error under 0.5% of the diagonal "
+                  f"in {acc['dfd_skinned_under_0.5%']}/{acc['cases']}.",
+                  "", "Summary: " + json.dumps(result["protocols"][p]["summary"]), "",
+                  f"{seconds[p]} s on {result['machine']}."]
     (RESULTS / "self_composition.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main(sys.argv[1:]))

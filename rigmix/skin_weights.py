@@ -38,6 +38,7 @@ Every row of the result is non-negative, has at most ``max_influences`` non-zero
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -46,6 +47,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from .errors import InputError, NumericalError
 from .geometry import bounding_box_diagonal, weld
+from .weights import feature_field as distill_feature_field
 from .weights import fill_weights, sparsify
 
 __all__ = ["SkinWeights", "WEIGHT_METHODS", "FIELD_DISTILL", "retarget_weights", "closest_point_weights", "match_junction",
@@ -81,7 +83,9 @@ class SkinWeights:
     method : str
     report : dict
         ``method``, ``max_influences``, ``min_sum``, ``max_sum``, ``junction_vertices``,
-        ``matched_vertices``, ``low_confidence_vertices``.
+        ``matched_vertices``, ``low_confidence_vertices``, ``seam_smoothed_vertices``,
+        ``feature_field`` (dfd with a field asked for), ``feature_field_distilled`` (one was
+        needed and distilled), ``feature_field_s`` (seconds).
     """
 
     W: np.ndarray
@@ -395,7 +399,8 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
         ``dfd`` (default True): distill the DFD feature field of the fused surface (settings
         :data:`FIELD_DISTILL`, or ``distill_options``) and trust the mirror prior only where a
         vertex and its mirror point have similar features; ``field_cache=DIR`` caches the field.
-        Only distilled when some junction vertex is filled and the surface has a mirror plane.
+        Only distilled when some junction vertex is filled and the surface has a mirror plane
+        (report ``feature_field_distilled``, ``feature_field_s``).
         False: the prior is trusted by the reflection distance alone (no torch, no distillation).
     **fill_options
         Passed to :func:`rigmix.weights.fill_weights` (``distill_options``, ``field_cache``, or
@@ -415,10 +420,12 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
     if method not in WEIGHT_METHODS:
         raise InputError(f"weights: unknown method {method!r}; use one of {', '.join(WEIGHT_METHODS)}")
     inputs, maps = list(inputs), list(maps)
+    lazy = None
     if method == "dfd" and "field" not in fill_options:
-        fill_options["field"] = None if feature_field else False
         if feature_field:
-            fill_options["distill_options"] = {**FIELD_DISTILL, **(fill_options.get("distill_options") or {})}
+            lazy = _LazyField(surface.V, surface.F, cache=fill_options.pop("field_cache", None),
+                              options={**FIELD_DISTILL, **(fill_options.pop("distill_options", None) or {})})
+        fill_options["field"] = lazy if feature_field else False
     if len(inputs) != len(maps) or len(inputs) != len(surface.preserved):
         raise InputError(f"weights: {len(inputs)} inputs and {len(maps)} maps for a surface fused from "
                          f"{len(surface.preserved)} inputs")
@@ -489,9 +496,34 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
         "low_confidence_vertices": int(low.sum()),
         "seam_smoothed_vertices": int(seam.sum()),
         "feature_field": bool(method == "dfd" and fill_options.get("field") is not False),
+        "feature_field_distilled": bool(lazy is not None and lazy.field is not None),
+        "feature_field_s": round(lazy.seconds, 3) if lazy is not None else 0.0,
     }
     log.debug("weights: %s", report)
     return SkinWeights(W=W, junction=junction, matched=matched, method=method, report=report)
+
+
+class _LazyField:
+    """The DFD feature field of the fused surface, distilled on its first evaluation.
+
+    The ``dfd`` fill evaluates it only when some junction vertex is filled and the surface has a
+    mirror plane (the field judges the mirror prior); otherwise nothing is distilled. ``field``
+    and ``seconds`` tell the report whether it was and what it cost.
+    """
+
+    def __init__(self, V, F, *, cache, options):
+        self.V, self.F, self.cache, self.options = V, F, cache, options
+        self.field = None
+        self.seconds = 0.0
+
+    def evaluate(self, X):
+        """Unit features ``(q, C)`` at points ``(q, 3)`` of the fused surface's space."""
+        if self.field is None:
+            t0 = time.perf_counter()
+            self.field = distill_feature_field(self.V, self.F, cache=self.cache, **self.options)
+            self.seconds = time.perf_counter() - t0
+            log.debug("weights: feature field distilled in %.2f s", self.seconds)
+        return self.field.evaluate(X)
 
 
 def _local(surface, W, unknown, diag, locality, power, k):

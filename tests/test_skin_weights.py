@@ -267,7 +267,8 @@ def test_default_dfd_distills_the_feature_field_of_the_fused_surface(tmp_path):
     off = blend_weights(*args, method="dfd", feature_field=False, field_cache=tmp_path / "off")
     assert not (tmp_path / "off").exists() and off.report["feature_field"] is False
     on = blend_weights(*args, method="dfd", field_cache=tmp_path / "on")
-    assert on.report["feature_field"] is True
+    assert on.report["feature_field"] is True and on.report["feature_field_distilled"] is True
+    assert on.report["feature_field_s"] > 0 and off.report["feature_field_distilled"] is False
     fields = sorted((tmp_path / "on").glob("field-*.pt"))
     assert len(fields) == 1
     field = load_field(fields[0])
@@ -299,3 +300,6 @@ def test_cli_no_feature_field_option(tmp_path):
                      "--no-progress", *extra]) == 0
         weights = json.loads(report.read_text())["weights"]
         assert weights["method"] == "dfd" and weights["feature_field"] is expected
+        # every tail junction vertex is matched (nothing filled): no field is distilled either way
+        assert weights["matched_vertices"] == weights["junction_vertices"] > 0
+        assert weights["feature_field_distilled"] is False and weights["feature_field_s"] == 0.0
