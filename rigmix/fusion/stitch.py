@@ -421,11 +421,6 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
             tol = min(tol, params.fidelity_diagonal * diagonal)
         fid_to_final = {int(old[v] - nI): k for k, v in enumerate(fx)}
         forb = _preserved_edges_between(pres, preserved, keys, fid_to_final)
-        replaced = _replaced_input_vertices(pres, inputs_fields, junction_masks, preserved, grid)
-        corners = None
-        if params.keep_input_corners and tol > 0:
-            corners = _input_vertices_on_surface(replaced, pres, surfaces, inputs_fields, actions, band, 0.1 * h)
-
         def finish(tol):
             """Remesh (keeping what strays farther than ``tol``; 0: plain), smooth, improve."""
             U, G, nfix, (RV, RF) = _remesh_keeping_features(JV, JF, fx, target, params.remesh_iterations,
@@ -448,6 +443,10 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
             return _separate_coincident(U, G, len(fx)), G, nfix - len(fx)
 
         try:
+            replaced = _replaced_input_vertices(pres, inputs_fields, junction_masks, preserved, grid)
+            corners = None
+            if params.keep_input_corners and tol > 0:
+                corners = _input_vertices_on_surface(replaced, pres, surfaces, inputs_fields, actions, band, 0.1 * h)
             U, G, nfeat = finish(tol)
             info["fidelity"] = bool(tol > 0)
             if tol > 0 and _angle_p05(U, G) < params.min_angle_p05:
