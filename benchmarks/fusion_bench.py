@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -20,29 +21,27 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).resolve().parent / "results"
-ASSETS = Path(os.environ.get("RIGMIX_ASSETS", ROOT.parent / "shared" / "data" / "characters"))
+sys.path.insert(0, str(ROOT / "tests"))
+
+from conftest import ASSETS, CHARACTERS  # noqa: E402
 
 EXAMPLES = ["centaur", "self_arm", "beast_arms", "tailed_humanoid"]
-#: Every limb of every shared character (the self-composition benchmark's list).
-CHARACTER_FILES = {
-    "CesiumMan": "CesiumMan/CesiumMan.glb", "RiggedFigure": "RiggedFigure/RiggedFigure.glb",
-    "Knight": "QuaterniusKnight/KnightCharacter.glb", "Fox": "Fox/Fox.glb", "Horse": "QuaterniusHorse/Horse.glb",
-    "Velociraptor": "QuaterniusVelociraptor/Velociraptor.glb", "Wasp": "QuaterniusWasp/Wasp.glb",
-}
 
 
 def _self_cases():
+    """Every limb of every shared character (the self-composition benchmark's list):
+    ``[(file relative to ASSETS, [limb root joints])]``."""
     from benchmarks.self_composition import LIMBS
 
-    return [(CHARACTER_FILES[ch], joint) for ch, limbs in LIMBS.items() for joint in limbs.values()]
+    return [(CHARACTERS[ch], list(limbs.values())) for ch, limbs in LIMBS.items()]
 
 
 REAL_CENTAUR = f"""
 name = "horse_knight_centaur"
 [characters.body]
-path = "{ASSETS / 'QuaterniusHorse/Horse.glb'}"
+path = "{ASSETS / CHARACTERS['Horse']}"
 [characters.rider]
-path = "{ASSETS / 'QuaterniusKnight/KnightCharacter.glb'}"
+path = "{ASSETS / CHARACTERS['Knight']}"
 [[actions]]
 op = "replace"
 source = "rider"
@@ -80,15 +79,14 @@ def _compose_case(cfg):
     return comp.report["fusion"], time.perf_counter() - t0
 
 
-def _self_case(path, joint):
+def _self_case(c, joint):
     import igl
 
     from rigmix.fusion import FusionAction, fuse_surfaces
     from rigmix.fusion.inputs import fusion_input
+    from rigmix.fusion.presence import compute_presence
     from rigmix.geometry import bounding_box_diagonal
-    from rigmix.io import load_character
 
-    c = load_character(ASSETS / path)
     sub = c.skeleton.subtree(c.skeleton.index(joint))
     a, b = fusion_input(c, ~sub), fusion_input(c, sub)
     t0 = time.perf_counter()
@@ -99,8 +97,6 @@ def _self_case(path, joint):
     h_in = np.sqrt(igl.point_mesh_squared_distance(a.V, out.V, out.F)[0]).max() / diag
     kept = float((out.face_origin_input >= 0).sum() / len(a.F))
     # what the paper's rule allows at most: faces of presence 1 before any seam clean-up
-    from rigmix.fusion.presence import compute_presence
-
     bound = float(sum(np.count_nonzero(compute_presence(x.V, x.F, x.W, x.used).preserved) for x in (a, b)) / len(a.F))
     return out.report, dt, {"hausdorff_pct": round(100 * max(h_out, h_in), 3), "faces_preserved": round(kept, 3),
                             "presence_one": round(bound, 3)}
@@ -112,15 +108,19 @@ def main():
     for name in EXAMPLES:
         rep, dt = _compose_case(ROOT / "examples" / f"{name}.toml")
         rows.append(_row(f"example {name}", rep, dt))
-    if (ASSETS / "QuaterniusHorse/Horse.glb").exists():
+    if (ASSETS / CHARACTERS["Horse"]).exists():
         with tempfile.TemporaryDirectory() as d:
             cfg = Path(d) / "centaur.toml"
             cfg.write_text(REAL_CENTAUR)
             rep, dt = _compose_case(cfg)
             rows.append(_row("Horse + Knight centaur", rep, dt))
-        for path, joint in _self_cases():
-            rep, dt, extra = _self_case(path, joint)
-            rows.append(_row(f"self {Path(path).stem}:{joint}", rep, dt, extra))
+        from rigmix.io import load_character
+
+        for path, joints in _self_cases():
+            character = load_character(ASSETS / path)
+            for joint in joints:
+                rep, dt, extra = _self_case(character, joint)
+                rows.append(_row(f"self {Path(path).stem}:{joint}", rep, dt, extra))
     (RESULTS / "fusion.json").write_text(json.dumps({"cpu_count": os.cpu_count(), "cases": rows}, indent=2) + "\n")
     lines = [
         "Fusion time (s, fuse_surfaces only) and grid size per case; self-compositions also give the "

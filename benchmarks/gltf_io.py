@@ -13,29 +13,19 @@ import json
 import platform
 import sys
 import tempfile
-import time
 from pathlib import Path
-
-import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).resolve().parent / "results"
 sys.path.insert(0, str(ROOT / "tests"))
 
 from conftest import ASSETS, CHARACTERS  # noqa: E402
+
+from benchmarks.common import median_seconds  # noqa: E402
 from rigmix.io.gltf import read_gltf, write_gltf  # noqa: E402
 from rigmix.io.validator import validate_gltf, validator_available  # noqa: E402
 
 REPEATS = 5
-
-
-def _median_seconds(fn, repeats=REPEATS):
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
 
 
 def main():
@@ -53,9 +43,9 @@ def main():
             row = {
                 "name": name,
                 "bytes": path.stat().st_size,
-                "read_ms": 1e3 * _median_seconds(lambda: read_gltf(path)),
-                "write_ms": 1e3 * _median_seconds(lambda: write_gltf(character, out)),
-                "pygltflib_load_ms": 1e3 * _median_seconds(lambda: pygltflib.GLTF2().load(str(path)), 1),
+                "read_ms": 1e3 * median_seconds(lambda: read_gltf(path), REPEATS),
+                "write_ms": 1e3 * median_seconds(lambda: write_gltf(character, out), REPEATS),
+                "pygltflib_load_ms": 1e3 * median_seconds(lambda: pygltflib.GLTF2().load(str(path)), 1),
                 "written_bytes": out.stat().st_size,
             }
             if validator_available():

@@ -23,13 +23,13 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).resolve().parent / "results"
 sys.path.insert(0, str(ROOT / "tests"))
 
 from conftest import ASSETS, CHARACTERS  # noqa: E402
+
+from benchmarks.common import median_seconds  # noqa: E402
 from pxr import Usd, UsdSkel  # noqa: E402
 from test_usd import (ours_world, posed_error, relative_error, select_clip, ten_times,  # noqa: E402
                       usd_skinned_world, validation_errors)
@@ -41,15 +41,6 @@ from rigmix.io.usd_read import read_usd  # noqa: E402
 from rigmix.preview.render import pose_scene, render_frames  # noqa: E402
 
 
-def _median_seconds(fn, repeats=3):
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
-
-
 def main():
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -59,8 +50,8 @@ def main():
                 continue
             ch = read_gltf(path)
             out = Path(tmp) / f"{name}.usdc"
-            write_ms = 1e3 * _median_seconds(lambda: write_usd(ch, out))
-            read_ms = 1e3 * _median_seconds(lambda: read_usd(out))
+            write_ms = 1e3 * median_seconds(lambda: write_usd(ch, out))
+            read_ms = 1e3 * median_seconds(lambda: read_usd(out))
             stage = Usd.Stage.Open(str(out))
             anims = [p for p in stage.Traverse() if p.IsA(UsdSkel.Animation)]
             usdskel = 0.0

@@ -106,17 +106,22 @@ def _openvdb_or_skip():
         pytest.skip("OpenVDB Python module not installed (set RIGMIX_REQUIRE_OPENVDB=1 to require it)")
 
 
-def test_openvdb_parity(blob):
-    _openvdb_or_skip()
+def _both_backends(V, F, grid):
+    """Signed distances of both backends on ``grid``, band 6 voxels: ``(d_numpy, d_openvdb)``."""
     from rigmix.fusion.fields import OpenVDBBackend
 
-    V, F = blob
-    h = 0.025
-    grid = Grid(np.array([-1.1, -0.7, -0.6]), h, (90, 58, 50))
-    band = 6 * h
     vals = np.ones((len(V), 1))
+    band = 6 * grid.voxel
     d0, _ = NumpyIglBackend().signed_distance(grid, V, F, vals, band=band)
     d1, _ = OpenVDBBackend().signed_distance(grid, V, F, vals, band=band)
+    return d0, d1
+
+
+def test_openvdb_parity(blob):
+    _openvdb_or_skip()
+    V, F = blob
+    h = 0.025
+    d0, d1 = _both_backends(V, F, Grid(np.array([-1.1, -0.7, -0.6]), h, (90, 58, 50)))
     near = np.abs(d0) < 2 * h
     assert near.sum() > 1000
     assert np.abs(d0[near] - d1[near]).max() < 0.5 * h
@@ -128,16 +133,11 @@ def test_openvdb_sign_on_an_open_mesh():
     """A sphere with a hole, as game meshes are open: OpenVDB's flood fill alone has no inside
     to find; with the winding-number sign both backends agree away from the surface."""
     _openvdb_or_skip()
-    from rigmix.fusion.fields import OpenVDBBackend
-
     V, F = ellipsoid((1, 1, 1), subdivisions=3)
     F = prepare_surface(V, F[V[F].mean(axis=1)[:, 2] < 0.8])  # a wide hole at the top
     h = 0.05
     grid = Grid(np.array([-1.2, -1.2, -1.2]), h, (49, 49, 49))
-    band = 6 * h
-    vals = np.ones((len(V), 1))
-    d0, _ = NumpyIglBackend().signed_distance(grid, V, F, vals, band=band)
-    d1, _ = OpenVDBBackend().signed_distance(grid, V, F, vals, band=band)
+    d0, d1 = _both_backends(V, F, grid)
     r = np.linalg.norm(grid.points(), axis=1)
     deep = r < 0.5  # well inside the sphere, far from the hole's rim
     assert deep.sum() > 1000

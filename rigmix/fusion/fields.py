@@ -189,6 +189,32 @@ def _interpolate(V, F, fid, C, values):
     return np.einsum("nk,nkc->nc", B, values[T])
 
 
+def winding_inside(V, F, Q):
+    """``(k,)`` bool: points ``Q`` where the generalized winding number of ``(V, F)`` exceeds 1/2
+    (libigl's fast winding number; robust for open, non-manifold and multi-component meshes)."""
+    import igl
+
+    bvh = igl.FastWindingNumberBVH()
+    bvh.init(np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int64))
+    return np.asarray(bvh.winding_number(np.ascontiguousarray(Q, dtype=np.float64))) > 0.5
+
+
+def signed_distance_at(Q, V, F, values, *, band):
+    """Exact signed distance (negative inside, clamped to ``band``) at points ``Q`` (k, 3), with
+    ``values`` (n, c) interpolated at the closest points: what a backend gives on a grid."""
+    import igl
+
+    Q = np.ascontiguousarray(Q, dtype=np.float64)
+    V = np.ascontiguousarray(V, dtype=np.float64)
+    F = np.ascontiguousarray(F, dtype=np.int64)
+    values = np.asarray(values, dtype=np.float64).reshape(len(V), -1)
+    if len(F) == 0:
+        return np.full(len(Q), float(band)), np.zeros((len(Q), values.shape[1]))
+    d2, fid, C = igl.point_mesh_squared_distance(Q, V, F)
+    d = np.minimum(np.sqrt(d2), band)
+    return np.where(winding_inside(V, F, Q), -d, d), _interpolate(V, F, fid, C, values)
+
+
 class NumpyIglBackend:
     """Default backend: libigl distances in a narrow band, winding-number sign everywhere.
 
@@ -318,12 +344,7 @@ class OpenVDBBackend:
         d = np.minimum(np.abs(arr.astype(np.float64).ravel()), band)
         Q = grid.points()
         if len(F):
-            import igl
-
-            bvh = igl.FastWindingNumberBVH()
-            bvh.init(np.ascontiguousarray(V), np.ascontiguousarray(F))
-            inside = np.asarray(bvh.winding_number(np.ascontiguousarray(Q))) > 0.5
-            d = np.where(inside, -d, d)
+            d = np.where(winding_inside(V, F, Q), -d, d)
         dist, nn = cKDTree(V).query(Q)
         return d, values[nn]
 

@@ -370,12 +370,14 @@ def snap_to_points(V, F, nfixed, P, *, max_dist, min_angle=15.0, min_normal_dot=
     return V
 
 
-def _insert_point(V, F, f, bary, x, is_fixed, inner, snap=0.75, edge_bary=0.15):
+def _insert_point(V, F, f, bary, x, fixed, inner, snap=0.75, edge_bary=0.15):
     """Insert point ``x`` into face ``f`` (its projection has barycentric coordinates ``bary``).
 
     Near a free vertex (``bary`` above ``snap``) that vertex moves to ``x``; near an interior
     edge (a coordinate below ``edge_bary``) the edge is split at ``x``; else, and next to a
     fixed vertex or a border edge (neither may change), the face is split in three.
+    ``fixed``: (n0,) bool over the first vertices (later ones, inserted, are free); ``inner``:
+    set of sorted interior edges.
 
     Returns
     -------
@@ -383,10 +385,11 @@ def _insert_point(V, F, f, bary, x, is_fixed, inner, snap=0.75, edge_bary=0.15):
     """
     tri = F[f]
     k = int(np.argmax(bary))
-    if bary[k] > snap and not is_fixed(int(tri[k])):
+    v = int(tri[k])
+    if bary[k] > snap and not (v < len(fixed) and fixed[v]):
         V = V.copy()
-        V[int(tri[k])] = x
-        return V, F, int(tri[k])
+        V[v] = x
+        return V, F, v
     j = int(np.argmin(bary))
     n = len(V)
     a, b = int(tri[(j + 1) % 3]), int(tri[(j + 2) % 3])
@@ -443,7 +446,6 @@ def insert_points(V, F, fixed, X, *, max_dist, passes=4):
     if len(X) == 0 or len(G) == 0:
         return V, G, np.zeros(0, np.int64)
     placed: list[int] = []
-    n0 = len(V)
     for _ in range(passes):
         if len(X) == 0:
             break
@@ -463,7 +465,7 @@ def insert_points(V, F, fixed, X, *, max_dist, passes=4):
             rows = np.flatnonzero((G == tri[0]).any(axis=1) & (G == tri[1]).any(axis=1) & (G == tri[2]).any(axis=1))
             if len(rows) != 1:
                 continue
-            V, G, v = _insert_point(V, G, int(rows[0]), bary, x, lambda v: v < n0 and bool(fixed[v]), inner)
+            V, G, v = _insert_point(V, G, int(rows[0]), bary, x, fixed, inner)
             touched.add(v)
             placed.append(v)
         X = X[waiting]

@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 
-from .fields import blend_attach, blend_cap, blend_replace
+from .fields import blend_attach, blend_cap, blend_replace, signed_distance_at
 from .junction import (
     Loop,
     boundary_loops,
@@ -183,27 +183,11 @@ def _separate_coincident(U, G, nfixed):
 
 def _field_at_points(X, pres, surfaces, inputs_fields, actions, band):
     """The blended field of :func:`_field_for_cluster` at points ``X`` (k, 3), from exact
-    distances (sign from the winding number, presence at the closest point)."""
-    import igl
-
+    distances (:func:`.fields.signed_distance_at`)."""
     fields = {}
     for i in inputs_fields:
-        P, Fs = pres[i], surfaces[i]
-        if len(Fs) == 0:
-            fields[i] = (np.full(len(X), band), np.zeros(len(X)))
-            continue
-        V = np.ascontiguousarray(P.welded.V, dtype=np.float64)
-        Fs = np.ascontiguousarray(Fs, dtype=np.int64)
-        d2, fid, C = igl.point_mesh_squared_distance(X, V, Fs)
-        bvh = igl.FastWindingNumberBVH()
-        bvh.init(V, Fs)
-        inside = np.asarray(bvh.winding_number(np.ascontiguousarray(X))) > 0.5
-        d = np.minimum(np.sqrt(d2), band)
-        T = Fs[fid]
-        B = np.clip(np.nan_to_num(np.asarray(igl.barycentric_coordinates(C, V[T[:, 0]], V[T[:, 1]], V[T[:, 2]])),
-                                  nan=1 / 3), 0, 1)
-        B /= np.maximum(B.sum(axis=1, keepdims=True), 1e-12)
-        fields[i] = (np.where(inside, -d, d), np.einsum("nk,nk->n", B, P.p_welded[T]))
+        d, p = signed_distance_at(X, pres[i].welded.V, surfaces[i], pres[i].p_welded, band=band)
+        fields[i] = (d, p[:, 0])
     return _field_for_cluster(len(X), fields, actions, band)
 
 
@@ -431,9 +415,7 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
             G = flip_to_improve_angles(U, G, forbidden=forb)
             U = relocate_poor_vertices(U, G, nfix, surface=(RV, RF))
             G = flip_to_improve_angles(U, G, forbidden=forb)
-            targets = np.zeros((0, 3))
-            if params.snap_input_vertices and field3 is not None:
-                targets = _surface_input_vertices(replaced, grid, field3, h)
+            if len(targets):
                 U = snap_to_points(U, G, nfix, targets, max_dist=0.5 * target)
                 G = flip_to_improve_angles(U, G, forbidden=forb)
             if tol > 0:
@@ -444,6 +426,7 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
 
         try:
             replaced = _replaced_input_vertices(pres, inputs_fields, junction_masks, preserved, grid)
+            targets = _surface_input_vertices(replaced, grid, field3, h) if params.snap_input_vertices else replaced[:0]
             corners = None
             if params.keep_input_corners and tol > 0:
                 corners = _input_vertices_on_surface(replaced, pres, surfaces, inputs_fields, actions, band, 0.1 * h)
