@@ -182,6 +182,12 @@ def _mirror_lookup(g: _Welded, W, unk, plane: Plane, mirror, rows):
     return src[:, mirror], d
 
 
+def _empty_prior(W, unk):
+    """A prior with no opinion yet: ``P`` (k, J) zeros, ``c`` (k,) zeros, and the unknown and
+    known rows."""
+    return np.zeros_like(W), np.zeros(len(W)), np.flatnonzero(unk), np.flatnonzero(~unk)
+
+
 def _mirror_prior(g: _Welded, W, unk, plane: Plane, mirror, *, tol=0.25, field=None,
                   feature_scale=0.5, agreement=0.1, neighbours=16, self_mirror=0.5):
     """The prior of each unknown vertex: its mirror point's known weights, with a confidence.
@@ -199,11 +205,7 @@ def _mirror_prior(g: _Welded, W, unk, plane: Plane, mirror, *, tol=0.25, field=N
     P : (k, J) prior weights (rows of unknown vertices; zero elsewhere).
     c : (k,) confidence in [0, 1] (0: no prior).
     """
-    k, J = W.shape
-    P = np.zeros_like(W)
-    c = np.zeros(k)
-    rows = np.flatnonzero(unk)
-    known = np.flatnonzero(~unk)
+    P, c, rows, known = _empty_prior(W, unk)
     if len(rows) == 0 or len(known) == 0:
         return P, c
     scale = tol * _edge_scale(g)
@@ -392,11 +394,7 @@ def _bone_prior(g: _Welded, W, unk, positions, parents, *, confidence=0.1, width
     -------
     P : (k, J) prior; c : (k,) confidence (unknown rows only).
     """
-    k, J = W.shape
-    P = np.zeros_like(W)
-    c = np.zeros(k)
-    rows = np.flatnonzero(unk)
-    known = np.flatnonzero(~unk)
+    P, c, rows, known = _empty_prior(W, unk)
     if len(rows) == 0 or len(known) == 0:
         return P, c
     D = _bone_distances(g.V, positions, parents)
