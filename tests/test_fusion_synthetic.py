@@ -88,6 +88,26 @@ def test_replace_between_different_shapes_is_closed():
     assert np.corrcoef(x, c[:, 2])[0, 1] > 0.5
 
 
+def test_voxel_cap_relative_to_the_diagonal():
+    """``max_voxel_diagonal`` refines the grid below the edge-length rule (off by default) and
+    the junction stays closed."""
+    from rigmix.fusion import FusionParams
+    from rigmix.geometry import bounding_box_diagonal
+
+    Va, Fa = ellipsoid((1.5, 0.45, 0.45))
+    Vb, Fb = ellipsoid((1.4, 0.3, 0.35), center=(0.05, 0.02, 0.0), subdivisions=4)
+    inputs = [FusionInput(Va, Fa, two_joint_weights(Va, 0.0, 0.1), np.array([True, False])),
+              FusionInput(Vb, Fb, two_joint_weights(Vb, 0.1, 0.1), np.array([False, True]))]
+    diag = min(bounding_box_diagonal(Va), bounding_box_diagonal(Vb))
+    plain = fuse_surfaces(inputs, [FusionAction("replace", 0, 1)])
+    capped = fuse_surfaces(inputs, [FusionAction("replace", 0, 1)], params=FusionParams(max_voxel_diagonal=0.004))
+    assert plain.report["fields"]["voxel_size"] > 0.004 * diag
+    assert capped.report["fields"]["voxel_size"] <= 0.004 * diag * (1 + 1e-9)
+    assert capped.report["fields"]["voxels"] > plain.report["fields"]["voxels"]
+    m = capped.report["mesh"]
+    assert m["junction_boundary_edges"] == 0 and m["boundary_edges"] == 0 and m["non_manifold_edges"] == 0
+
+
 def test_attach_is_the_union():
     Vb, Fb = ellipsoid((1, 1, 1))
     Va, Fa = ellipsoid((0.9, 0.25, 0.25), center=(1.5, 0, 0))
