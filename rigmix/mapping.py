@@ -109,9 +109,10 @@ class SkeletonFeatures:
     ----------
     parents : (J,) int64
     local_dir : (J, 3) float64
-        Unit direction from the parent to the joint (0 for roots).
+        Unit direction from the parent to the joint; for a secondary root (a forest's other
+        trees: IK targets, props), from the main root (the largest tree's); 0 for the main root.
     root_dir : (J, 3) float64
-        Unit direction from the joint's root to the joint (0 for roots).
+        Unit direction from the joint's root to the joint; the same as ``local_dir`` for roots.
     param : (J,) float64
         Parametric position P in [0, 1] (0 at roots, 1 at leaves).
     arc : (J,) float64
@@ -160,8 +161,14 @@ def skeleton_features(parents, positions) -> SkeletonFeatures:
         if p >= 0:
             root[j] = root[p]
             arc[j] = arc[p] + np.linalg.norm(P[j] - P[p])
-    local_dir = _unit(np.where(parents[:, None] >= 0, P - P[np.maximum(parents, 0)], 0.0))
-    root_dir = _unit(P - P[root])
+    # A forest's trees are linked through their roots (``propagate``): a secondary root (an IK
+    # target, a prop) takes its directions from the main root (the largest tree's), otherwise
+    # every secondary root has zero directions and the left and right IK roots tie.
+    size = np.bincount(root, minlength=J)
+    main = int(np.argmax(size)) if J else 0
+    anchor = np.where(parents >= 0, np.maximum(parents, 0), main)
+    local_dir = _unit(P - P[anchor])
+    root_dir = np.where((parents >= 0)[:, None], _unit(P - P[root]), local_dir)
     children = np.bincount(parents[parents >= 0], minlength=J).astype(np.int64)
     # P_j: mean over the leaves of j's subtree of arc[j] / arc[leaf]
     total = np.zeros(J)

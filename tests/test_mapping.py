@@ -96,6 +96,42 @@ def test_injectivity_bonus_spreads_identical_candidates():
     assert sorted(t[1:]) == [1, 2] and np.allclose(c, 1)
 
 
+def test_secondary_roots_map_by_side():
+    # main tree (root, spine) plus two separate IK roots at +x and -x; the input lists its IK
+    # roots in the other order: each must find the output root on its own side (the paper's
+    # score; the prototype's candidates are the image's ancestors and descendants only)
+    Pout = np.array([[0, 0, 0], [0, 1, 0], [1, -1, 0], [-1, -1, 0]], float)
+    Pin = Pout[[0, 1, 3, 2]]
+    parents = [-1, 0, -1, -1]
+    t, c = propagate(parents, Pin, np.array([0, 1, -1, -1]), parents, Pout)
+    assert t[2] == 3 and t[3] == 2
+    f = skeleton_features(parents, Pout)
+    assert np.allclose(f.local_dir[2], np.array([1, -1, 0]) / np.sqrt(2))
+    assert np.allclose(f.root_dir[3], f.local_dir[3]) and not f.local_dir[0].any()
+
+
+def test_mirrored_horse_ik_roots_keep_their_side():
+    # the mirrored Horse's IK roots (separate trees) used to tie and swap sides: the donor's
+    # foot weights then drove the other leg's IK joint
+    from rigmix.config import Config
+    from rigmix.pipeline import compose
+
+    path = asset("Horse")
+    cfg = Config.model_validate({
+        "name": "mirrored_back_leg",
+        "characters": {"body": {"path": str(path)}, "donor": {"path": str(path), "mirror": True, "scale": 1.0}},
+        "actions": [{"op": "replace", "source": "donor", "source_joint": "BackUpperLeg.L", "target": "body",
+                     "target_joint": "BackUpperLeg.L", "mode": "blend"}],
+    })
+    comp = compose(cfg, until="mapping")
+    names = comp.plan.positioned["donor"].skeleton.names
+    out = comp.skeleton.names
+    bm = comp.maps["donor"]
+    ik = [j for j, n in enumerate(names) if n.startswith(("IK", "FF"))]
+    assert len(ik) == 8
+    assert [out[bm.target[j]] for j in ik] == [names[j] for j in ik]
+
+
 def test_prototype_candidates_are_ancestors_or_descendants():
     # output: root with two branches; input joint 2 hangs below joint 1 which maps to branch A
     Pout = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [-1, 0, 0], [-2, 0, 0]], float)
