@@ -401,10 +401,8 @@ MIRRORED_NOTES = (
     "Diagnosed outliers. Knight arm.L (skinned ~59% for every method): the Knight's rest pose is not "
     "symmetric, and the mirrored right hand lies in the left thigh; the fusion makes junction vertices "
     "on the donor's thumb within half a voxel of the thigh, whose truth is UpperLeg.L. "
-    "Horse back legs (13.4% for nearest and inpaint): the bone mapping sends the mirrored donor's "
-    "IKBackLeg.L (a separate root, the original IKBackLeg.R reflected) to the body's IKBackLeg.R "
-    "(confidence 0.7), so the donor's foot weights go to the other leg's IK joint "
-    "(rigmix.mapping, not the weight stage).")
+    "(Until 2026-11-22 the Horse's back legs were outliers too, 13.4% for nearest and inpaint: the "
+    "bone mapping swapped the sides of the mirrored donor's IK roots; fixed in rigmix.mapping.)")
 
 
 def main(argv=None) -> int:
