@@ -246,7 +246,8 @@ def match_junction(JV, JN, sources, inputs_V, inputs_F, *, diagonal, match_dista
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)
         cos = np.einsum("qk,qk->q", n, JN[rows])
         d = np.asarray(s["distance"])[rows]
-        matched[rows] = ((d <= match_distance * diagonal) & (cos >= cos_max)) | (d <= on_surface * diagonal)
+        on = (d <= on_surface * diagonal) if on_surface > 0 else False
+        matched[rows] = ((d <= match_distance * diagonal) & (cos >= cos_max)) | on
     return matched
 
 

@@ -16,6 +16,7 @@ from rigmix.skin_weights import (
     blend_weights,
     closest_point_weights,
     harmonic_blend_factors,
+    match_junction,
     retarget_weights,
     to_influences,
 )
@@ -102,6 +103,21 @@ def _isolated_junction_case():
         presence=(np.ones(n0),), mesh_of_vertex=np.r_[np.zeros(n0, int), -np.ones(n1, int)], uvs=None,
         normals=None, colors=None, junction_sources=(src,))
     return surf, x, BoneMap("a", np.arange(3), np.ones(3))
+
+
+def test_match_on_surface_ignores_normals_only_when_asked():
+    # one input triangle in z = 0 (normal +z); junction vertices on it (distance 0) and 0.04 above,
+    # all with normal -z (a flipped, remeshed crease): the normal test rejects all of them
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+    F = np.array([[0, 1, 2]])
+    JV = np.array([[0.2, 0.2, 0.0], [0.2, 0.2, 0.04]])
+    JN = np.array([[0, 0, -1.0], [0, 0, -1.0]])
+    src = [{"distance": np.array([0.0, 0.04]), "presence": np.ones(2), "face": np.zeros(2, int)}]
+    args = (JV, JN, src, [V], [F])
+    assert not match_junction(*args, diagonal=1.0, match_angle=90.0).any()  # the anchor, on_surface 0
+    assert match_junction(*args, diagonal=1.0, match_angle=90.0, on_surface=0.02).tolist() == [True, False]
+    JN[:] = [0, 0, 1.0]
+    assert match_junction(*args, diagonal=1.0, match_angle=30.0).all()
 
 
 def _tube(rings=7, m=8):
