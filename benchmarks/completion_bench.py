@@ -30,7 +30,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 sys.path.insert(0, str(ROOT / "tests"))
 
 from rigmix.character import Clip, Track  # noqa: E402
-from rigmix.completion import CompletionOptions, complete_clips  # noqa: E402
+from rigmix.completion import CompletionOptions, complete_clips, completion_provenance  # noqa: E402
 from rigmix.transforms import quat_multiply  # noqa: E402
 
 FPS = 30.0
@@ -135,11 +135,11 @@ def smoothness_figures():
         comp = rigmix.compose(ROOT / config, until="mapping")
         plan = comp.plan
         keys = [(cid, c.name) for cid, ch in comp.inputs.items() for c in ch.clips]
+        prov = completion_provenance(plan)  # what the pipeline's completion stage uses
         out[config] = {}
         for label, opts in RULES:
-            clips = complete_clips(plan.skeleton, comp.inputs, comp.maps, options=opts, provenance=plan.provenance)
-            out[config][label] = tc.acceleration_figures(plan.skeleton, comp.inputs, comp.maps,
-                                                         plan.provenance, clips, keys)
+            clips = complete_clips(plan.skeleton, comp.inputs, comp.maps, options=opts, provenance=prov)
+            out[config][label] = tc.acceleration_figures(plan.skeleton, comp.inputs, comp.maps, prov, clips, keys)
     return out
 
 

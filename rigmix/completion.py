@@ -21,7 +21,11 @@ the rotation term explained there) and :mod:`rigmix.transitions` (frame choice, 
 Choices where the method leaves room (all options of :class:`CompletionOptions`)
 -------------------------------------------------------------------------------
 * Which joints come from which input: the plan's provenance when given, else the joints an
-  input reaches with confidence 1.
+  input reaches with confidence 1. The pipeline's stage drops the target from a replaced
+  limb's fused root when the two rest bones point more than ``rest_mismatch`` (60) degrees
+  apart (:func:`limb_roots_to_complete`): a T-pose arm's walk would swing a hanging leg out.
+  Measured rest angles: beast_arms arms 90 and neck 71, fox_arm 63 (completed); three_characters
+  53 and 55, the centaurs 40 and 51 (kept). beast_arms' junction stretch ratio: 3.43 -> 0.96.
 * Joint weights: prototype hop weights from the merge joint(s) (the joints fused between the
   clip's input and the completing one) times the confidence masses of both sides.
 * Frame choice: the paper takes the best frame per output frame (``jump_penalty=0``); a
@@ -143,6 +147,13 @@ class CompletionOptions:
         centred first, see :func:`keyframe_scores`).
     fixed_frames : tuple of FixedFrame
         User-pinned frame choices.
+    rest_mismatch : float
+        Degrees. A fused joint whose children all come from the source (a replaced limb) and
+        whose target bone points more than this away from the new limb in the rest pose is
+        completed from the source in the target's clips too (:func:`limb_roots_to_complete`):
+        the target's rest-relative rotation of that joint (a T-pose arm lowered by 72 degrees
+        in a walk) would swing the new limb (a hanging leg) the same 72 degrees out of place.
+        180: never.
     """
 
     clips: Mapping[str, Sequence[str]] | None = None
@@ -160,6 +171,7 @@ class CompletionOptions:
     confidence_blend: bool = True
     score_dtype: Literal["float32", "float64"] = "float32"
     fixed_frames: tuple[FixedFrame, ...] = field(default_factory=tuple)
+    rest_mismatch: float = 60.0
 
     def __post_init__(self):
         object.__setattr__(self, "continuity", tuple(float(c) for c in self.continuity))
@@ -464,6 +476,65 @@ def options_from_config(section) -> CompletionOptions:
     return CompletionOptions(**{k: v for k, v in data.items() if v is not None or k in ("clips", "sources")})
 
 
+def _bone_direction(skeleton: Skeleton, j: int):
+    """Unit rest direction from joint ``j`` to the mean of its children (world), or None."""
+    kids = np.flatnonzero(np.asarray(skeleton.parents) == j)
+    if not len(kids):
+        return None
+    P = skeleton.rest_worlds()[:, :3, 3]
+    d = P[kids].mean(axis=0) - P[j]
+    n = float(np.linalg.norm(d))
+    return d / n if n > 1e-12 else None
+
+
+def limb_roots_to_complete(plan, max_angle=60.0):
+    """Fused joints whose target rotation would misplace the new limb in the target's clips.
+
+    A replace fuses the target's joint with the source's subtree root: the output joint keeps
+    the target's place and rest rotation, its children are the source's. The target's clips
+    rotate it by rest-relative deltas, which carry over only where the two rest bones point
+    alike: a humanoid's T-pose arm is lowered by about 72 degrees in its walk, and the same
+    delta swings a quadruped's hanging front leg, put in its place, 72 degrees out (junction
+    stretch 3.4 times the sources'). Such a joint is completed from the source's frames in the
+    target's clips, like the rest of the limb.
+
+    Parameters
+    ----------
+    plan : rigmix.operations.Plan
+    max_angle : float
+        Degrees between the target's rest bone (to the mean of its children, positioned) and
+        the output's; 180 disables.
+
+    Returns
+    -------
+    list of (int, str)
+        ``(output joint, target id)`` pairs: drop the target from the joint's provenance.
+    """
+    S = plan.skeleton
+    parents = np.asarray(S.parents)
+    out = []
+    for p in plan.fused_pairs:
+        kids = np.flatnonzero(parents == p.output)
+        if not len(kids) or any(cid == p.target for k in kids for cid, _ in plan.provenance[k]):
+            continue  # the target keeps children there (an attach): its rotation stays meaningful
+        d_out = _bone_direction(S, p.output)
+        d_tgt = _bone_direction(plan.positioned[p.target].skeleton, p.target_joint)
+        if d_out is None or d_tgt is None:
+            continue
+        if np.degrees(np.arccos(np.clip(float(d_out @ d_tgt), -1.0, 1.0))) > max_angle:
+            out.append((int(p.output), p.target))
+    return out
+
+
+def completion_provenance(plan, rest_mismatch=60.0):
+    """The plan's provenance, less the targets of :func:`limb_roots_to_complete` (what the
+    completion stage passes to :func:`complete_clips`)."""
+    provenance = [list(p) for p in plan.provenance]
+    for o, target in limb_roots_to_complete(plan, rest_mismatch):
+        provenance[o] = [(cid, j) for cid, j in provenance[o] if cid != target]
+    return provenance
+
+
 def completion_stage(composition, progress=None):
     """The animation stage of :func:`rigmix.pipeline.compose`: A_R from the plan and the maps.
 
@@ -487,7 +558,7 @@ def completion_stage(composition, progress=None):
         raise InputError(f"config {source}: [animation]: {e}") from None
     plan = composition.plan
     clips = complete_clips(plan.skeleton, composition.inputs, composition.maps,
-                           options=options, provenance=plan.provenance)
+                           options=options, provenance=completion_provenance(plan, options.rest_mismatch))
     report = {"clips": [c.name for c in clips], "fps": options.fps,
               "frames": [int(len(c.tracks[0].times)) if c.tracks else 0 for c in clips],
               "jump_penalty": options.jump_penalty, "metric": options.metric}

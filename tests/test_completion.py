@@ -564,3 +564,39 @@ def test_a_static_input_leaves_the_clips_own_mapped_pose(fox, caplog):
     _, R, _ = sample_clip(sk, clip, clip_times(clip))
     kids = np.flatnonzero(cut < 0)
     np.testing.assert_allclose(quat_angle(R[:, kids], sk.rotations[kids]), 0.0, atol=1e-7)
+
+
+def test_replaced_limb_root_is_completed_when_the_rest_bones_disagree():
+    """examples/beast_arms.toml: the humanoid's T-pose arms replaced by a quadruped's hanging
+    front legs. The human's walk lowers its arms by about 72 degrees from rest; that delta used
+    to swing the legs 72 degrees out of place. The fused arm roots (and the neck) are now
+    completed from the quadruped's frames in the human's clips, and stay near the legs' own
+    range of motion; an attach (the tail graft's hips) and a disabled threshold change nothing."""
+    import dataclasses
+
+    import rigmix
+    from rigmix.completion import completion_stage, limb_roots_to_complete
+
+    examples = Path(__file__).parent.parent / "examples"
+    comp = rigmix.compose(examples / "beast_arms.toml", until="mapping")
+    S = comp.plan.skeleton
+    found = limb_roots_to_complete(comp.plan)
+    assert sorted(S.names[o] for o, _ in found) == ["Neck", "UpperArm.L", "UpperArm.R"]
+    assert {t for _, t in found} == {"human"}
+    assert limb_roots_to_complete(comp.plan, 180.0) == []
+    tailed = rigmix.compose(examples / "tailed_humanoid.toml", until="mapping")
+    assert limb_roots_to_complete(tailed.plan) == []  # the hips keep the human's children
+
+    def arm_swing(c):
+        clip = next(k for k in c.stages["clips"] if k.name == "human:walk")
+        t = clip_times(clip, 30.0)
+        _, R, _ = sample_clip(S, clip, t)
+        j = S.index("UpperArm.L")
+        rest = np.broadcast_to(quat_normalize(S.rotations[j]), R[:, j].shape)
+        return np.degrees(quat_angle(rest, R[:, j]))  # off the rest rotation, per frame
+
+    new = arm_swing(completion_stage(comp))
+    old_cfg = comp.config.model_copy(update={"animation": {"rest_mismatch": 180.0}})
+    old = arm_swing(completion_stage(dataclasses.replace(comp, config=old_cfg)))
+    assert old.min() > 60.0, old.min()  # the human's lowered T-pose arm on the hanging leg
+    assert new.max() < 45.0, new.max()  # the quadruped's own walk swing
