@@ -463,8 +463,8 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
         Blend factors of the inputs' closest-point weights at junction vertices: ``"paper"``
         (``presence / distance``, :func:`closest_point_weights`) or ``"harmonic"``
         (:func:`harmonic_blend_factors`). Default ``"harmonic"`` for ``dfd``, ``"paper"`` for
-        the others. Measured (feature field off, Horse+Knight centaur / tail graft stretch
-        ratio): paper 2.06 / 1.17, harmonic 1.17 / 0.99; on the mirrored self-compositions
+        the others. Measured (defaults otherwise; Horse+Knight centaur / tail graft stretch
+        ratio): paper 2.14 / 1.17, harmonic 1.18 / 0.99; on the mirrored self-compositions
         the harmonic factors lower the junction weight error where the paper's factors jump
         (Velociraptor leg.L 0.034 -> 0.0002, skinned 2.3% -> 0.02% of the diagonal).
     match_on_surface : float, optional
