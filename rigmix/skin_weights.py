@@ -142,7 +142,7 @@ def retarget_weights(W, target, num_output_joints, *, confidence=None):
     return Wr, np.clip(c, 0.0, 1.0)
 
 
-def closest_point_weights(sources, retargeted, faces, *, tolerance, return_spread=False):
+def closest_point_weights(sources, retargeted, faces, *, tolerance, return_parts=False):
     """The paper's junction weights: closest points of the inputs, blended.
 
     Parameters
@@ -165,14 +165,9 @@ def closest_point_weights(sources, retargeted, faces, *, tolerance, return_sprea
         ``w_i`` the barycentric interpolation of the retargeted weights at the closest point.
     t : (q, I) float64
         The normalized blend factors.
-    spread : (q,) float64
-        Only with ``return_spread``: ``sum_i t_i |w_i - W|_1``, how much the blended inputs
-        disagree (0 where one input decides or where they agree, as in a self-composition).
     parts : (I, q, J_R) float64
-        Only with ``return_spread``: the ``w_i``, to blend again with other factors.
+        Only with ``return_parts``: the ``w_i``, to blend with other factors (:func:`_blend`).
     """
-    q = len(sources[0]["face"]) if sources else 0
-    J = retargeted[0].shape[1]
     D = np.stack([np.asarray(s["distance"], np.float64) for s in sources], axis=1)  # (q, I)
     P = np.stack([np.asarray(s["presence"], np.float64) for s in sources], axis=1)
     near = D <= D.min(axis=1, keepdims=True) + tolerance
@@ -181,18 +176,21 @@ def closest_point_weights(sources, retargeted, faces, *, tolerance, return_sprea
     none = t.sum(axis=1) <= 0  # no near input is present there: the closest one decides
     t[none] = np.where(near[none], 1.0 / (D[none] + eps), 0.0)
     t /= t.sum(axis=1, keepdims=True)
-    out = np.zeros((q, J))
-    parts = []
-    for i, s in enumerate(sources):
-        T = np.asarray(faces[i], np.int64)[np.asarray(s["face"], np.int64)]  # (q, 3)
-        wi = np.einsum("qk,qkj->qj", np.asarray(s["bary"], np.float64), retargeted[i][T])
-        out += t[:, i:i + 1] * wi
-        if return_spread:
-            parts.append(wi)
-    if not return_spread:
-        return out, t
-    spread = sum(t[:, i] * np.abs(w - out).sum(axis=1) for i, w in enumerate(parts))
-    return out, t, spread, np.stack(parts)
+    parts = np.stack([
+        np.einsum("qk,qkj->qj", np.asarray(s["bary"], np.float64),
+                  retargeted[i][np.asarray(faces[i], np.int64)[np.asarray(s["face"], np.int64)]])
+        for i, s in enumerate(sources)])
+    out, _ = _blend(t, parts)
+    return (out, t, parts) if return_parts else (out, t)
+
+
+def _blend(t, parts):
+    """``W = sum_i t_i w_i`` ``(q, J)`` and its spread ``sum_i t_i |w_i - W|_1`` ``(q,)``: how
+    much the blended inputs disagree (0 where one input decides or where they agree, as in a
+    self-composition). ``t`` (q, I), ``parts`` (I, q, J)."""
+    W = np.einsum("qi,iqj->qj", t, parts)
+    spread = np.einsum("qi,iq->q", t, np.abs(parts - W[None]).sum(axis=2))
+    return W, spread
 
 
 def match_junction(JV, JN, sources, inputs_V, inputs_F, *, diagonal, match_distance=0.05, match_angle=30.0,
@@ -354,29 +352,23 @@ def harmonic_blend_factors(V, F, T, free):
     k = len(Vw)
     fixed_w = np.zeros(k, bool)
     fixed_w[index[~free]] = True
+    # fixed welded rows: the mean of their fixed split rows; every other welded row is 0
     Tw = np.zeros((k, T.shape[1]))
-    cnt = np.zeros(k)
     np.add.at(Tw, index[~free], T[~free])
-    np.add.at(cnt, index[~free], 1.0)
-    Tw[fixed_w] /= cnt[fixed_w, None]
+    Tw[fixed_w] /= np.bincount(index[~free], minlength=k)[fixed_w, None]
     A = (G > 0).astype(np.float64)
     L = (sp.diags(np.asarray(A.sum(axis=1)).ravel()) - A).tocsr()
     _, comp = connected_components(A, directed=False)
     anchored = np.zeros(comp.max() + 1, bool)
     anchored[comp[fixed_w]] = True
-    solve = ~fixed_w & anchored[comp]
-    used = np.zeros(k, bool)
-    used[index[free]] = True
-    solve &= used
-    s, kn = np.flatnonzero(solve), np.flatnonzero(~solve)
+    s = np.flatnonzero(~fixed_w & anchored[comp])  # a free component without a fixed vertex is singular
     if len(s):
-        Tk = np.zeros((k, T.shape[1]))
-        Tk[fixed_w] = Tw[fixed_w]
-        rhs = -(L[s][:, kn] @ Tk[kn])
-        x = splu(L[s][:, s].tocsc()).solve(np.ascontiguousarray(rhs))
+        x = splu(L[s][:, s].tocsc()).solve(np.ascontiguousarray(-(L[s] @ Tw)))
         x = np.clip(x, 0.0, None)
         x /= np.maximum(x.sum(axis=1, keepdims=True), 1e-300)
-        rows = free & solve[index]
+        solved = np.zeros(k, bool)
+        solved[s] = True
+        rows = free & solved[index]
         T[rows] = x[np.searchsorted(s, index[rows])]
     return T
 
@@ -483,7 +475,7 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
     locality_power : float
     smoothing : int
         Iterations of ``w <- 0.5 w + 0.5 mean(neighbours)`` after the fill on the junction
-        vertices where the blended inputs disagree (``spread`` of :func:`closest_point_weights`
+        vertices where the blended inputs disagree (``spread`` of :func:`_blend`
         above ``seam_spread``, grown by ``seam_rings`` rings within the junction; preserved
         vertices fixed). Default 0 for every method. Until the harmonic blend factors, ``dfd``
         used 30 iterations to bring the centaur's stretch ratio from 1.93 to 1.21; it overwrote
@@ -553,15 +545,14 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
     low = np.zeros(N, bool)
     if len(jrows):
         srcs = surface.junction_sources
-        Wn, t, spread, parts = closest_point_weights(srcs, retargeted, [x.F for x in inputs],
-                                                     tolerance=match_distance * diag, return_spread=True)
+        _, t, parts = closest_point_weights(srcs, retargeted, [x.F for x in inputs],
+                                            tolerance=match_distance * diag, return_parts=True)
         if blend == "harmonic":
             T = np.zeros((N, len(inputs)))
             T[pres, surface.origin_input[pres]] = 1.0
             T[jrows] = t
             t = harmonic_blend_factors(surface.V, surface.F, T, junction)[jrows]
-            Wn = np.einsum("qi,iqj->qj", t, parts)
-            spread = sum(t[:, i] * np.abs(w - Wn).sum(axis=1) for i, w in enumerate(parts))
+        Wn, spread = _blend(t, parts)
         cj = np.zeros(len(jrows))
         for i, s in enumerate(srcs):
             T = np.asarray(inputs[i].F, np.int64)[np.asarray(s["face"], np.int64)]

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, asset
+from rigmix.errors import InputError
 from rigmix.fusion import FusedSurface, FusionInput
 from rigmix.mapping import BoneMap
 from rigmix.skin_weights import (
@@ -398,6 +399,6 @@ def test_mirrored_limb_harmonic_blend_keeps_the_artists_weights():
     assert figs["dfd"]["measured_vertices"] > 50
     assert err["dfd"] < 0.005 and err["nearest"] > 0.02 and err["dfd_paper"] > 0.02, err
     assert figs["dfd"]["skinned_error_max"] < 0.005 < figs["nearest"]["skinned_error_max"], figs
-    with pytest.raises(Exception, match="unknown blend"):
+    with pytest.raises(InputError, match="unknown blend"):
         blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
                       comp.skeleton.num_joints, method="dfd", blend="smooth")
