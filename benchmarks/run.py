@@ -5,7 +5,8 @@ Each benchmark is a module ``benchmarks/<name>.py`` with a ``main()`` that write
 failing does not stop the others), then concatenates their Markdown tables into
 ``benchmarks/results/SUMMARY.md``.
 
-Usage: ``python -m benchmarks.run [NAME ...]`` (default: all).
+Usage: ``python -m benchmarks.run [NAME ...]`` (default: all). Naming some re-runs those and
+keeps the others' last status in ``run.json`` and their last results in the summary.
 """
 
 from __future__ import annotations
@@ -40,15 +41,20 @@ def main(argv=None) -> int:
             traceback.print_exc()
             status[name] = {"status": "failed", "error": f"{type(exc).__name__}: {exc}",
                             "seconds": round(time.perf_counter() - t0, 2)}
+    # a partial run (names given) updates its entries; the summary always covers every benchmark
+    previous = RESULTS / "run.json"
+    merged = json.loads(previous.read_text()) if previous.exists() else {}
+    merged.update(status)
+    merged = {n: merged[n] for n in sorted(merged) if n in discover()}
     lines = ["# rigmix benchmarks", "",
              "| benchmark | status | seconds |", "|---|---|---:|"]
-    lines += [f"| {n} | {s['status']} | {s['seconds']} |" for n, s in status.items()]
-    for name in names:
+    lines += [f"| {n} | {s['status']} | {s['seconds']} |" for n, s in merged.items()]
+    for name in merged:
         md = RESULTS / f"{name}.md"
         if md.exists():
             lines += ["", f"## {name}", "", md.read_text().strip()]
     (RESULTS / "SUMMARY.md").write_text("\n".join(lines) + "\n")
-    (RESULTS / "run.json").write_text(json.dumps(status, indent=2) + "\n")
+    (RESULTS / "run.json").write_text(json.dumps(merged, indent=2) + "\n")
     print(f"wrote {RESULTS / 'SUMMARY.md'}")
     return 0 if all(s["status"] == "ok" for s in status.values()) else 1
 

@@ -82,6 +82,84 @@ def test_flips_raise_the_minimum_angle_and_keep_the_border():
     assert triangle_min_angles(V2, G).min() >= triangle_min_angles(V2, F2).min()
 
 
+def _square_with_a_long_border_edge(lift=0.0):
+    """A 4 x 4 square in z = 0: its bottom side one border edge of length 4, the other sides
+    of edges of length 1, free vertices on the unit grid inside and, crowded against the long
+    edge, three more at height y = 0.25 (lifted by ``lift`` in z). Returns ``V, F, nfixed``:
+    the 13 border vertices come first (Delaunay triangles, counter-clockwise)."""
+    from scipy.spatial import Delaunay
+
+    border = [(0, 0), (4, 0)] + [(4, y) for y in (1, 2, 3, 4)] + [(x, 4) for x in (3, 2, 1, 0)] + [(0, y) for y in (3, 2, 1)]
+    inner = [(x, y) for y in (1, 2, 3) for x in (1, 2, 3)] + [(1, 0.25), (2, 0.25), (3, 0.25)]
+    P = np.array(border + inner, float)
+    F = Delaunay(P).simplices
+    a, b = P[F[:, 1]] - P[F[:, 0]], P[F[:, 2]] - P[F[:, 0]]
+    cross = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    F[cross < 0] = F[cross < 0][:, [0, 2, 1]]
+    V = np.c_[P, np.zeros(len(P))]
+    V[-3:, 2] = lift
+    return V, F.astype(np.int64), len(border)
+
+
+def test_collapses_give_the_triangles_beside_a_long_border_edge_room():
+    """Free vertices crowded against a long seam edge make flat caps that flips cannot repair;
+    collapsing them into a neighbour does, with the border, the fixed vertices, the
+    orientation and (flat here) the surface unchanged."""
+    import igl
+
+    from rigmix.fusion.remesh import collapse_to_improve_angles, is_edge_manifold
+
+    V, F, nb = _square_with_a_long_border_edge()
+    F = flip_to_improve_angles(V, F)
+    assert triangle_min_angles(V, F).min() < 10.0  # the caps on the long edge
+    U, G = collapse_to_improve_angles(V, F, nb, max_deviation=1e-6)
+    assert len(U) < len(V)
+    assert triangle_min_angles(U, G).min() >= 20.0
+    assert np.array_equal(U[:nb], V[:nb])
+    assert {tuple(e) for e in boundary_halfedges(G)} == {tuple(e) for e in boundary_halfedges(F)}
+    assert is_edge_manifold(G)
+    n = np.cross(U[G[:, 1]] - U[G[:, 0]], U[G[:, 2]] - U[G[:, 0]])
+    assert np.all(n[:, 2] > 0)
+    assert np.isclose(igl.doublearea(U, G).sum(), igl.doublearea(V, F).sum())
+
+
+def test_collapses_never_change_the_shape_beyond_the_tolerance():
+    """The same crowded vertices standing 0.3 out of the plane are shape, not noise: with a
+    tolerance of 0.01 none of them goes."""
+    from rigmix.fusion.remesh import collapse_to_improve_angles
+
+    V, F, nb = _square_with_a_long_border_edge(lift=0.3)
+    F = flip_to_improve_angles(V, F)
+    U, G = collapse_to_improve_angles(V, F, nb, max_deviation=0.01)
+    for x in V[-3:]:
+        assert np.min(np.linalg.norm(U - x, axis=1)) == 0.0
+    _, G1 = collapse_to_improve_angles(V, F, nb, max_deviation=1.0)
+    assert len(G1) < len(G)  # a loose tolerance lets them go
+
+
+def test_collapses_never_create_a_forbidden_edge():
+    """An edge the preserved faces already have must not appear in the junction too: with
+    every edge the mesh does not have forbidden, collapses still go where they create none,
+    and the result has no forbidden edge (unconstrained, it has some)."""
+    from itertools import combinations
+
+    from rigmix.fusion.remesh import collapse_to_improve_angles
+
+    V, F, nb = _square_with_a_long_border_edge()
+    F = flip_to_improve_angles(V, F)
+    existing = {tuple(int(x) for x in e) for e in edge_counts(F)[0]}
+    forbidden = np.array([e for e in combinations(range(len(V)), 2) if e not in existing])
+    banned = {tuple(e) for e in forbidden.tolist()}
+
+    def created(U, G):
+        back = np.array([int(np.flatnonzero(np.all(V == x, axis=1))[0]) for x in U])  # kept vertices do not move
+        return {tuple(sorted(int(x) for x in back[e])) for e in edge_counts(G)[0]} & banned
+
+    U, G = collapse_to_improve_angles(V, F, nb, max_deviation=1e-6, forbidden=forbidden)
+    assert not created(U, G)
+    U1, G1 = collapse_to_improve_angles(V, F, nb, max_deviation=1e-6)
+    assert created(U1, G1)
+
 def test_remeshing_keeps_the_corners_it_would_chord_off():
     """A fine cap with a sharp bump, remeshed at a coarse edge length: plain remeshing flattens
     the bump; keeping what strays beyond the tolerance (the bump's tip) brings most of it back

@@ -17,6 +17,7 @@ from rigmix.geometry import bounding_box_diagonal
 CASES = {
     "CesiumMan": "Skeleton_arm_joint_R",
     "Fox": "b_Neck_04",           # flat-shaded: every face split, centimetre-like units
+    "Horse": "Tail1",             # low-poly tail root: long seam edges beside the junction
     "Wasp": "Abdomen",            # 13 parts after welding, NaN weights repaired on load
 }
 
@@ -124,6 +125,36 @@ def test_fidelity_refinement_recovers_what_remeshing_chords_off():
     m = refined.report["mesh"]
     assert m["junction_boundary_edges"] == 0 and m["new_non_manifold_edges"] == 0
     assert m["junction_min_angle_p05"] >= 20.0
+
+
+def test_collapses_let_the_junction_keep_the_shape_of_a_low_poly_tail():
+    """The Horse's tail root: its preserved faces leave seam edges up to five target edges long,
+    and the remeshed strip beside them is flat caps (p05 of the minimum angle 19 degrees with
+    the shape kept). Without collapsing the crowded vertices the fusion falls back to the
+    plain remeshing and its rounded-off root, 1.3% of the diagonal from the original; with
+    them it keeps the shape and the triangles."""
+    import igl
+
+    from rigmix.fusion import FusionParams
+    from rigmix.io import load_character
+
+    c = load_character(asset("Horse"))
+    sub = c.skeleton.subtree(c.skeleton.index("Tail1"))
+    a, b = fusion_input(c, ~sub), fusion_input(c, sub)
+    diag = bounding_box_diagonal(a.V)
+
+    def hausdorff(out):
+        d_out = np.sqrt(igl.point_mesh_squared_distance(out.V, a.V, a.F)[0]).max()
+        d_in = np.sqrt(igl.point_mesh_squared_distance(a.V, out.V, out.F)[0]).max()
+        return max(d_out, d_in) / diag
+
+    without = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=FusionParams(collapse_poor=False))
+    out = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)])
+    assert without.report["fields"]["grids"][0]["fidelity"] is False
+    assert hausdorff(without) > 0.005
+    assert out.report["fields"]["grids"][0]["fidelity"] is True
+    assert hausdorff(out) <= 0.005
+    assert out.report["mesh"]["junction_min_angle_p05"] >= 20.0
 
 
 def test_knight_leg_junction_is_remeshed_and_manifold():

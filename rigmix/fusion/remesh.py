@@ -10,7 +10,7 @@ from .meshutil import corner_angles, edge_counts, nondegenerate, triangle_corner
 
 log = logging.getLogger(__name__)
 
-__all__ = ["is_edge_manifold", "remesh_junction", "smooth_interior"]
+__all__ = ["collapse_to_improve_angles", "is_edge_manifold", "remesh_junction", "smooth_interior"]
 
 
 def is_edge_manifold(F):
@@ -73,6 +73,129 @@ def remesh_junction(V, F, fixed, *, target, iterations=5):
     G = np.asarray(G, dtype=np.int64)
     U[: len(fixed)] = np.asarray(V, dtype=np.float64)[fixed]  # bit-exact border
     return U, G[nondegenerate(G)]
+
+
+def collapse_to_improve_angles(V, F, nfixed, *, max_deviation, threshold=20.0, passes=6, min_normal_dot=0.5,
+                               forbidden=None):
+    """Collapse free vertices of poor triangles into a neighbour where it raises the worst angle.
+
+    A uniform target edge cannot meet a seam edge several times longer (a low-poly input's
+    preserved face): the remesher fills the strip beside it with flat caps that no flip or
+    move repairs, because the vertices are too many for the room. Removing one lets the
+    neighbours form taller triangles. For each triangle below ``threshold`` degrees (worst
+    first), each of its edges ``(v, u)`` with ``v`` free is a candidate: ``v`` goes onto ``u``;
+    the best candidate is applied if the smallest angle of ``v``'s triangles rises, no triangle
+    folds (normals within ``min_normal_dot`` of the old ones) or degenerates, the link
+    condition holds (the surface stays a manifold) and ``v``'s old position lies within
+    ``max_deviation`` of the new triangles (the surface keeps its shape).
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+    F : (m, 3) int array
+        Edge-manifold, consistently oriented; border vertices among the fixed ones.
+    nfixed : int
+        ``V[:nfixed]`` never move nor go.
+    max_deviation : float
+        Same unit as ``V``.
+    forbidden : (k, 2) int array, optional
+        Edges no collapse may create (they exist in the preserved faces around the junction).
+
+    Returns
+    -------
+    U : (p, 3) float64, G : (q, 3) int64
+        ``U[:nfixed] == V[:nfixed]``; removed vertices are dropped (the order kept).
+    """
+    import igl
+
+    V = np.asarray(V, dtype=np.float64)
+    G = np.asarray(F, dtype=np.int64).copy()
+    if len(G) == 0:
+        return V.copy(), G
+    alive = np.ones(len(G), bool)
+    VF = [set() for _ in range(len(V))]
+    for f, tri in enumerate(G):
+        for v in tri:
+            VF[v].add(f)
+    thr = np.radians(threshold)
+    banned = set()
+    if forbidden is not None:
+        banned = {(min(int(a), int(b)), max(int(a), int(b))) for a, b in np.asarray(forbidden).reshape(-1, 2)}
+
+    def normals(T):
+        n = np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]])
+        ln = np.linalg.norm(n, axis=1)
+        return n / np.maximum(ln, 1e-300)[:, None], ln
+
+    def try_collapse(v, u):
+        """(gain, new faces by id) or None."""
+        rv, ru = VF[v], VF[u]
+        shared = rv & ru
+        if len(shared) != 2:
+            return None
+        nv = {int(x) for f in rv for x in G[f]} - {v}
+        nu = {int(x) for f in ru for x in G[f]} - {u}
+        opposite = {int(x) for f in shared for x in G[f]} - {u, v}
+        if nv & nu != opposite:
+            return None  # link condition: the collapse would pinch the surface
+        if banned and any((min(u, x), max(u, x)) in banned for x in nv - {u}):
+            return None
+        moved = sorted(rv - shared)
+        T = G[moved].copy()
+        T[T == v] = u
+        n0, _ = normals(G[moved])
+        n1, l1 = normals(T)
+        if np.any(l1 <= 0) or np.any(np.einsum("ij,ij->i", n0, n1) < min_normal_dot):
+            return None
+        # only v's triangles change (or go); the rest of u's ring keeps its angles
+        before = corner_angles(V, G[sorted(rv)]).min()
+        after = corner_angles(V, T).min()
+        if after <= before + 1e-9:
+            return None
+        d2 = igl.point_mesh_squared_distance(V[v][None], V, T)[0]
+        if np.sqrt(d2.min()) > max_deviation:
+            return None
+        return after - before, moved, T, shared
+
+    for _ in range(passes):
+        ang = triangle_corner_angles(V[G]).min(axis=1)
+        order = np.flatnonzero(alive & (ang < thr))
+        order = order[np.argsort(ang[order])]
+        applied = 0
+        for f in order:
+            if not alive[f] or corner_angles(V, G[f][None]).min() >= thr:
+                continue
+            tri = [int(x) for x in G[f]]
+            best = None
+            for v in tri:
+                if v < nfixed:
+                    continue
+                for u in tri:
+                    if u == v:
+                        continue
+                    r = try_collapse(v, u)
+                    if r is not None and (best is None or r[0] > best[1][0]):
+                        best = ((v, u), r)
+            if best is None:
+                continue
+            (v, u), (_, moved, T, shared) = best
+            for g in shared:
+                alive[g] = False
+                for x in G[g]:
+                    VF[x].discard(g)
+            G[moved] = T
+            for g in moved:
+                VF[u].add(g)
+            VF[v] = set()
+            applied += 1
+        if applied == 0:
+            break
+    G = G[alive]
+    used = np.zeros(len(V), bool)
+    used[:nfixed] = True
+    used[G.ravel()] = True
+    new = np.cumsum(used) - 1
+    return V[used].copy(), new[G]
 
 
 def smooth_interior(V, F, fixed, *, iterations=3, lam=0.5, mu=-0.53):

@@ -23,6 +23,7 @@ from .junction import (
     remove_unreferenced,
 )
 from .remesh import (
+    collapse_to_improve_angles,
     flip_to_improve_angles,
     insert_points,
     is_edge_manifold,
@@ -255,7 +256,7 @@ def _remesh_keeping_features(V, F, fixed, target, iterations, tol, rounds, point
     points = np.zeros((0, 3)) if points is None else np.asarray(points, np.float64).reshape(-1, 3)
 
     def add_points(V, F, keep, X, dX):
-        X = X[_spread(X, dX, 0.5 * target, avoid=V[keep], avoid_spacing=0.25 * target)]
+        X = X[_spread(X, dX, 0.5 * target, avoid=V[keep], avoid_spacing=0.15 * target)]
         if len(X) == 0:
             return V, F, keep
         V, F, placed = insert_points(V, F, np.isin(np.arange(len(V)), fixed), X,
@@ -403,6 +404,7 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
         tol = params.fidelity_voxels * h
         if diagonal > 0 and params.fidelity_diagonal > 0:
             tol = min(tol, params.fidelity_diagonal * diagonal)
+        deviation = tol  # what a collapse may change of the shape, on either path
         fid_to_final = {int(old[v] - nI): k for k, v in enumerate(fx)}
         forb = _preserved_edges_between(pres, preserved, keys, fid_to_final)
         def finish(tol):
@@ -415,6 +417,11 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
             G = flip_to_improve_angles(U, G, forbidden=forb)
             U = relocate_poor_vertices(U, G, nfix, surface=(RV, RF))
             G = flip_to_improve_angles(U, G, forbidden=forb)
+            if params.collapse_poor:
+                U, G = collapse_to_improve_angles(U, G, nfix, max_deviation=deviation, forbidden=forb)
+                G = flip_to_improve_angles(U, G, forbidden=forb)
+                U = relocate_poor_vertices(U, G, nfix, surface=(RV, RF))
+                G = flip_to_improve_angles(U, G, forbidden=forb)
             if len(targets):
                 U = snap_to_points(U, G, nfix, targets, max_dist=0.5 * target)
                 G = flip_to_improve_angles(U, G, forbidden=forb)
