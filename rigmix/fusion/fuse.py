@@ -141,9 +141,10 @@ class FusionParams:
     collapse_poor : free junction vertices of triangles under 20 degrees are collapsed into a
         neighbour where that raises the angles and moves the surface less than the fidelity
         tolerance (:func:`.remesh.collapse_to_improve_angles`). A uniform target edge cannot
-        meet the long seam edges of low-poly preserved faces; without this the shape-keeping
-        path lost to the plain one on 11 of the 37 limb self-compositions (Hausdorff up to
-        2.2% of the diagonal), with it on 1 (Hausdorff <= 0.5% on 36 of 37).
+        meet the long seam edges of low-poly preserved faces (up to 8 target edges): without
+        this the shape-keeping path fell back to the plain one on 13 of the 37 limb
+        self-compositions, 11 of them more than 0.5% of the diagonal off (up to 2.2%); with
+        it on 3, one of them off (RiggedFigure's right arm).
     min_island_faces : preserved parts bordering a junction with fewer faces join it (specks
         left by the presence pattern have no isosurface hole to meet).
     backend : "numpy" (numpy + libigl) or "openvdb".
