@@ -157,6 +157,40 @@ def test_collapses_let_the_junction_keep_the_shape_of_a_low_poly_tail():
     assert out.report["mesh"]["junction_min_angle_p05"] >= 20.0
 
 
+def test_a_looser_fidelity_tolerance_is_tried_before_none():
+    """RiggedFigure's right arm (a box figure, faces 7% of the diagonal): at the default
+    tolerance the shape-keeping junction misses 20 degrees at p05; without a looser try the
+    fusion falls back to the plain remeshing, 2.2% of the diagonal off at a shoulder corner.
+    Four times the tolerance keeps the corners and the triangles."""
+    import igl
+
+    from rigmix.fusion import FusionParams
+    from rigmix.io import load_character
+
+    c = load_character(asset("RiggedFigure"))
+    sub = c.skeleton.subtree(c.skeleton.index("arm_joint_R_1"))
+    a, b = fusion_input(c, ~sub), fusion_input(c, sub)
+    diag = bounding_box_diagonal(a.V)
+
+    def hausdorff(out):
+        d_out = np.sqrt(igl.point_mesh_squared_distance(out.V, a.V, a.F)[0]).max()
+        d_in = np.sqrt(igl.point_mesh_squared_distance(a.V, out.V, out.F)[0]).max()
+        return max(d_out, d_in) / diag
+
+    strict = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=FusionParams(fidelity_relax=()))
+    out = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)])
+    assert strict.report["fields"]["grids"][0]["fidelity"] is False
+    assert hausdorff(strict) > 0.005
+    grid = out.report["fields"]["grids"][0]
+    assert grid["fidelity"] is True
+    assert grid["fidelity_tolerance"] > 0.0025 * diag  # looser than the default
+    assert grid["plain_deviation"] > grid["fidelity_tolerance"]  # the plain remeshing lost more
+    assert hausdorff(out) <= 0.005
+    m = out.report["mesh"]
+    assert m["junction_min_angle_p05"] >= 20.0
+    assert m["junction_boundary_edges"] == 0 and m["new_non_manifold_edges"] == 0
+
+
 def test_knight_leg_junction_is_remeshed_and_manifold():
     """Marching cubes emitted a triangle and its reverse on the Knight's hip (grid points on a
     planar face): four faces on one edge, the junction left unremeshed with 2-degree slivers."""

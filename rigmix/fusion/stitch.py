@@ -439,14 +439,30 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
                 corners = _input_vertices_on_surface(replaced, pres, surfaces, inputs_fields, actions, band, 0.1 * h)
             U, G, nfeat = finish(tol)
             info["fidelity"] = bool(tol > 0)
+            info["fidelity_tolerance"] = float(tol)
             if tol > 0 and _angle_p05(U, G) < params.min_angle_p05:
                 # fidelity never at the price of slivers: the features stand only while the
                 # junction's 5th-percentile minimum angle stays at the acceptance level, or
-                # is no worse than the plain remeshing's
+                # is no worse than the plain remeshing's. Where the plain remeshing loses
+                # more of the shape than a looser tolerance allows, that looser tolerance
+                # (fewer kept features) is tried first.
                 U0, G0, _ = finish(0.0)
-                if _angle_p05(U0, G0) > _angle_p05(U, G):
+                reference = JV
+                lost = np.sqrt(igl.point_mesh_squared_distance(reference, U0, G0)[0]).max()
+                info["plain_deviation"] = float(lost)
+                chosen = False
+                for loose in [tol * f for f in params.fidelity_relax]:
+                    if lost <= loose:
+                        break
+                    U1, G1, n1 = finish(loose)
+                    if _angle_p05(U1, G1) >= params.min_angle_p05:
+                        U, G, nfeat, chosen = U1, G1, n1, True
+                        info["fidelity_tolerance"] = float(loose)
+                        break
+                if not chosen and _angle_p05(U0, G0) > _angle_p05(U, G):
                     U, G, nfeat = U0, G0, 0
                     info["fidelity"] = False
+                    info["fidelity_tolerance"] = 0.0
             info["feature_vertices"] = int(nfeat)
             fkeys = [fixed_keys[int(old[v] - nI)] for v in fx]
             JV, JF = U, G
