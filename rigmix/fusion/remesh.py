@@ -128,7 +128,8 @@ def collapse_to_improve_angles(V, F, nfixed, *, max_deviation, threshold=20.0, p
         return n / np.maximum(ln, 1e-300)[:, None], ln
 
     def try_collapse(v, u):
-        """(gain, new faces by id) or None."""
+        """``(gain, ids of v's surviving faces, their corners after the collapse, ids of the two
+        faces that go)``, or None when the collapse is refused."""
         rv, ru = VF[v], VF[u]
         shared = rv & ru
         if len(shared) != 2:

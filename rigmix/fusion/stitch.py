@@ -447,8 +447,7 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
                 # more of the shape than a looser tolerance allows, that looser tolerance
                 # (fewer kept features) is tried first.
                 U0, G0, _ = finish(0.0)
-                reference = JV
-                lost = np.sqrt(igl.point_mesh_squared_distance(reference, U0, G0)[0]).max()
+                lost = np.sqrt(igl.point_mesh_squared_distance(JV, U0, G0)[0]).max()  # JV: the reference
                 info["plain_deviation"] = float(lost)
                 chosen = False
                 for loose in [tol * f for f in params.fidelity_relax]:
