@@ -191,6 +191,30 @@ def test_a_looser_fidelity_tolerance_is_tried_before_none():
     assert m["junction_boundary_edges"] == 0 and m["new_non_manifold_edges"] == 0
 
 
+def test_the_looser_tolerance_never_costs_the_junction_its_triangles():
+    """The Horse + Knight centaur: its plain junction strays 1.7% of the diagonal from the
+    isosurface, but the looser shape-keeping retry would pin it with features down to p05 20
+    (from 28): it stays plain. Allowed any loss, the retry is taken, with worse triangles."""
+    from rigmix.config import load_config
+    from rigmix.fusion import FusionParams
+    from rigmix.fusion.inputs import fusion_inputs_from_plan
+    from rigmix.pipeline import compose
+
+    from conftest import ROOT
+
+    comp = compose(load_config(ROOT / "tests" / "configs" / "centaur.toml"), until="mapping")
+    inputs, actions, _ = fusion_inputs_from_plan(comp.plan)
+    out = fuse_surfaces(inputs, actions)
+    grid = out.report["fields"]["grids"][0]
+    assert grid["fidelity"] is False and grid["fidelity_tolerance"] == 0.0
+    assert grid["plain_deviation"] > 4 * 0.0025 * bounding_box_diagonal(out.V)  # the retry was considered
+    p05 = out.report["mesh"]["junction_min_angle_p05"]
+    assert p05 >= 25.0
+    loose = fuse_surfaces(inputs, actions, params=FusionParams(relax_max_angle_loss=90.0))
+    assert loose.report["fields"]["grids"][0]["fidelity"] is True
+    assert 20.0 <= loose.report["mesh"]["junction_min_angle_p05"] < p05 - 5.0
+
+
 def test_knight_leg_junction_is_remeshed_and_manifold():
     """Marching cubes emitted a triangle and its reverse on the Knight's hip (grid points on a
     planar face): four faces on one edge, the junction left unremeshed with 2-degree slivers."""

@@ -445,7 +445,7 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
                 # junction's 5th-percentile minimum angle stays at the acceptance level, or
                 # is no worse than the plain remeshing's. Where the plain remeshing loses
                 # more of the shape than a looser tolerance allows, that looser tolerance
-                # (fewer kept features) is tried first.
+                # (fewer kept features) is tried first; keeping less, it may cost little.
                 U0, G0, _ = finish(0.0)
                 lost = np.sqrt(igl.point_mesh_squared_distance(JV, U0, G0)[0]).max()  # JV: the reference
                 info["plain_deviation"] = float(lost)
@@ -454,7 +454,8 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
                     if lost <= loose:
                         break
                     U1, G1, n1 = finish(loose)
-                    if _angle_p05(U1, G1) >= params.min_angle_p05:
+                    a1 = _angle_p05(U1, G1)
+                    if a1 >= params.min_angle_p05 and a1 >= _angle_p05(U0, G0) - params.relax_max_angle_loss:
                         U, G, nfeat, chosen = U1, G1, n1, True
                         info["fidelity_tolerance"] = float(loose)
                         break
