@@ -324,10 +324,16 @@ def _cap_memory():
 
 
 def run_isolated(fn, *args) -> dict:
-    """``fn(*args)`` (a case) in a child process: a native abort fails this case only."""
+    """``fn(*args)`` (a case) in a child process: a native abort fails this case only.
+
+    The child comes from a fork server, not a fork of this process: forking a process whose
+    BLAS or torch threads hold a lock left a child waiting on it forever (seen once in a
+    Velociraptor case)."""
+    import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
-    with ProcessPoolExecutor(max_workers=1, initializer=_cap_memory) as pool:
+    context = multiprocessing.get_context("forkserver")
+    with ProcessPoolExecutor(max_workers=1, initializer=_cap_memory, mp_context=context) as pool:
         return pool.submit(fn, *args).result()
 
 
