@@ -160,7 +160,7 @@ def test_collapses_let_the_junction_keep_the_shape_of_a_low_poly_tail():
 def test_a_looser_fidelity_tolerance_is_tried_before_none():
     """RiggedFigure's right arm (a box figure, faces 7% of the diagonal): at the default
     tolerance the shape-keeping junction misses 20 degrees at p05; without a looser try the
-    fusion falls back to the plain remeshing, 2.2% of the diagonal off at a shoulder corner.
+    fusion falls back to the plain remeshing, 2.2% of the diagonal off at a box corner.
     Four times the tolerance keeps the corners and the triangles."""
     import igl
 

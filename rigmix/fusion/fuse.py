@@ -140,7 +140,7 @@ class FusionParams:
         and, after a miss, the plain remeshing's ``plain_deviation`` (same unit as the
         positions). RiggedFigure's right arm: at 4x the shape
         stays within 0.14% of the diagonal at p05 21.6 degrees, where the plain remeshing
-        rounded a shoulder corner off by 2.2% (p05 21.3). The Horse + Knight centaur's plain
+        rounded a box corner off by 2.2% (p05 21.3). The Horse + Knight centaur's plain
         junction strays 0.11 units (1.7% of the diagonal) from its reference; at 4x its p05
         falls from 28.4 to 20.1 with visibly jagged, feature-pinned triangles, so it stays plain.
     relax_max_angle_loss : degrees, see ``fidelity_relax``.
