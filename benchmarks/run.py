@@ -45,7 +45,8 @@ def main(argv=None) -> int:
     previous = RESULTS / "run.json"
     merged = json.loads(previous.read_text()) if previous.exists() else {}
     merged.update(status)
-    merged = {n: merged[n] for n in sorted(merged) if n in discover()}
+    known = set(discover())
+    merged = {n: merged[n] for n in sorted(merged) if n in known}
     lines = ["# rigmix benchmarks", "",
              "| benchmark | status | seconds |", "|---|---|---:|"]
     lines += [f"| {n} | {s['status']} | {s['seconds']} |" for n, s in merged.items()]

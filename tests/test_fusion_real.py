@@ -22,15 +22,29 @@ CASES = {
 }
 
 
-@pytest.fixture(scope="module", params=sorted(CASES))
-def self_composition(request):
+def _limb_self_composition(name, joint):
+    """The two fusion inputs of ``name``'s subtree at ``joint`` replaced by itself: (rest, limb)."""
     from rigmix.io import load_character
 
-    name = request.param
     c = load_character(asset(name))
-    sub = c.skeleton.subtree(c.skeleton.index(CASES[name]))
-    a = fusion_input(c, ~sub)
-    b = fusion_input(c, sub)
+    sub = c.skeleton.subtree(c.skeleton.index(joint))
+    return fusion_input(c, ~sub), fusion_input(c, sub)
+
+
+def _hausdorff(a, out):
+    """Two-sided Hausdorff distance between input ``a`` and the fused surface, over vertices,
+    as a fraction of ``a``'s bounding-box diagonal."""
+    import igl
+
+    d_out = np.sqrt(igl.point_mesh_squared_distance(out.V, a.V, a.F)[0]).max()
+    d_in = np.sqrt(igl.point_mesh_squared_distance(a.V, out.V, out.F)[0]).max()
+    return max(d_out, d_in) / bounding_box_diagonal(a.V)
+
+
+@pytest.fixture(scope="module", params=sorted(CASES))
+def self_composition(request):
+    name = request.param
+    a, b = _limb_self_composition(name, CASES[name])
     out = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)])
     return name, a, b, out
 
@@ -51,14 +65,8 @@ def test_self_composition_is_closed_and_clean(self_composition):
 
 
 def test_self_composition_reproduces_the_surface(self_composition):
-    import igl
-
     name, a, _, out = self_composition
-    diag = bounding_box_diagonal(a.V)
-    d_out = np.sqrt(igl.point_mesh_squared_distance(out.V, a.V, a.F)[0]).max()
-    d_in = np.sqrt(igl.point_mesh_squared_distance(a.V, out.V, out.F)[0]).max()
-    assert d_out <= 0.005 * diag, name
-    assert d_in <= 0.005 * diag, name
+    assert _hausdorff(a, out) <= 0.005, name
     kept = out.face_origin_input >= 0
     assert kept.sum() >= 0.9 * len(a.F)
 
@@ -102,25 +110,14 @@ def test_fidelity_refinement_recovers_what_remeshing_chords_off():
     """CesiumMan's left leg: remeshing to the neighbouring edge length alone leaves the surface
     0.57% of the diagonal from the original; refined against the isosurface it is within 0.5%,
     with the junction still closed and its triangles still good."""
-    import igl
-
     from rigmix.fusion import FusionParams
-    from rigmix.io import load_character
 
-    c = load_character(asset("CesiumMan"))
-    sub = c.skeleton.subtree(c.skeleton.index("leg_joint_L_1"))
-    a, b = fusion_input(c, ~sub), fusion_input(c, sub)
-    diag = bounding_box_diagonal(a.V)
-
-    def hausdorff(out):
-        d_out = np.sqrt(igl.point_mesh_squared_distance(out.V, a.V, a.F)[0]).max()
-        d_in = np.sqrt(igl.point_mesh_squared_distance(a.V, out.V, out.F)[0]).max()
-        return max(d_out, d_in) / diag
+    a, b = _limb_self_composition("CesiumMan", "leg_joint_L_1")
 
     plain = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=FusionParams(fidelity_voxels=0))
     refined = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)])
-    assert hausdorff(plain) > 0.005
-    assert hausdorff(refined) <= 0.005
+    assert _hausdorff(a, plain) > 0.005
+    assert _hausdorff(a, refined) <= 0.005
     assert refined.report["fields"]["grids"][0]["fidelity"] is True
     m = refined.report["mesh"]
     assert m["junction_boundary_edges"] == 0 and m["new_non_manifold_edges"] == 0
@@ -133,27 +130,16 @@ def test_collapses_let_the_junction_keep_the_shape_of_a_low_poly_tail():
     the shape kept). Without collapsing the crowded vertices the fusion falls back to the
     plain remeshing and its rounded-off root, 1.3% of the diagonal from the original; with
     them it keeps the shape and the triangles."""
-    import igl
-
     from rigmix.fusion import FusionParams
-    from rigmix.io import load_character
 
-    c = load_character(asset("Horse"))
-    sub = c.skeleton.subtree(c.skeleton.index("Tail1"))
-    a, b = fusion_input(c, ~sub), fusion_input(c, sub)
-    diag = bounding_box_diagonal(a.V)
-
-    def hausdorff(out):
-        d_out = np.sqrt(igl.point_mesh_squared_distance(out.V, a.V, a.F)[0]).max()
-        d_in = np.sqrt(igl.point_mesh_squared_distance(a.V, out.V, out.F)[0]).max()
-        return max(d_out, d_in) / diag
+    a, b = _limb_self_composition("Horse", "Tail1")
 
     without = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=FusionParams(collapse_poor=False))
     out = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)])
     assert without.report["fields"]["grids"][0]["fidelity"] is False
-    assert hausdorff(without) > 0.005
+    assert _hausdorff(a, without) > 0.005
     assert out.report["fields"]["grids"][0]["fidelity"] is True
-    assert hausdorff(out) <= 0.005
+    assert _hausdorff(a, out) <= 0.005
     assert out.report["mesh"]["junction_min_angle_p05"] >= 20.0
 
 
@@ -162,30 +148,19 @@ def test_a_looser_fidelity_tolerance_is_tried_before_none():
     tolerance the shape-keeping junction misses 20 degrees at p05; without a looser try the
     fusion falls back to the plain remeshing, 2.2% of the diagonal off at a box corner.
     Four times the tolerance keeps the corners and the triangles."""
-    import igl
-
     from rigmix.fusion import FusionParams
-    from rigmix.io import load_character
 
-    c = load_character(asset("RiggedFigure"))
-    sub = c.skeleton.subtree(c.skeleton.index("arm_joint_R_1"))
-    a, b = fusion_input(c, ~sub), fusion_input(c, sub)
-    diag = bounding_box_diagonal(a.V)
-
-    def hausdorff(out):
-        d_out = np.sqrt(igl.point_mesh_squared_distance(out.V, a.V, a.F)[0]).max()
-        d_in = np.sqrt(igl.point_mesh_squared_distance(a.V, out.V, out.F)[0]).max()
-        return max(d_out, d_in) / diag
+    a, b = _limb_self_composition("RiggedFigure", "arm_joint_R_1")
 
     strict = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=FusionParams(fidelity_relax=()))
     out = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)])
     assert strict.report["fields"]["grids"][0]["fidelity"] is False
-    assert hausdorff(strict) > 0.005
+    assert _hausdorff(a, strict) > 0.005
     grid = out.report["fields"]["grids"][0]
     assert grid["fidelity"] is True
-    assert grid["fidelity_tolerance"] > 0.0025 * diag  # looser than the default
+    assert grid["fidelity_tolerance"] > 0.0025 * bounding_box_diagonal(a.V)  # looser than the default
     assert grid["plain_deviation"] > grid["fidelity_tolerance"]  # the plain remeshing lost more
-    assert hausdorff(out) <= 0.005
+    assert _hausdorff(a, out) <= 0.005
     m = out.report["mesh"]
     assert m["junction_min_angle_p05"] >= 20.0
     assert m["junction_boundary_edges"] == 0 and m["new_non_manifold_edges"] == 0

@@ -404,13 +404,13 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
         tol = params.fidelity_voxels * h
         if diagonal > 0 and params.fidelity_diagonal > 0:
             tol = min(tol, params.fidelity_diagonal * diagonal)
-        deviation = tol  # what a collapse may change of the shape, on either path
         fid_to_final = {int(old[v] - nI): k for k, v in enumerate(fx)}
         forb = _preserved_edges_between(pres, preserved, keys, fid_to_final)
-        def finish(tol):
-            """Remesh (keeping what strays farther than ``tol``; 0: plain), smooth, improve."""
+        def finish(feature_tol):
+            """Remesh (keeping what strays farther than ``feature_tol``; 0: plain), smooth,
+            improve (a collapse never moves the shape by more than ``tol``, on either path)."""
             U, G, nfix, (RV, RF) = _remesh_keeping_features(JV, JF, fx, target, params.remesh_iterations,
-                                                            tol, params.feature_rounds, points=corners,
+                                                            feature_tol, params.feature_rounds, points=corners,
                                                             points_tol=0.1 * h, max_insert=3.0 * h)
             U = smooth_interior(U, G, np.arange(nfix), iterations=params.taubin_iterations)
             U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels)
@@ -418,14 +418,14 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
             U = relocate_poor_vertices(U, G, nfix, surface=(RV, RF))
             G = flip_to_improve_angles(U, G, forbidden=forb)
             if params.collapse_poor:
-                U, G = collapse_to_improve_angles(U, G, nfix, max_deviation=deviation, forbidden=forb)
+                U, G = collapse_to_improve_angles(U, G, nfix, max_deviation=tol, forbidden=forb)
                 G = flip_to_improve_angles(U, G, forbidden=forb)
                 U = relocate_poor_vertices(U, G, nfix, surface=(RV, RF))
                 G = flip_to_improve_angles(U, G, forbidden=forb)
             if len(targets):
                 U = snap_to_points(U, G, nfix, targets, max_dist=0.5 * target)
                 G = flip_to_improve_angles(U, G, forbidden=forb)
-            if tol > 0:
+            if feature_tol > 0:
                 # the quality moves above slide vertices along the reference, whose bridge
                 # strips chord across a voxel or two: back onto the inputs where they agree
                 U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels)
@@ -440,13 +440,15 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
             U, G, nfeat = finish(tol)
             info["fidelity"] = bool(tol > 0)
             info["fidelity_tolerance"] = float(tol)
-            if tol > 0 and _angle_p05(U, G) < params.min_angle_p05:
+            angle = _angle_p05(U, G)
+            if tol > 0 and angle < params.min_angle_p05:
                 # fidelity never at the price of slivers: the features stand only while the
                 # junction's 5th-percentile minimum angle stays at the acceptance level, or
                 # is no worse than the plain remeshing's. Where the plain remeshing loses
                 # more of the shape than a looser tolerance allows, that looser tolerance
                 # (fewer kept features) is tried first; keeping less, it may cost little.
                 U0, G0, _ = finish(0.0)
+                plain_angle = _angle_p05(U0, G0)
                 lost = np.sqrt(igl.point_mesh_squared_distance(JV, U0, G0)[0]).max()  # JV: the reference
                 info["plain_deviation"] = float(lost)
                 chosen = False
@@ -455,11 +457,11 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
                         break
                     U1, G1, n1 = finish(loose)
                     a1 = _angle_p05(U1, G1)
-                    if a1 >= params.min_angle_p05 and a1 >= _angle_p05(U0, G0) - params.relax_max_angle_loss:
+                    if a1 >= params.min_angle_p05 and a1 >= plain_angle - params.relax_max_angle_loss:
                         U, G, nfeat, chosen = U1, G1, n1, True
                         info["fidelity_tolerance"] = float(loose)
                         break
-                if not chosen and _angle_p05(U0, G0) > _angle_p05(U, G):
+                if not chosen and plain_angle > angle:
                     U, G, nfeat = U0, G0, 0
                     info["fidelity"] = False
                     info["fidelity_tolerance"] = 0.0
