@@ -18,7 +18,9 @@ junction weight method (``nearest``, ``inpaint``, ``dfd``) then fills W_R, and w
 Two protocols (PIPELINE.md section 7):
 
 ``identity``
-    the limb is replaced by the same limb of the same character. The truth at a junction vertex
+    the limb is replaced by the same limb of the same character, with the junction rebuilt from
+    the fields (:data:`REBUILT`; by default the fusion copies the faces both inputs share, and
+    every method then gets the truth exactly, which tests check). The truth at a junction vertex
     is then the original weights at the closest original point, which is exactly ``nearest``'s
     rule: ``nearest`` scores 0 by construction, and the protocol checks that the fills do not
     damage what the closest point already knows.
@@ -99,14 +101,25 @@ def mirror_pairs(name: str) -> list[tuple[str, str]]:
     return out
 
 
-def self_config(path: Path, joint: str) -> Config:
-    """The config replacing ``joint``'s subtree of a character with the same subtree of itself."""
+def self_config(path: Path, joint: str, *, fusion: dict | None = None) -> Config:
+    """The config replacing ``joint``'s subtree of a character with the same subtree of itself.
+
+    ``fusion``: the config's fusion options. By default the fusion copies the junction faces,
+    which both inputs share, so every weight method gets them exactly; the benchmark passes
+    :data:`REBUILT` to measure the methods on a junction rebuilt from the fields, as between
+    two different characters.
+    """
     return Config.model_validate({
         "name": f"self_{path.stem}_{joint}",
         "characters": {"body": {"path": str(path)}, "donor": {"path": str(path)}},
         "actions": [{"op": "replace", "source": "donor", "source_joint": joint, "target": "body",
                      "target_joint": joint, "mode": "blend"}],
+        **({"fusion": fusion} if fusion else {}),
     })
+
+
+#: fusion options of the identity protocol: the junction rebuilt from the fields (not copied)
+REBUILT = {"copy_coincident": False}
 
 
 def mirror_config(path: Path, joint: str, donor_joint: str) -> Config:
@@ -142,7 +155,7 @@ def _weights(comp, options):
 
 def _case_info(comp, t_fuse) -> dict:
     return {"fusion_s": round(t_fuse, 2),
-            "junction_vertices": int((comp.stages["surface"].origin_input < 0).sum()),
+            "junction_vertices": int(comp.stages["surface"].junction_vertices.sum()),
             "mesh": {k: comp.report["mesh"].get(k) for k in ("vertices", "junction_faces", "junction_boundary_edges",
                                                              "junction_min_angle_p05")},
             "methods": {}}
@@ -151,7 +164,7 @@ def _case_info(comp, t_fuse) -> dict:
 def run_case(path: Path, joint: str, *, methods=METHODS, max_frames=None) -> dict:
     """Identity protocol: fuse once, fill W_R with every method, measure."""
     t0 = time.perf_counter()
-    comp = compose(self_config(path, joint), until="completion")
+    comp = compose(self_config(path, joint, fusion=REBUILT), until="completion")
     out = _case_info(comp, time.perf_counter() - t0)
     for label, options in methods:
         skin, t_w = _weights(comp, options)
@@ -246,7 +259,7 @@ def mirrored_errors(comp, skin, pair, *, fps=30.0, max_frames=None, truth_influe
         raise RuntimeError(f"mirrored truth: output joints {np.flatnonzero(src < 0).tolist()} have no original joint")
     W = np.asarray(skin.W)
     G = W.copy()  # preserved rows: their input's weights under every method (not measured)
-    jall = np.flatnonzero(np.asarray(surface.origin_input) < 0)
+    jall = np.flatnonzero(surface.junction_vertices)
     if tolerance is None:
         tolerance = float(comp.report["fields"]["voxel_size"])
     s = surface.junction_sources[b]  # closest point on the whole original surface

@@ -230,8 +230,7 @@ def _junction_colors(surface, inputs, ids, plan, verts):
         out[sel] = baked[i][ov[sel]]
     new = oi < 0
     if new.any() and len(surface.junction_sources):
-        jstart = int(np.flatnonzero(np.asarray(surface.origin_input) < 0).min())
-        rows = verts[new] - jstart
+        rows = np.searchsorted(np.flatnonzero(surface.junction_vertices), verts[new])
         srcs = [{k: np.asarray(v)[rows] for k, v in s.items()} for s in surface.junction_sources]
         diag = float(np.linalg.norm(np.ptp(surface.V, axis=0)))
         c, _ = closest_point_weights(srcs, baked, [x.F for x in inputs], tolerance=0.05 * diag)

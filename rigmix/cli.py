@@ -502,6 +502,9 @@ def _run_compose(args) -> int:
             fdir = tmp / "fields"
             fdir.mkdir()
             fields_written = dump_fields(fdir, comp.stages["surface"].fields) or []
+            if not fields_written:
+                print(f"rigmix compose: --dump-fields {args.dump_fields}: no junction field was computed (every "
+                      "junction was copied from faces the inputs share); nothing written", file=sys.stderr)
         report = dict(comp.report)
         report["output"] = str(args.output)
         text = json.dumps(report, indent=2, default=_json_default)

@@ -154,7 +154,7 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
     out = {"junction_stretch_ratio": None, "output_p95": None, "source_p95": None, "band_radius": None,
            "output_band_vertices": 0, "source_band_vertices": 0}
     pairs = plan.fused_pairs
-    jv = np.flatnonzero(np.asarray(surface.origin_input) < 0)
+    jv = np.flatnonzero(surface.junction_vertices)
     if not pairs or ch is None or not ch.clips:
         return out
     Jpos = plan.skeleton.rest_worlds()[:, :3, 3]
@@ -245,14 +245,18 @@ def self_composition_errors(composition, skin, *, fps=30.0, max_frames=None, tru
         for j in range(Wi.shape[1]):
             if t[j] >= 0:
                 G[rows, t[j]] += Wi[:, j]
-    jrows = np.flatnonzero(oi < 0)
-    if len(jrows):
+    # measured: every vertex whose weights were computed; the truth of a copied input vertex is
+    # its own weights (above), of a generated one the original's at its closest point
+    jrows = np.flatnonzero(surface.junction_vertices)
+    gen = np.flatnonzero(oi < 0)
+    if len(gen):
         s = surface.junction_sources[0]  # the whole original surface (input 0 keeps everything at rest)
-        T = np.asarray(inputs[0].F)[np.asarray(s["face"])]
-        Wc = np.einsum("qk,qkj->qj", np.asarray(s["bary"]), np.asarray(inputs[0].W)[T])
+        k = np.searchsorted(jrows, gen)
+        T = np.asarray(inputs[0].F)[np.asarray(s["face"])[k]]
+        Wc = np.einsum("qk,qkj->qj", np.asarray(s["bary"])[k], np.asarray(inputs[0].W)[T])
         for j in range(Wc.shape[1]):
             if t[j] >= 0:
-                G[jrows, t[j]] += Wc[:, j]
+                G[gen, t[j]] += Wc[:, j]
     G /= np.maximum(G.sum(axis=1, keepdims=True), 1e-12)
     if truth_influences is not None and len(jrows):
         from .weights import sparsify

@@ -88,14 +88,15 @@ class SkinWeights:
         Dense weights on the output joints; rows non-negative, at most ``max_influences``
         non-zeros, summing to 1.
     junction : (N,) bool
-        Vertices made by the fusion (no input vertex behind them).
+        Vertices whose weights were computed (``FusedSurface.junction_vertices``).
     matched : (N,) bool
         Junction vertices whose weights were transferred (known to the fill).
     method : str
     report : dict
         ``method``, ``blend`` (the blend factors), ``max_influences``, ``min_sum``, ``max_sum``, ``junction_vertices``,
         ``matched_vertices``, ``low_confidence_vertices``, ``seam_smoothed_vertices``,
-        ``feature_field`` (dfd with a field asked for), ``feature_field_distilled`` (one was
+        ``seam_welded_vertices`` (junction rows given their seam partner's weights,
+        :func:`weld_consistent`), ``feature_field`` (dfd with a field asked for), ``feature_field_distilled`` (one was
         needed and distilled), ``feature_field_s`` (seconds).
     """
 
@@ -247,6 +248,60 @@ def match_junction(JV, JN, sources, inputs_V, inputs_F, *, diagonal, match_dista
         on = (d <= on_surface * diagonal) if on_surface > 0 else False
         matched[rows] = ((d <= match_distance * diagonal) & (cos >= cos_max)) | on
     return matched
+
+
+def weld_consistent(V, F, W, junction, max_influences=4):
+    """Give every split copy of a position the same weights, so the seams cannot open under
+    animation.
+
+    A junction row at a position that a preserved row shares takes that row (the mean of the
+    preserved rows there, which normally agree); junction rows sharing a position with no
+    preserved row take their mean. Preserved rows never change.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+    F : (m, 3) int array
+    W : (n, J) float array
+        Rows summing to 1.
+    junction : (n,) bool array
+        Rows whose weights were computed (the others are copied from an input).
+    max_influences : int
+
+    Returns
+    -------
+    W : (n, J) float64
+    changed : int
+        Junction rows that changed.
+    """
+    W = np.asarray(W, np.float64).copy()
+    junction = np.asarray(junction, bool)
+    if not junction.any():
+        return W, 0
+    _, index, _ = weld(np.asarray(V, np.float64), np.asarray(F, np.int64).reshape(-1, 3))
+    k = int(index.max()) + 1 if len(index) else 0
+    fixed = ~junction
+    n_fixed = np.bincount(index[fixed], minlength=k)
+    n_junc = np.bincount(index[junction], minlength=k)
+    rows = np.flatnonzero(junction & ((n_fixed[index] > 0) | (n_junc[index] > 1)))
+    if not len(rows):
+        return W, 0
+    groups = np.unique(index[rows])
+    pos = np.full(k, -1, np.int64)
+    pos[groups] = np.arange(len(groups))
+    src = np.flatnonzero(pos[index] >= 0)
+    # rows that vote: the preserved ones where a group has any, else its junction rows
+    vote = src[np.where(n_fixed[index[src]] > 0, fixed[src], junction[src])]
+    S = np.zeros((len(groups), W.shape[1]))
+    np.add.at(S, pos[index[vote]], W[vote])
+    S /= np.bincount(pos[index[vote]], minlength=len(groups))[:, None]
+    new = S[pos[index[rows]]]
+    over = np.count_nonzero(new > 0, axis=1) > max_influences
+    if over.any():
+        new[over] = sparsify(new[over], max_influences)
+    changed = np.abs(new - W[rows]).sum(axis=1) > 0
+    W[rows] = new
+    return W, int(changed.sum())
 
 
 def _welded_graph(V, F):
@@ -529,7 +584,7 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
         retargeted.append(Wr)
         conf.append(c)
     W = np.zeros((N, J))
-    junction = surface.origin_input < 0
+    junction = np.asarray(surface.junction_vertices, bool)
     pres = np.flatnonzero(~junction)
     for i in range(len(inputs)):
         rows = pres[surface.origin_input[pres] == i]
@@ -582,6 +637,7 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
         if seam.any():
             W = smooth_rows(surface.V, surface.F, W, seam, iterations=smoothing)
             W[seam] = sparsify(W[seam], max_influences)
+    W, welded_rows = weld_consistent(surface.V, surface.F, W, junction, max_influences)
     if not np.all(np.isfinite(W)):
         raise NumericalError(f"weights: method {method!r} produced non-finite weights on "
                              f"{int((~np.isfinite(W)).any(axis=1).sum())} vertices")
@@ -596,6 +652,7 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
         "matched_vertices": int(matched.sum()),
         "low_confidence_vertices": int(low.sum()),
         "seam_smoothed_vertices": int(seam.sum()),
+        "seam_welded_vertices": int(welded_rows),
         "feature_field": bool(method == "dfd" and fill_options.get("field") is not False),
         "feature_field_distilled": bool(lazy is not None and lazy.field is not None),
         "feature_field_s": round(lazy.seconds, 3) if lazy is not None else 0.0,

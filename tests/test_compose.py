@@ -46,7 +46,7 @@ _RUNS: dict = {}
 
 
 def _compose(cfg: Path, out: Path):
-    """Run ``rigmix compose`` on ``cfg`` once per process; returns (status, glb, report)."""
+    """Run ``rigmix compose`` on ``cfg`` once per process; returns (status, glb, report, stderr tail)."""
     if cfg.stem not in _RUNS:
         for name in ASSETS_OF.get(cfg.stem, []):
             asset(name)
@@ -56,15 +56,17 @@ def _compose(cfg: Path, out: Path):
             resource.setrlimit(resource.RLIMIT_AS, (MEMORY_CAP, MEMORY_CAP))
 
         extra = []
-        if cfg.stem == "self_composition":  # the optional outputs, on the cheapest config
+        if cfg.stem == "self_composition":  # the optional outputs, on the cheapest configs
             extra = ["--usd", str(out / "self_composition.usdc"), "--dump-fields", str(out / "fields")]
+        if cfg.stem == "tail_graft":
+            extra = ["--dump-fields", str(out / "fields")]
         res = subprocess.run([sys.executable, "-m", "rigmix.cli", "compose", str(cfg), "-o", str(glb),
                               "--report", str(rep), "--no-progress", *extra], cwd=ROOT, capture_output=True,
                              text=True, timeout=1200, preexec_fn=cap)
         _RUNS[cfg.stem] = (res.returncode, glb, rep, res.stderr[-2000:])
     status, glb, rep, err = _RUNS[cfg.stem]
     assert status == 0, f"rigmix compose {cfg.name} exited {status}: {err}"
-    return status, glb, rep
+    return status, glb, rep, err
 
 
 def _read_accessor(g, blob, acc_index):
@@ -86,7 +88,7 @@ def test_rigmix_compose_end_to_end(cfg, tmp_path):
     from rigmix.io.validator import validate_gltf, validator_available
 
     name = cfg.stem
-    status, glb, rep = _compose(cfg, tmp_path)
+    status, glb, rep, err = _compose(cfg, tmp_path)
     assert status == 0 and glb.is_file() and rep.is_file()
 
     if name == "self_composition":
@@ -94,6 +96,9 @@ def test_rigmix_compose_end_to_end(cfg, tmp_path):
 
         stage = Usd.Stage.Open(str(tmp_path / "self_composition.usdc"))
         assert any(p.IsA(UsdSkel.Skeleton) for p in stage.Traverse())
+        # a limb replaced by itself: the junction is copied, no field is computed, and the user is told
+        assert not list((tmp_path / "fields").glob("*")) and "no junction field was computed" in err
+    if name == "tail_graft":
         assert list((tmp_path / "fields").glob("*.npz")) or list((tmp_path / "fields").glob("*.vdb"))
 
     # the report
@@ -131,7 +136,10 @@ def test_rigmix_compose_end_to_end(cfg, tmp_path):
     mesh = report["mesh"]
     figures = {"junction_boundary_edges": mesh["junction_boundary_edges"] == 0,
                "new_non_manifold_edges": mesh["new_non_manifold_edges"] == 0,
-               "junction_min_angle_p05": mesh["junction_min_angle_p05"] >= 20.0}
+               # None: no generated triangle (a junction copied from faces both inputs share)
+               "junction_min_angle_p05": (mesh["junction_min_angle_p05"] >= 20.0
+                                          if mesh["junction_min_angle_p05"] is not None
+                                          else 0 < mesh["copied_faces"] == mesh["junction_faces"])}
     failed = [f for f, ok in figures.items() if not ok]
     unexpected = [f for f in failed if (name, f) not in FUSION_SHORTFALLS]
     assert not unexpected, f"{name}: fusion figures {[(f, mesh[f]) for f in unexpected]}"

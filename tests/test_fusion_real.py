@@ -1,16 +1,20 @@
 """Fusion on the shared characters: self-composition has a known answer (PIPELINE.md section 7).
 
 A character's limb replaced by the same limb of the same character must give back the
-character: surface within 0.5% of the bounding-box diagonal (Hausdorff, both ways), at least
-90% of the faces preserved exactly (positions, UVs, normals bit-identical), no gap, no new
-non-manifold edge, good junction triangles.
+character. By default the junction's faces, which both inputs share, are copied as they are
+(:func:`rigmix.fusion.seams._coincident_faces`): every face comes back bit-identical. With
+``copy_coincident=False`` the junction is rebuilt from the blended fields as between two
+different characters, which is what most of these tests exercise: surface within 0.5% of the
+bounding-box diagonal (Hausdorff, both ways), at least 90% of the faces preserved exactly
+(positions, UVs, normals bit-identical), no gap, no new non-manifold edge, good junction
+triangles.
 """
 
 import numpy as np
 import pytest
 
 from conftest import asset
-from rigmix.fusion import FusionAction, fuse_surfaces
+from rigmix.fusion import FusionAction, FusionParams, fuse_surfaces
 from rigmix.fusion.inputs import fusion_input
 from rigmix.geometry import bounding_box_diagonal
 
@@ -41,12 +45,84 @@ def _hausdorff(a, out):
     return max(d_out, d_in) / bounding_box_diagonal(a.V)
 
 
+# the junction rebuilt from the fields, as between two different characters
+REMESHED = FusionParams(copy_coincident=False)
+
+
 @pytest.fixture(scope="module", params=sorted(CASES))
 def self_composition(request):
     name = request.param
     a, b = _limb_self_composition(name, CASES[name])
-    out = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)])
+    out = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=REMESHED)
     return name, a, b, out
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_self_composition_copies_the_shared_junction(name):
+    """Default fusion of a limb replaced by itself: the junction faces lie on both inputs, so
+    they are copied, each once, and the output is the input face for face (Hausdorff 0), with
+    no generated triangle, and junction vertices only where no preserved face keeps the
+    position."""
+    from rigmix.fusion.report import mesh_report
+
+    a, b = _limb_self_composition(name, CASES[name])
+    out = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)])
+    m = out.report["mesh"]
+    assert m["copied_faces"] > 0 and m["junction_faces"] == m["copied_faces"]
+    assert m["junction_min_angle_p05"] is None  # no generated triangle to measure
+    assert np.all(out.face_origin_input >= 0)
+    assert out.report["fields"]["voxels"] == 0  # no field was needed
+    # the same faces, corner for corner, as the input (as multisets of position triples)
+    def canon(P):
+        return np.unique(P.reshape(len(P), 9), axis=0, return_counts=True)
+
+    got, want = canon(out.V[out.F]), canon(a.V[a.F])
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+    assert _hausdorff(a, out) == 0.0
+    for k, x in enumerate((a, b)):
+        faces = out.face_origin_input == k
+        assert np.array_equal(out.V[out.F[faces]], x.V[x.F[out.face_origin_face[faces]]])
+        verts = out.origin_input == k
+        if x.uvs is not None:
+            assert np.array_equal(out.uvs[verts], x.uvs[out.origin_vertex[verts]])
+    before = mesh_report(a.V, a.F, np.zeros(len(a.F), bool), [])
+    assert m["junction_boundary_edges"] == 0 and m["new_non_manifold_edges"] == 0
+    assert m["boundary_edges"] == before["boundary_edges"]
+    # vertices of copied faces get junction weights unless a preserved face shares the position
+    jv = out.junction_vertices
+    assert jv.any() and not np.any(jv & ~np.isin(np.arange(len(out.V)), out.F[out.copied_faces]))
+    on_kept = np.zeros(len(out.V), bool)
+    on_kept[out.F[~out.copied_faces].ravel()] = True
+    assert not np.any(jv[out.origin_input >= 0] & on_kept[out.origin_input >= 0])
+
+
+def test_a_partly_shared_junction_is_remeshed():
+    """The donor arm inflated where its presence exceeds 0.6: the junction faces nearer the
+    body are still shared, the rest are not. Joining copied faces to an isosurface would need
+    seam loops that run along both inputs, so the whole junction is rebuilt from the fields,
+    closed and clean."""
+    from dataclasses import replace as dc_replace
+
+    from rigmix.io import load_character
+
+    c = load_character(asset("CesiumMan"))
+    joint = "leg_joint_L_1"
+    sub = c.skeleton.subtree(c.skeleton.index(joint))
+    a, b = fusion_input(c, ~sub), fusion_input(c, sub)
+    root = c.skeleton.rest_worlds()[c.skeleton.index(joint)][:3, 3]
+    p = b.W[:, b.used].sum(axis=1)
+    m = p > 0.6
+    V = b.V.copy()
+    V[m] = root + (V[m] - root) * (1.0 + 0.2 * (p[m] - 0.6))[:, None]
+    out = fuse_surfaces([a, dc_replace(b, V=V)], [FusionAction("replace", 0, 1)])
+    rep = out.report["mesh"]
+    assert rep["copied_faces"] == 0 and rep["junction_faces"] > 0
+    assert rep["junction_boundary_edges"] == 0 and rep["new_non_manifold_edges"] == 0
+    assert rep["boundary_edges"] == 0 and rep["unmatched_loops"] == 0
+    assert rep["junction_min_angle_p05"] >= 20
+    # the unmoved shared faces alone would have been copied: the limb is what differs
+    same = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)])
+    assert same.report["mesh"]["copied_faces"] > 0
 
 
 def test_self_composition_is_closed_and_clean(self_composition):
@@ -110,12 +186,11 @@ def test_fidelity_refinement_recovers_what_remeshing_chords_off():
     """CesiumMan's left leg: remeshing to the neighbouring edge length alone leaves the surface
     0.57% of the diagonal from the original; refined against the isosurface it is within 0.5%,
     with the junction still closed and its triangles still good."""
-    from rigmix.fusion import FusionParams
-
     a, b = _limb_self_composition("CesiumMan", "leg_joint_L_1")
 
-    plain = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=FusionParams(fidelity_voxels=0))
-    refined = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)])
+    plain = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)],
+                          params=FusionParams(copy_coincident=False, fidelity_voxels=0))
+    refined = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=REMESHED)
     assert _hausdorff(a, plain) > 0.005
     assert _hausdorff(a, refined) <= 0.005
     assert refined.report["fields"]["grids"][0]["fidelity"] is True
@@ -130,12 +205,11 @@ def test_collapses_let_the_junction_keep_the_shape_of_a_low_poly_tail():
     the shape kept). Without collapsing the crowded vertices the fusion falls back to the
     plain remeshing and its rounded-off root, 1.3% of the diagonal from the original; with
     them it keeps the shape and the triangles."""
-    from rigmix.fusion import FusionParams
-
     a, b = _limb_self_composition("Horse", "Tail1")
 
-    without = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=FusionParams(collapse_poor=False))
-    out = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)])
+    without = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)],
+                            params=FusionParams(copy_coincident=False, collapse_poor=False))
+    out = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=REMESHED)
     assert without.report["fields"]["grids"][0]["fidelity"] is False
     assert _hausdorff(a, without) > 0.005
     assert out.report["fields"]["grids"][0]["fidelity"] is True
@@ -148,12 +222,11 @@ def test_a_looser_fidelity_tolerance_is_tried_before_none():
     tolerance the shape-keeping junction misses 20 degrees at p05; without a looser try the
     fusion falls back to the plain remeshing, 2.2% of the diagonal off at a box corner.
     Four times the tolerance keeps the corners and the triangles."""
-    from rigmix.fusion import FusionParams
-
     a, b = _limb_self_composition("RiggedFigure", "arm_joint_R_1")
 
-    strict = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=FusionParams(fidelity_relax=()))
-    out = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)])
+    strict = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)],
+                           params=FusionParams(copy_coincident=False, fidelity_relax=()))
+    out = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=REMESHED)
     assert strict.report["fields"]["grids"][0]["fidelity"] is False
     assert _hausdorff(a, strict) > 0.005
     grid = out.report["fields"]["grids"][0]
@@ -197,7 +270,7 @@ def test_knight_leg_junction_is_remeshed_and_manifold():
 
     c = load_character(asset("Knight"))
     sub = c.skeleton.subtree(c.skeleton.index("UpperLeg.L"))
-    out = fuse_surfaces([fusion_input(c, ~sub), fusion_input(c, sub)], [FusionAction("replace", 0, 1)])
+    out = fuse_surfaces([fusion_input(c, ~sub), fusion_input(c, sub)], [FusionAction("replace", 0, 1)], params=REMESHED)
     m = out.report["mesh"]
     assert all(g["remeshed"] for g in out.report["fields"]["grids"])
     assert m["new_non_manifold_edges"] == 0 and m["junction_boundary_edges"] == 0

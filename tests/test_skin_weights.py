@@ -11,6 +11,7 @@ import pytest
 from conftest import ROOT, asset
 from rigmix.errors import InputError
 from rigmix.fusion import FusedSurface, FusionInput
+from rigmix.geometry import weld
 from rigmix.mapping import BoneMap
 from rigmix.skin_weights import (
     WEIGHT_METHODS,
@@ -217,13 +218,18 @@ def _check_invariants(comp):
     assert np.all(np.isfinite(W)) and np.all(W >= 0)
     assert np.allclose(W.sum(axis=1), 1.0, atol=1e-12)
     assert np.count_nonzero(W > 0, axis=1).max() <= 4
-    assert skin.report["junction_vertices"] == int((comp.stages["surface"].origin_input < 0).sum())
+    assert skin.report["junction_vertices"] == int(comp.stages["surface"].junction_vertices.sum())
+    # every split copy of a position has the same weights: no seam opens under animation
+    _, index, _ = weld(comp.stages["surface"].V, comp.stages["surface"].F)
+    first = np.full(index.max() + 1, -1)
+    first[index[::-1]] = np.arange(len(index))[::-1]
+    assert np.abs(W - W[first[index]]).sum(axis=1).max() < 1e-12
     # preserved vertices copy their retargeted weights exactly (inputs with <= 4 influences)
     surf = comp.stages["surface"]
     for i, (cid, x) in enumerate(zip(comp.stages["fusion_ids"], comp.stages["fusion_inputs"])):
         bm = comp.maps[cid]
         Wr, _ = retarget_weights(x.W, bm.target, comp.skeleton.num_joints)
-        rows = np.flatnonzero(surf.origin_input == i)
+        rows = np.flatnonzero((surf.origin_input == i) & ~surf.junction_vertices)
         small = np.count_nonzero(Wr[surf.origin_vertex[rows]] > 0, axis=1) <= 4
         assert np.array_equal(W[rows[small]], Wr[surf.origin_vertex[rows[small]]])
 
@@ -256,8 +262,9 @@ def test_every_example_config_weight_invariants_and_stretch_ratio_for_every_meth
 
 
 def test_self_composition_against_the_original_weights():
-    """CesiumMan's left arm (tests/configs/self_composition.toml), the Fox's tail and
-    RiggedFigure's left arm, replaced by themselves: invariants, dfd's weights equal to the
+    """CesiumMan's left arm (tests/configs/self_composition.toml, junction copied by default:
+    nearest and dfd get the original's weights), the Fox's tail and RiggedFigure's left arm (junction
+    rebuilt from the fields), replaced by themselves: invariants, dfd's weights equal to the
     original's (every junction vertex lies on the input surface; RiggedFigure's arm has remeshed
     vertices whose normals differ from the input's by over 90 degrees, which the on-surface
     match keeps from the fill: without it, mean error 0.007 and skinned 0.46%), dfd's mean
@@ -270,8 +277,14 @@ def test_self_composition_against_the_original_weights():
     asset("CesiumMan")
     cesium = compose(ROOT / "tests" / "configs" / "self_composition.toml", until="weights")
     _check_invariants(cesium)
-    comps = {"CesiumMan arm": cesium, "Fox tail": compose(self_config(asset("Fox"), "b_Tail01_012"), until="fusion"),
-             "RiggedFigure arm": compose(self_config(asset("RiggedFigure"), "arm_joint_L_1"), until="fusion")}
+    rebuilt = {"copy_coincident": False}
+    comps = {"CesiumMan arm": cesium,
+             "Fox tail": compose(self_config(asset("Fox"), "b_Tail01_012", fusion=rebuilt), until="fusion"),
+             "RiggedFigure arm": compose(self_config(asset("RiggedFigure"), "arm_joint_L_1", fusion=rebuilt),
+                                         until="fusion")}
+    assert cesium.stages["surface"].report["mesh"]["copied_faces"] > 0  # the default copies the shared junction
+    for name in ("Fox tail", "RiggedFigure arm"):
+        assert comps[name].stages["surface"].report["mesh"]["copied_faces"] == 0
     for name, comp in comps.items():
         ids = comp.stages["fusion_ids"]
         figs = {}
@@ -284,6 +297,9 @@ def test_self_composition_against_the_original_weights():
             (name, figs["dfd"])
         assert figs["dfd"]["junction_weight_error_mean"] <= figs["inpaint"]["junction_weight_error_mean"] + 1e-12, \
             (name, {m: f["junction_weight_error_mean"] for m, f in figs.items()})
+        if name == "CesiumMan arm":  # copied vertices lie on both inputs: the closest points are exact
+            f = figs["nearest"]
+            assert f["junction_weight_error_max"] < 1e-9 and f["skinned_error_max"] < 1e-9, f
 
 
 # ------------------------------------------------------------------------------------------
@@ -402,3 +418,28 @@ def test_mirrored_limb_harmonic_blend_keeps_the_artists_weights():
     with pytest.raises(InputError, match="unknown blend"):
         blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
                       comp.skeleton.num_joints, method="dfd", blend="smooth")
+
+
+def test_split_copies_of_a_position_get_the_same_weights():
+    """Two triangles sharing an edge, each with its own copies of the edge's vertices (a glTF
+    seam). A junction copy takes the preserved copy's row (never the reverse); two junction
+    copies take their mean, cut to the influence limit."""
+    from rigmix.skin_weights import weld_consistent
+
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], float)
+    F = np.array([[0, 1, 2], [3, 5, 4]])
+    W = np.zeros((6, 6))
+    W[0, 0] = W[5, 5] = 1.0
+    W[1, [0, 1]] = 0.5          # preserved copy of (1, 0, 0)
+    W[3, [2, 3]] = 0.5          # junction copy of (1, 0, 0)
+    W[2, [0, 1, 2, 3]] = 0.25   # junction copies of (0, 1, 0)
+    W[4, [1, 2, 3, 4, 5]] = 0.2
+    junction = np.array([False, False, True, True, True, True])
+    out, changed = weld_consistent(V, F, W, junction, max_influences=4)
+    assert np.array_equal(out[:2], W[:2])                   # preserved rows untouched
+    assert np.array_equal(out[3], W[1])                     # the junction copy takes the preserved row
+    assert np.array_equal(out[2], out[4])                   # junction copies agree
+    assert np.count_nonzero(out[2]) <= 4 and np.isclose(out[2].sum(), 1.0)
+    mean = (W[2] + W[4]) / 2
+    assert set(np.flatnonzero(out[2])) == set(np.argsort(-mean, kind="stable")[:4])
+    assert np.array_equal(out[5], W[5]) and changed == 3

@@ -287,3 +287,86 @@ def _local_edge(pres, junction, grid):
     return float(np.concatenate(lens).mean()) if lens else 0.0
 
 
+
+
+def _face_pairs(Va, Fa, Vb, Fb, tol):
+    """Faces of mesh a and mesh b with the same corners (each within ``tol``) in the same
+    cyclic order: ``(ia, ib)`` int64 arrays of face indices, each face in at most one pair."""
+    from scipy.spatial import cKDTree
+
+    if len(Fa) == 0 or len(Fb) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    d, j = cKDTree(Vb).query(Va, distance_upper_bound=tol)
+    to_b = np.where(np.isfinite(d), j, -1)
+    Fab = to_b[Fa]
+    ok = np.flatnonzero((Fab >= 0).all(axis=1) & (Fab[:, 0] != Fab[:, 1]) & (Fab[:, 1] != Fab[:, 2])
+                        & (Fab[:, 0] != Fab[:, 2]))
+
+    def canonical(F):  # rotate each face so its smallest index comes first (orientation kept)
+        r = np.argmin(F, axis=1)
+        return np.stack([F[np.arange(len(F)), (r + k) % 3] for k in range(3)], axis=1)
+
+    ka, kb = canonical(Fab[ok]), canonical(np.asarray(Fb, np.int64))
+    rows, inv = np.unique(np.concatenate([kb, ka]), axis=0, return_inverse=True)
+    inv = inv.ravel()
+    first_b = np.full(len(rows), -1, np.int64)
+    first_b[inv[:len(kb)][::-1]] = np.arange(len(kb))[::-1]
+    ib = first_b[inv[len(kb):]]
+    hit = ib >= 0
+    ia, ib = ok[hit], ib[hit]
+    _, u = np.unique(ib, return_index=True)  # duplicate faces of a: one pair per face of b
+    return ia[u], ib[u]
+
+
+def _coincident_faces(pres: list[Presence], preserved, junction, actions, tol, margin):
+    """Junctions whose faces two inputs of an action share: both surfaces pass through every
+    face, so the blend of their signed distances (or their union) vanishes there and the
+    junction is those faces as they are.
+
+    A shared face that one input preserves is dropped from the other's junction. A face in both
+    junctions (or in one, absent from the other) is copied from the input more present on it
+    (the first on a tie) and dropped from the other. This is done only for junction clusters
+    (:func:`_clusters` with ``margin``) whose every face is shared: a partly shared junction
+    would need seam loops that run along both inputs, and is remeshed from the fields instead.
+    A character composed with itself thus gets every face back as it was (a limb replaced by
+    itself); two different characters rarely share a face.
+
+    Parameters
+    ----------
+    tol : float
+        Corners closer than this are the same point (same units as the positions).
+
+    Returns
+    -------
+    copied, dropped : lists of (m_i,) bool arrays
+        Per input, faces copied unchanged into the junction, and faces that leave the junction.
+    """
+    copied = [np.zeros(len(P.welded.F), bool) for P in pres]
+    dropped = [np.zeros(len(P.welded.F), bool) for P in pres]
+    for act in actions:
+        a, b = act.a, act.b
+        Pa, Pb = pres[a], pres[b]
+        ia, ib = _face_pairs(Pa.welded.V, Pa.welded.F, Pb.welded.V, Pb.welded.F, tol)
+        live_a = junction[a][ia] & ~copied[a][ia] & ~dropped[a][ia]
+        live_b = junction[b][ib] & ~copied[b][ib] & ~dropped[b][ib]
+        # one side preserves it: the other's copy leaves the junction
+        dropped[a][ia[live_a & preserved[b][ib]]] = True
+        dropped[b][ib[live_b & preserved[a][ia]]] = True
+        pa = Pa.p_welded[Pa.welded.F[ia]].mean(axis=1)
+        pb = Pb.p_welded[Pb.welded.F[ib]].mean(axis=1)
+        open_a = live_a & ~preserved[b][ib] & (~live_b | (pa >= pb))
+        open_b = live_b & ~preserved[a][ia] & ~open_a
+        copied[a][ia[open_a]] = True
+        dropped[b][ib[open_a & live_b]] = True
+        copied[b][ib[open_b]] = True
+        dropped[a][ia[open_b & live_a]] = True
+    for lo, hi in _clusters(pres, junction, margin):
+        inside = []
+        for i, P in enumerate(pres):
+            c = P.welded.V[P.welded.F].mean(axis=1)
+            inside.append(junction[i] & np.all((c >= lo - margin) & (c <= hi + margin), axis=1))
+        if any(np.any(inside[i] & ~copied[i] & ~dropped[i]) for i in range(len(pres))):
+            for i in range(len(pres)):
+                copied[i] &= ~inside[i]
+                dropped[i] &= ~inside[i]
+    return copied, dropped
