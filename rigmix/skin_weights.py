@@ -623,6 +623,9 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
             m = match_junction(surface.V[jrows], JN, srcs, [x.V for x in inputs], [x.F for x in inputs],
                                diagonal=diag, match_distance=match_distance, match_angle=match_angle,
                                on_surface=match_on_surface)
+            # a vertex copied from an input (a junction both inputs share) lies on the inputs
+            # whatever its normal says: box corners differ from every face normal by 45 degrees
+            m |= np.asarray(surface.origin_input)[jrows] >= 0
             matched[jrows] = m & ~low[jrows]
             unknown = junction & ~matched
             if unknown.any() and (~unknown).any():

@@ -100,7 +100,7 @@ def test_a_partly_shared_junction_is_remeshed():
     """The donor arm inflated where its presence exceeds 0.6: the junction faces nearer the
     body are still shared, the rest are not. Joining copied faces to an isosurface would need
     seam loops that run along both inputs, so the whole junction is rebuilt from the fields,
-    closed and clean."""
+    closed and clean. So is a donor moved by a billionth of its size."""
     from dataclasses import replace as dc_replace
 
     from rigmix.io import load_character
@@ -123,6 +123,11 @@ def test_a_partly_shared_junction_is_remeshed():
     # the unmoved shared faces alone would have been copied: the limb is what differs
     same = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)])
     assert same.report["mesh"]["copied_faces"] > 0
+    # nearly the same faces are not the same: copies of both would not weld into one surface
+    nudged = fuse_surfaces([a, dc_replace(b, V=b.V + 1e-9 * bounding_box_diagonal(b.V))],
+                           [FusionAction("replace", 0, 1)])
+    rep = nudged.report["mesh"]
+    assert rep["copied_faces"] == 0 and rep["junction_boundary_edges"] == 0 and rep["boundary_edges"] == 0
 
 
 def test_self_composition_is_closed_and_clean(self_composition):

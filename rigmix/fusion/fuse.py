@@ -160,9 +160,8 @@ class FusionParams:
         this the shape-keeping path fell back to the plain one on 13 of the 37 limb
         self-compositions, 11 of them more than 0.5% of the diagonal off (up to 2.2%); with
         it on 3, one of them off (RiggedFigure's right arm).
-    copy_coincident : a junction cluster whose every face both inputs of an action have (corners
-        within ``coincident_tolerance`` of the smallest input's bounding-box diagonal, same
-        orientation) is copied as it is: both surfaces pass through those faces, so the blended
+    copy_coincident : a junction cluster whose every face both inputs of an action have (the
+        same corner positions bit for bit, same orientation) is copied as it is: both surfaces pass through those faces, so the blended
         field vanishes there and remeshing its isosurface could only lose them. Each face is
         kept once, from the input more present on it; its vertices get junction weights unless a
         preserved face keeps the position (:attr:`FusedSurface.junction_vertices`). A limb
@@ -170,7 +169,6 @@ class FusionParams:
         self-compositions of the shared characters, Hausdorff 0 and every face kept, where the
         fields gave at most 0.44% and at least 90% of the faces kept on 24. A partly shared
         junction is rebuilt from the fields.
-    coincident_tolerance : see ``copy_coincident``.
     min_island_faces : preserved parts bordering a junction with fewer faces join it (specks
         left by the presence pattern have no isosurface hole to meet).
     backend : "numpy" (numpy + libigl) or "openvdb".
@@ -207,7 +205,6 @@ class FusionParams:
     snap_input_vertices: bool = True
     collapse_poor: bool = True
     copy_coincident: bool = True
-    coincident_tolerance: float = 1e-6
     backend: str = "numpy"
     keep_fields: bool = False
 
@@ -361,8 +358,7 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
         junction = [~preserved[i] & ~(P.absent & ~P.preserved) for i, P in enumerate(pres)]
     copied = [np.zeros(len(P.welded.F), bool) for P in pres]
     if params.copy_coincident and len(pres) > 1:
-        copied, dropped = _coincident_faces(pres, preserved, junction, actions, params.coincident_tolerance * diagonal,
-                                            params.margin_voxels * h0)
+        copied, dropped = _coincident_faces(pres, preserved, junction, actions, params.margin_voxels * h0)
         junction = [junction[i] & ~copied[i] & ~dropped[i] for i in range(len(pres))]
     # copied faces bound the junction like preserved ones (their vertices get junction weights)
     kept = [preserved[i] | copied[i] for i in range(len(pres))]

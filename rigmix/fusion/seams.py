@@ -289,15 +289,18 @@ def _local_edge(pres, junction, grid):
 
 
 
-def _face_pairs(Va, Fa, Vb, Fb, tol):
-    """Faces of mesh a and mesh b with the same corners (each within ``tol``) in the same
-    cyclic order: ``(ia, ib)`` int64 arrays of face indices, each face in at most one pair."""
-    from scipy.spatial import cKDTree
-
+def _face_pairs(Va, Fa, Vb, Fb):
+    """Faces of mesh a and mesh b with the same corners (bit for bit: anything else would leave
+    a crack where the copies of the two meshes meet) in the same cyclic order: ``(ia, ib)``
+    int64 arrays of face indices, each face in at most one pair."""
     if len(Fa) == 0 or len(Fb) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    d, j = cKDTree(Vb).query(Va, distance_upper_bound=tol)
-    to_b = np.where(np.isfinite(d), j, -1)
+    Vb = np.asarray(Vb, np.float64)
+    _, inv = np.unique(np.concatenate([Vb, np.asarray(Va, np.float64)]), axis=0, return_inverse=True)
+    inv = inv.ravel()
+    first_b = np.full(inv.max() + 1, -1, np.int64)
+    first_b[inv[:len(Vb)][::-1]] = np.arange(len(Vb))[::-1]
+    to_b = first_b[inv[len(Vb):]]
     Fab = to_b[Fa]
     ok = np.flatnonzero((Fab >= 0).all(axis=1) & (Fab[:, 0] != Fab[:, 1]) & (Fab[:, 1] != Fab[:, 2])
                         & (Fab[:, 0] != Fab[:, 2]))
@@ -318,7 +321,7 @@ def _face_pairs(Va, Fa, Vb, Fb, tol):
     return ia[u], ib[u]
 
 
-def _coincident_faces(pres: list[Presence], preserved, junction, actions, tol, margin):
+def _coincident_faces(pres: list[Presence], preserved, junction, actions, margin):
     """Junctions whose faces two inputs of an action share: both surfaces pass through every
     face, so the blend of their signed distances (or their union) vanishes there and the
     junction is those faces as they are.
@@ -331,11 +334,6 @@ def _coincident_faces(pres: list[Presence], preserved, junction, actions, tol, m
     A character composed with itself thus gets every face back as it was (a limb replaced by
     itself); two different characters rarely share a face.
 
-    Parameters
-    ----------
-    tol : float
-        Corners closer than this are the same point (same units as the positions).
-
     Returns
     -------
     copied, dropped : lists of (m_i,) bool arrays
@@ -346,7 +344,7 @@ def _coincident_faces(pres: list[Presence], preserved, junction, actions, tol, m
     for act in actions:
         a, b = act.a, act.b
         Pa, Pb = pres[a], pres[b]
-        ia, ib = _face_pairs(Pa.welded.V, Pa.welded.F, Pb.welded.V, Pb.welded.F, tol)
+        ia, ib = _face_pairs(Pa.welded.V, Pa.welded.F, Pb.welded.V, Pb.welded.F)
         live_a = junction[a][ia] & ~copied[a][ia] & ~dropped[a][ia]
         live_b = junction[b][ib] & ~copied[b][ib] & ~dropped[b][ib]
         # one side preserves it: the other's copy leaves the junction
