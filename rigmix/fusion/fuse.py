@@ -161,8 +161,9 @@ class FusionParams:
         self-compositions, 11 of them more than 0.5% of the diagonal off (up to 2.2%); with
         it on 3, one of them off (RiggedFigure's right arm).
     copy_coincident : a junction cluster whose every face both inputs of an action have (the
-        same corner positions bit for bit, same orientation) is copied as it is: both surfaces pass through those faces, so the blended
-        field vanishes there and remeshing its isosurface could only lose them. Each face is
+        same corner positions bit for bit, same orientation) is copied as it is: both surfaces
+        pass through those faces, so the blended field vanishes there and remeshing its
+        isosurface could only lose them. Each face is
         kept once, from the input more present on it; its vertices get junction weights unless a
         preserved face keeps the position (:attr:`FusedSurface.junction_vertices`). A limb
         replaced by itself then comes back face for face: measured on the 37 limb
@@ -221,7 +222,8 @@ class FusedSurface:
     F : (M, 3) int64
         Preserved faces first (input order, source order), then junction faces.
     origin_input, origin_vertex : (N,) int64
-        Source input and split vertex of each output vertex; ``-1`` for generated junction vertices.
+        Source input and split vertex of each output vertex; ``-1`` for generated junction
+        vertices.
     face_origin_input, face_origin_face : (M,) int64
         Source of each face; ``-1`` for generated junction faces. Where a junction could not be
         closed by the isosurface (open sheets), the input faces kept instead keep their source
@@ -238,8 +240,8 @@ class FusedSurface:
         Copied on preserved vertices (bit-identical); junction normals from the surface, UVs 0,
         colours interpolated from the closest input points (presence-weighted).
     junction_sources : tuple of dict
-        Per input, for each of the ``junction_vertices``: ``face`` (split face of the closest point),
-        ``bary`` (barycentric, (k, 3)), ``distance``, ``presence`` at that point.
+        Per input, for each of the ``junction_vertices``: ``face`` (split face of the closest
+        point), ``bary`` (barycentric, (k, 3)), ``distance``, ``presence`` at that point.
     fields : tuple of (name, Grid, array)
         Blended fields (only with ``FusionParams.keep_fields``).
     junction_vertices : (N,) bool
