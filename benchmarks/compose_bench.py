@@ -88,6 +88,7 @@ def _compose_report(config_path):
             "junction_faces": r.get("mesh", {}).get("junction_faces"),
             "voxels": r.get("fields", {}).get("voxels"),
             "junction_min_angle_p05": r.get("mesh", {}).get("junction_min_angle_p05"),
+            "junction_self_intersections": r.get("mesh", {}).get("junction_self_intersections"),
             "junction_stretch_ratio": r.get("quality", {}).get("junction_stretch_ratio")}
 
 
@@ -150,8 +151,8 @@ def _markdown(configs, scaling):
     stages = ["load", "operations", "mapping", "fusion", "weights", "completion", "assembly", "quality", "total"]
     lines = ["Per-stage times of `rigmix.compose` (seconds; the SkinMixer paper reports 12 s on average "
              "per composition).", "",
-             "| config | " + " | ".join(stages) + " | faces | voxels | min angle p05 | stretch ratio |",
-             "|---|" + "---:|" * (len(stages) + 4)]
+             "| config | " + " | ".join(stages) + " | faces | voxels | min angle p05 | crossing pairs | stretch ratio |",
+             "|---|" + "---:|" * (len(stages) + 5)]
     for r in configs:
         if "error" in r:
             lines.append(f"| {r['config']} | error: {r['error']} |")
@@ -162,7 +163,7 @@ def _markdown(configs, scaling):
         sr = r["junction_stretch_ratio"]
         lines.append(f"| {r['config']} | " + " | ".join(cells) +
                      f" | {r['faces']} | {r['voxels']} | {'' if ang is None else f'{ang:.1f}'} | "
-                     f"{'' if sr is None else f'{sr:.2f}'} |")
+                     f"{r.get('junction_self_intersections', '')} | {'' if sr is None else f'{sr:.2f}'} |")
     lines += ["", "Fusion time against mesh resolution (CesiumMan subdivided, left arm replaced by itself, "
               "junction rebuilt from the fields):", "",
               "| input faces | fusion s | total s | output faces | voxels | peak RSS MB |", "|---:|---:|---:|---:|---:|---:|"]

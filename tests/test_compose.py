@@ -34,11 +34,15 @@ ASSETS_OF = {
 REPORT_KEYS = {
     "timings": ["total", "fusion", "weights", "completion", "assembly"],
     "mesh": ["vertices", "faces", "non_manifold_edges", "junction_boundary_edges", "junction_min_angle_p05",
-             "junction_faces"],
+             "junction_faces", "junction_self_intersections"],
     "fields": ["voxel_size", "voxels", "backend"],
     "weights": ["method", "max_influences", "min_sum", "max_sum", "junction_vertices"],
     "quality": ["junction_stretch_ratio"],
 }
+#: Junction faces crossing another face, as measured (2026-12-01; before the bridge recuts, the
+#: reverted crossing moves and the untangling: centaur 46, fox_arm 3, limb_swap 3,
+#: three_characters 1); every other config has none.
+SELF_INTERSECTIONS = {"centaur": 9}
 #: (config, figure) pairs the fusion does not meet yet, reported to the fusion issue; empty when all pass.
 FUSION_SHORTFALLS: set = set()
 
@@ -140,6 +144,7 @@ def test_rigmix_compose_end_to_end(cfg, tmp_path):
                "junction_min_angle_p05": (mesh["junction_min_angle_p05"] >= 20.0
                                           if mesh["junction_min_angle_p05"] is not None
                                           else 0 < mesh["copied_faces"] == mesh["junction_faces"])}
+    assert mesh["junction_self_intersections"] <= SELF_INTERSECTIONS.get(name, 0), mesh
     failed = [f for f, ok in figures.items() if not ok]
     unexpected = [f for f in failed if (name, f) not in FUSION_SHORTFALLS]
     assert not unexpected, f"{name}: fusion figures {[(f, mesh[f]) for f in unexpected]}"

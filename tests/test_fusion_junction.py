@@ -4,9 +4,8 @@ import numpy as np
 import pytest
 
 from rigmix.fusion.junction import boundary_loops, bridge_loops, clip_mesh, isosurface
-from rigmix.fusion.meshutil import boundary_halfedges, edge_counts
-from rigmix.fusion.remesh import flip_to_improve_angles
-from rigmix.fusion.meshutil import triangle_min_angles
+from rigmix.fusion.meshutil import boundary_halfedges, edge_counts, intersecting_face_pairs, triangle_min_angles
+from rigmix.fusion.remesh import flip_to_improve_angles, revert_crossing_moves, untangle
 
 from fusion_shapes import sphere
 
@@ -215,3 +214,79 @@ def test_cancelling_isosurface_faces_are_dropped():
     # (2,1,3) and (3,1,2) cancel (a fin); (4,5,6) and (5,6,4) are one face twice
     G = _drop_cancelling_faces(F)
     assert sorted(map(tuple, G)) == [(0, 1, 2), (4, 5, 6), (7, 8, 9)]
+
+
+def _two_triangles(second):
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], *second], dtype=float)
+    return V, np.array([[0, 1, 2], [3, 4, 5]])
+
+
+@pytest.mark.parametrize("second, crosses", [
+    ([[0.2, 0.2, -0.5], [0.2, 0.2, 0.5], [0.3, 0.5, 0.5]], True),     # pierces the first through its interior
+    ([[0.5, -0.5, 0.3], [0.5, 2, 0.3], [0.5, -0.5, -0.3]], True),     # crosses it along a segment
+    ([[0.2, 0.2, 0.1], [0.6, 0.2, 0.1], [0.2, 0.6, 0.1]], False),     # parallel, above it
+    ([[0.5, 0.5, 0.0], [1, 1, 0.5], [1, 1, -0.5]], False),            # touches its edge at one point
+    ([[2, 0, -1], [2, 0, 1], [3, 1, 0]], False),                      # far apart
+    ([[0.2, 0.2, -1], [0.2, 0.2, 1], [0.2, 0.2, 0]], False),          # no area: crosses nothing
+])
+def test_intersecting_face_pairs_tells_crossing_from_touching(second, crosses):
+    V, F = _two_triangles(second)
+    pairs = intersecting_face_pairs(V, F)
+    assert (len(pairs) == 1) == crosses
+    if crosses:
+        assert sorted(pairs[0].tolist()) == [0, 1]
+    # the same pair found from either face, and not at all from an unrelated subset
+    assert len(intersecting_face_pairs(V, F, faces=[1])) == len(pairs)
+    assert len(intersecting_face_pairs(V, F, faces=[])) == 0
+
+
+def test_neighbours_sharing_a_corner_never_count():
+    """Fan triangles meet at their shared corner, also when it is split into two vertices at
+    one position (a glTF seam); a closed sphere has no self-intersection at all."""
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0], [-1, 0.2, 0.5], [-0.5, -1, -0.5]], dtype=float)
+    F = np.array([[0, 1, 2], [3, 4, 5]])
+    assert len(intersecting_face_pairs(V, F)) == 0
+    Vs, Fs = sphere(2)
+    assert len(intersecting_face_pairs(Vs, Fs)) == 0
+    # pushing one vertex through the opposite side makes its fan cross that side's faces
+    Vs = Vs.copy()
+    top = int(np.argmax(Vs[:, 2]))
+    Vs[top] = -1.2 * Vs[top]
+    assert len(intersecting_face_pairs(Vs, Fs)) > 0
+
+
+def test_moves_that_make_faces_cross_are_undone():
+    """A vertex projected through the opposite side goes back; a harmless move stays."""
+    V0, F = sphere(2)
+    V1 = V0.copy()
+    top, other = int(np.argmax(V0[:, 2])), int(np.argmin(V0[:, 0]))
+    V1[top] = -1.2 * V0[top]          # crosses the sphere's other side
+    V1[other] = 1.01 * V0[other]       # a small outward move
+    V = revert_crossing_moves(V0, V1, F)
+    assert np.array_equal(V[top], V0[top])
+    assert np.array_equal(V[other], V1[other])
+    assert len(intersecting_face_pairs(V, F)) == 0
+
+
+def test_untangle_opens_a_fold_and_keeps_the_fixed_vertices():
+    """A sphere with one vertex pushed through to the other side: smoothing the crossing
+    triangles' corners opens the fold, the fixed vertices stay, and the rest of the sphere
+    stays where it was."""
+    V0, F = sphere(2)
+    order = np.argsort(V0[:, 2])  # fixed: the lower half (renumbered first)
+    inv = np.empty_like(order)
+    inv[order] = np.arange(len(order))
+    V0, F = V0[order], inv[F]
+    nfixed = len(V0) // 2
+    V = V0.copy()
+    top = len(V) - 1
+    V[top] = [0.0, 0.0, -1.2]  # through the bottom of the sphere
+    assert len(intersecting_face_pairs(V, F)) > 0
+    U, left = untangle(V, F, nfixed)
+    assert left == 0 and len(intersecting_face_pairs(U, F)) == 0
+    assert np.array_equal(U[:nfixed], V[:nfixed])
+    far = np.linalg.norm(V0 - V0[top], axis=1) > 1.0
+    assert np.array_equal(U[far], V[far])
+    # nothing to open: the mesh comes back as it is
+    U2, left2 = untangle(V0, F, nfixed)
+    assert left2 == 0 and np.array_equal(U2, V0)

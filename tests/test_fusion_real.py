@@ -190,7 +190,9 @@ def test_secondary_parts_are_kept_whole():
 def test_fidelity_refinement_recovers_what_remeshing_chords_off():
     """CesiumMan's left leg: remeshing to the neighbouring edge length alone leaves the surface
     0.57% of the diagonal from the original; refined against the isosurface it is within 0.5%,
-    with the junction still closed and its triangles still good."""
+    with the junction still closed and its triangles still good. Its second bridge recut would
+    leave a non-manifold junction that cannot be remeshed: it is refused, and the refined
+    junction's one fold is smoothed open (:func:`rigmix.fusion.remesh.untangle`)."""
     a, b = _limb_self_composition("CesiumMan", "leg_joint_L_1")
 
     plain = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)],
@@ -198,8 +200,11 @@ def test_fidelity_refinement_recovers_what_remeshing_chords_off():
     refined = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=REMESHED)
     assert _hausdorff(a, plain) > 0.005
     assert _hausdorff(a, refined) <= 0.005
-    assert refined.report["fields"]["grids"][0]["fidelity"] is True
+    grid = refined.report["fields"]["grids"][0]
+    assert grid["fidelity"] is True and grid["remeshed"] is True
+    assert grid["bridge_recuts_rejected"] == 1 and grid["self_intersections"] == 0
     m = refined.report["mesh"]
+    assert m["junction_self_intersections"] == 0
     assert m["junction_boundary_edges"] == 0 and m["new_non_manifold_edges"] == 0
     assert m["junction_min_angle_p05"] >= 20.0
 
@@ -247,7 +252,9 @@ def test_a_looser_fidelity_tolerance_is_tried_before_none():
 def test_the_looser_tolerance_never_costs_the_junction_its_triangles():
     """The Horse + Knight centaur: its plain junction strays 1.7% of the diagonal from the
     isosurface, but the looser shape-keeping retry would pin it with features down to p05 20
-    (from 28): it stays plain. Allowed any loss, the retry is taken, with worse triangles."""
+    (from 28): it stays plain. Allowed any loss, the retry is made, with worse triangles, and
+    still not taken: it folds through itself more than the plain junction (14 crossing pairs
+    against 6), and a fold is never the price of shape."""
     from rigmix.config import load_config
     from rigmix.fusion import FusionParams
     from rigmix.fusion.inputs import fusion_inputs_from_plan
@@ -263,9 +270,13 @@ def test_the_looser_tolerance_never_costs_the_junction_its_triangles():
     assert grid["plain_deviation"] > 4 * 0.0025 * bounding_box_diagonal(out.V)  # the retry was considered
     p05 = out.report["mesh"]["junction_min_angle_p05"]
     assert p05 >= 25.0
+    assert "loose" not in grid["fidelity_candidates"]  # refused for its triangles
     loose = fuse_surfaces(inputs, actions, params=FusionParams(relax_max_angle_loss=90.0))
-    assert loose.report["fields"]["grids"][0]["fidelity"] is True
-    assert 20.0 <= loose.report["mesh"]["junction_min_angle_p05"] < p05 - 5.0
+    grid = loose.report["fields"]["grids"][0]
+    cands = grid["fidelity_candidates"]
+    assert 20.0 <= cands["loose"]["junction_min_angle_p05"] < p05 - 5.0
+    assert cands["loose"]["self_intersections"] > cands["plain"]["self_intersections"]
+    assert grid["fidelity"] is False and loose.report["mesh"]["junction_min_angle_p05"] == p05
 
 
 def test_knight_leg_junction_is_remeshed_and_manifold():

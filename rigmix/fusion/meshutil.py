@@ -21,6 +21,7 @@ __all__ = [
     "triangle_min_angles",
     "edge_counts",
     "average_edge_length",
+    "intersecting_face_pairs",
 ]
 
 
@@ -214,3 +215,76 @@ def average_edge_length(V, F):
         return 0.0
     V = np.asarray(V, dtype=np.float64)
     return float(np.linalg.norm(V[uE[:, 0]] - V[uE[:, 1]], axis=1).mean())
+
+
+def intersecting_face_pairs(V, F, faces=None, *, tol=1e-9):
+    """Pairs of triangles that cross each other (self-intersections), by the separating axis test.
+
+    Triangles that share a corner (an index, or a position) are never paired: neighbours meet by
+    construction. Triangles without area and triangles that only touch (within ``tol`` times
+    the mesh's extent) do not count.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+    F : (m, 3) int array
+    faces : (k,) int array, optional
+        Only pairs with at least one of these faces (default: all).
+    tol : float
+
+    Returns
+    -------
+    (p, 2) int64
+        Face index pairs ``(a, b)``, ``a`` from ``faces``; each unordered pair once.
+    """
+    from scipy.spatial import cKDTree
+
+    V = np.asarray(V, np.float64)
+    F = np.asarray(F, np.int64).reshape(-1, 3)
+    if len(F) < 2:
+        return np.zeros((0, 2), np.int64)
+    T = V[F]
+    lo, hi = T.min(axis=1), T.max(axis=1)
+    C = 0.5 * (lo + hi)
+    R = 0.5 * np.linalg.norm(hi - lo, axis=1)
+    faces = np.arange(len(F)) if faces is None else np.unique(np.asarray(faces, np.int64))
+    if len(faces) == 0:
+        return np.zeros((0, 2), np.int64)
+    tree = cKDTree(C)
+    near = tree.query_ball_point(C[faces], R[faces] + R.max())
+    a = np.repeat(faces, [len(x) for x in near])
+    b = np.concatenate([np.asarray(x, np.int64) for x in near]) if len(a) else np.zeros(0, np.int64)
+    in_set = np.zeros(len(F), bool)
+    in_set[faces] = True
+    keep = (a != b) & ~(in_set[b] & (b < a))  # each unordered pair once
+    a, b = a[keep], b[keep]
+    eps = tol * float(np.ptp(V, axis=0).max() or 1.0)
+    keep = np.all((lo[a] <= hi[b] + eps) & (lo[b] <= hi[a] + eps), axis=1)
+    keep &= ~(F[a][:, :, None] == F[b][:, None, :]).any(axis=(1, 2))
+    a, b = a[keep], b[keep]
+    # a corner at the same position counts as shared (split or duplicated seam vertices), and a
+    # triangle without area crosses nothing
+    same = (T[a][:, :, None, :] == T[b][:, None, :, :]).all(axis=3).any(axis=(1, 2))
+    area2 = np.linalg.norm(np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]), axis=1)
+    flat = area2 <= (eps * eps)
+    keep = ~same & ~flat[a] & ~flat[b]
+    a, b = a[keep], b[keep]
+    if len(a) == 0:
+        return np.zeros((0, 2), np.int64)
+    A, B = T[a], T[b]  # (p, 3, 3)
+    ea = np.roll(A, -1, axis=1) - A
+    eb = np.roll(B, -1, axis=1) - B
+    na = np.cross(ea[:, 0], ea[:, 1])
+    nb = np.cross(eb[:, 0], eb[:, 1])
+    axes = [na, nb]
+    axes += [np.cross(ea[:, i], eb[:, j]) for i in range(3) for j in range(3)]
+    axes += [np.cross(na, ea[:, i]) for i in range(3)] + [np.cross(nb, eb[:, j]) for j in range(3)]
+    separated = np.zeros(len(a), bool)
+    for ax in axes:
+        norm = np.linalg.norm(ax, axis=1)
+        ok = norm > 1e-12 * np.maximum(np.linalg.norm(ea, axis=2).max(axis=1) * np.linalg.norm(eb, axis=2).max(axis=1), 1e-300)
+        u = ax / np.maximum(norm, 1e-300)[:, None]
+        pa = np.einsum("pkc,pc->pk", A, u)
+        pb = np.einsum("pkc,pc->pk", B, u)
+        separated |= ok & ((pa.max(axis=1) <= pb.min(axis=1) + eps) | (pb.max(axis=1) <= pa.min(axis=1) + eps))
+    return np.stack([a[~separated], b[~separated]], axis=1)

@@ -6,7 +6,14 @@ import logging
 
 import numpy as np
 
-from .meshutil import corner_angles, edge_counts, nondegenerate, triangle_corner_angles, vertex_adjacency
+from .meshutil import (
+    corner_angles,
+    edge_counts,
+    intersecting_face_pairs,
+    nondegenerate,
+    triangle_corner_angles,
+    vertex_adjacency,
+)
 
 log = logging.getLogger(__name__)
 
@@ -594,3 +601,88 @@ def insert_points(V, F, fixed, X, *, max_dist, passes=4):
             placed.append(v)
         X = X[waiting]
     return V, G, np.asarray(placed, np.int64)
+
+
+def revert_crossing_moves(V0, V1, F, *, rounds=8):
+    """Undo the vertex moves that make triangles cross each other.
+
+    ``V1`` is ``V0`` after a move that keeps the topology (a projection onto the inputs).
+    Where two triangles cross in ``V1`` but not in ``V0``, the corners of both go back to
+    ``V0``; repeated until no new crossing is left (or ``rounds`` passes).
+
+    Parameters
+    ----------
+    V0, V1 : (n, 3) float arrays
+    F : (m, 3) int array
+
+    Returns
+    -------
+    (n, 3) float64
+        ``V1`` with some rows of ``V0``.
+    """
+    V0 = np.asarray(V0, np.float64)
+    V = np.array(V1, np.float64)
+    F = np.asarray(F, np.int64).reshape(-1, 3)
+    moved = np.any(V0 != V, axis=1)
+    if not moved.any() or len(F) < 2:
+        return V
+    cand = np.flatnonzero(moved[F].any(axis=1))
+    before = {tuple(p) for p in np.sort(intersecting_face_pairs(V0, F, cand), axis=1).tolist()}
+    for _ in range(rounds):
+        moved = np.any(V0 != V, axis=1)
+        cand = np.flatnonzero(moved[F].any(axis=1))
+        if len(cand) == 0:
+            break
+        pairs = np.sort(intersecting_face_pairs(V, F, cand), axis=1)
+        new = [p for p in pairs.tolist() if tuple(p) not in before]
+        if not new:
+            break
+        back = np.unique(F[np.asarray(new).ravel()])
+        V[back] = V0[back]
+    return V
+
+
+def untangle(V, F, nfixed, *, rounds=8, step=0.5):
+    """Smooth the corners of crossing triangles until they cross no more.
+
+    Each round moves the free corners (index ``>= nfixed``) of every crossing pair, and their
+    neighbours, a ``step`` towards the mean of their neighbours (umbrella smoothing): a fold
+    left by a projection or an inserted feature point opens up with the least change of shape.
+    The result is kept only if it crosses itself less than ``V`` does.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+    F : (m, 3) int array
+    nfixed : int
+        Vertices ``0 .. nfixed - 1`` never move (the seam).
+
+    Returns
+    -------
+    V_out : (n, 3) float64
+    crossings : int
+        Crossing pairs of triangles left.
+    """
+    V = np.array(V, np.float64)
+    F = np.asarray(F, np.int64).reshape(-1, 3)
+    start = intersecting_face_pairs(V, F)
+    if len(start) == 0:
+        return V, 0
+    A = vertex_adjacency(F, len(V)).astype(np.float64).tocsr()
+    deg = np.maximum(np.asarray(A.sum(axis=1)).ravel(), 1)
+    U, pairs = V.copy(), start
+    for _ in range(rounds):
+        move = np.zeros(len(V), bool)
+        move[F[pairs.ravel()].ravel()] = True
+        move |= (A @ move.astype(np.float64)) > 0
+        move[:nfixed] = False
+        if not move.any():
+            break
+        mean = (A @ U) / deg[:, None]
+        U[move] += step * (mean[move] - U[move])
+        pairs = intersecting_face_pairs(U, F)
+        if len(pairs) == 0:
+            break
+    if len(pairs) < len(start):
+        return U, int(len(pairs))
+    return V, int(len(start))

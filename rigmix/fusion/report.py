@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry import weld
-from .meshutil import edge_counts, triangle_min_angles
+from .meshutil import edge_counts, intersecting_face_pairs, triangle_min_angles
 
 __all__ = ["mesh_report", "edge_keys"]
 
@@ -57,7 +57,10 @@ def mesh_report(V, F, junction, inputs_VF):
         ``vertices``, ``faces``, ``welded_vertices``, ``boundary_edges``, ``non_manifold_edges``,
         ``new_non_manifold_edges``, ``junction_boundary_edges`` (boundary edges of the output
         that were not boundary edges of an input), ``junction_faces``,
-        ``junction_min_angle_p05`` and ``junction_min_angle_min`` (degrees).
+        ``junction_min_angle_p05`` and ``junction_min_angle_min`` (degrees),
+        ``junction_self_intersections`` (pairs of faces, at least one of them a junction face,
+        that cross each other without sharing a corner of the welded mesh: a fold through the
+        surface that shading, collision and boolean tools all trip on).
     """
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64).reshape(-1, 3)
@@ -86,4 +89,5 @@ def mesh_report(V, F, junction, inputs_VF):
         "junction_faces": int(np.count_nonzero(junction)),
         "junction_min_angle_p05": float(np.percentile(ang, 5)) if len(ang) else None,
         "junction_min_angle_min": float(ang.min()) if len(ang) else None,
+        "junction_self_intersections": int(len(intersecting_face_pairs(Vw, Fw, np.flatnonzero(junction)))),
     }

@@ -29,10 +29,12 @@ from .remesh import (
     is_edge_manifold,
     relocate_poor_vertices,
     remesh_junction,
+    revert_crossing_moves,
     smooth_interior,
     snap_to_points,
+    untangle,
 )
-from .meshutil import triangle_min_angles
+from .meshutil import intersecting_face_pairs, triangle_min_angles
 from .seams import _pinched
 
 log = logging.getLogger(__name__)
@@ -95,6 +97,17 @@ def _project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels):
     out = U.copy()
     out[nfixed:] = Q + move
     return out
+
+
+def _position_keys(P):
+    """One comparable key per row of ``P`` (exact positions)."""
+    P = np.ascontiguousarray(np.asarray(P, np.float64).reshape(-1, 3))
+    return P.view(np.dtype((np.void, P.dtype.itemsize * 3))).ravel()
+
+
+def _crossings(U, G):
+    """Pairs of junction triangles that cross each other (:func:`.meshutil.intersecting_face_pairs`)."""
+    return int(len(intersecting_face_pairs(U, G)))
 
 
 def _preserved_edges_between(pres, preserved, keys, fid_to_final):
@@ -322,72 +335,111 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
             Vc, Fc, _ = remove_unreferenced(Vc, Fc[~bad])
     else:
         Vc, Fc = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
-    iso_loops, _ = boundary_loops(Vc, Fc, -1) if len(Fc) else ([], [])
-    # match preserved loops to isosurface loops (or to each other across inputs)
-    edge = np.mean([np.linalg.norm(np.diff(np.vstack([L.positions, L.positions[:1]]), axis=0), axis=1).mean()
-                    for L in loops]) if loops else h
-    max_cost = max(params.cut_voxels * h * 3.0 + 2.0 * h, 1.5 * edge)
-    pairs = match_loops(loops, iso_loops, max_cost=max_cost)
-    matched_iso = [j for i, kind, j in pairs if kind == "iso"]
-    matched_pres = {i for i, _, _ in pairs} | {j for _, kind, j in pairs if kind == "preserved"}
-    info["unmatched_preserved_loops"] = int(len(loops) - len(matched_pres))
-    # keep the isosurface components that meet a matched loop
-    if len(Fc) and matched_iso:
-        keepf = keep_components_touching(Fc, len(Vc), np.concatenate([iso_loops[j].vertices for j in matched_iso]))
-        Vc2, Fc2, old = remove_unreferenced(Vc, Fc[keepf])
-        new = np.full(len(Vc), -1, np.int64)
-        new[old] = np.arange(len(old))
-        iso_loops = [Loop(-1, new[L.vertices], L.positions) for L in iso_loops]
-        Vc, Fc = Vc2, Fc2
-        # isosurface holes no seam claims (cut around a preserved speck): closed by a fan
-        matched_sets = [frozenset(iso_loops[j].vertices.tolist()) for j in matched_iso]
-        remaining, _ = boundary_loops(Vc, Fc, -1)
-        extra_v, extra_f = [], []
-        for L in remaining:
-            if frozenset(L.vertices.tolist()) in matched_sets:
-                continue
-            c = len(Vc) + len(extra_v)
-            extra_v.append(L.positions.mean(axis=0))
-            extra_f += [(L.vertices[k], L.vertices[k - 1], c) for k in range(len(L.vertices))]
-            info["unmatched_iso_loops"] += 1
-        if extra_v:
-            Vc = np.concatenate([Vc, np.asarray(extra_v)])
-            Fc = np.concatenate([Fc, np.asarray(extra_f, np.int64)])
-    else:
-        Vc, Fc = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
-    # junction vertex table: isosurface vertices, then preserved loop vertices (fixed)
-    keys: dict[tuple[int, int], int] = {}
-    fixed_pos = []
 
-    def fixed_id(src, v, pos):
-        k = (int(src), int(v))
-        if k not in keys:
-            keys[k] = len(fixed_pos)
-            fixed_pos.append(pos)
-        return keys[k]
-
-    faces = []
-    nI = len(Vc)
-    for L in loops:
-        for v, pos in zip(L.vertices, L.positions):
-            fixed_id(L.source, v, pos)
-    for i, kind, j in pairs:
-        P = loops[i]
-        Q = iso_loops[j] if kind == "iso" else loops[j]
-        if not orientation_agrees(P.positions, Q.positions):
-            info["orientation_warnings"] += 1
-            log.warning("fusion: loops of different orientation bridged near %s", P.positions.mean(axis=0))
-        T = bridge_loops(P.positions, Q.positions)
-        pid = np.array([fixed_id(P.source, v, x) for v, x in zip(P.vertices, P.positions)]) + nI
-        if kind == "iso":
-            qid = Q.vertices
+    def bridged(Vc, Fc):
+        """Loops of the cut isosurface matched to the preserved loops and bridged: the junction
+        before remeshing, its vertex table, the number of bridge faces (last in JF) and the
+        mean seam edge."""
+        info["unmatched_iso_loops"] = info["orientation_warnings"] = 0
+        fans = {}  # fan centre vertex -> the positions of the hole's loop
+        iso_loops, _ = boundary_loops(Vc, Fc, -1) if len(Fc) else ([], [])
+        # match preserved loops to isosurface loops (or to each other across inputs)
+        edge = np.mean([np.linalg.norm(np.diff(np.vstack([L.positions, L.positions[:1]]), axis=0), axis=1).mean()
+                        for L in loops]) if loops else h
+        max_cost = max(params.cut_voxels * h * 3.0 + 2.0 * h, 1.5 * edge)
+        pairs = match_loops(loops, iso_loops, max_cost=max_cost)
+        matched_iso = [j for i, kind, j in pairs if kind == "iso"]
+        matched_pres = {i for i, _, _ in pairs} | {j for _, kind, j in pairs if kind == "preserved"}
+        info["unmatched_preserved_loops"] = int(len(loops) - len(matched_pres))
+        # keep the isosurface components that meet a matched loop
+        if len(Fc) and matched_iso:
+            keepf = keep_components_touching(Fc, len(Vc), np.concatenate([iso_loops[j].vertices for j in matched_iso]))
+            Vc2, Fc2, old = remove_unreferenced(Vc, Fc[keepf])
+            new = np.full(len(Vc), -1, np.int64)
+            new[old] = np.arange(len(old))
+            iso_loops = [Loop(-1, new[L.vertices], L.positions) for L in iso_loops]
+            Vc, Fc = Vc2, Fc2
+            # isosurface holes no seam claims (cut around a preserved speck): closed by a fan
+            matched_sets = [frozenset(iso_loops[j].vertices.tolist()) for j in matched_iso]
+            remaining, _ = boundary_loops(Vc, Fc, -1)
+            extra_v, extra_f = [], []
+            for L in remaining:
+                if frozenset(L.vertices.tolist()) in matched_sets:
+                    continue
+                c = len(Vc) + len(extra_v)
+                extra_v.append(L.positions.mean(axis=0))
+                extra_f += [(L.vertices[k], L.vertices[k - 1], c) for k in range(len(L.vertices))]
+                fans[c] = L.positions
+                info["unmatched_iso_loops"] += 1
+            if extra_v:
+                Vc = np.concatenate([Vc, np.asarray(extra_v)])
+                Fc = np.concatenate([Fc, np.asarray(extra_f, np.int64)])
         else:
-            qid = np.array([fixed_id(Q.source, v, x) for v, x in zip(Q.vertices, Q.positions)]) + nI
-        ids = np.concatenate([pid, qid])
-        faces.append(ids[T])
-    fixed_pos = np.asarray(fixed_pos, dtype=np.float64).reshape(-1, 3)
-    JV = np.concatenate([Vc, fixed_pos])
-    JF = np.concatenate([Fc] + faces) if (len(Fc) or faces) else np.zeros((0, 3), np.int64)
+            Vc, Fc = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+        # junction vertex table: isosurface vertices, then preserved loop vertices (fixed)
+        keys: dict[tuple[int, int], int] = {}
+        fixed_pos = []
+
+        def fixed_id(src, v, pos):
+            k = (int(src), int(v))
+            if k not in keys:
+                keys[k] = len(fixed_pos)
+                fixed_pos.append(pos)
+            return keys[k]
+
+        faces = []
+        nI = len(Vc)
+        for L in loops:
+            for v, pos in zip(L.vertices, L.positions):
+                fixed_id(L.source, v, pos)
+        for i, kind, j in pairs:
+            P = loops[i]
+            Q = iso_loops[j] if kind == "iso" else loops[j]
+            if not orientation_agrees(P.positions, Q.positions):
+                info["orientation_warnings"] += 1
+                log.warning("fusion: loops of different orientation bridged near %s", P.positions.mean(axis=0))
+            T = bridge_loops(P.positions, Q.positions)
+            pid = np.array([fixed_id(P.source, v, x) for v, x in zip(P.vertices, P.positions)]) + nI
+            if kind == "iso":
+                qid = Q.vertices
+            else:
+                qid = np.array([fixed_id(Q.source, v, x) for v, x in zip(Q.vertices, Q.positions)]) + nI
+            ids = np.concatenate([pid, qid])
+            faces.append(ids[T])
+        fixed_pos = np.asarray(fixed_pos, dtype=np.float64).reshape(-1, 3)
+        JV = np.concatenate([Vc, fixed_pos])
+        JF = np.concatenate([Fc] + faces) if (len(Fc) or faces) else np.zeros((0, 3), np.int64)
+        return JV, JF, nI, keys, len(JF) - len(Fc), edge, fans
+
+    # a bridge strip must not pass through the isosurface, nor through the fan closing a hole no
+    # seam claims (where the cut loop recedes far from its seam, or a second hole opens beside
+    # it): the isosurface around what it crosses is cut away too and the loops bridged again.
+    # A recut stands only if every seam loop is still bridged and the junction stays
+    # edge-manifold (the remeshing needs it): CesiumMan's left leg replaced by itself, recut
+    # twice, bridged into a non-manifold junction that was then kept unremeshed (p05 2.3 degrees).
+    bridge = bridged(Vc, Fc)
+    for _ in range(params.bridge_recuts):
+        JV, JF, nI, keys, nb, edge, fans = bridge
+        if nb == 0 or len(Fc) == 0:
+            break
+        hits = intersecting_face_pairs(JV, JF, len(JF) - nb + np.arange(nb))
+        crossed = np.unique(hits[:, 1][hits[:, 1] < len(JF) - nb])
+        if len(crossed) == 0:
+            break
+        marked = [JV[v] for v in np.unique(JF[crossed].ravel()) if v not in fans]
+        marked += [P for v in np.unique(JF[crossed].ravel()) if v in fans for P in fans[v]]
+        near = np.isin(_position_keys(Vc), _position_keys(np.asarray(marked)))
+        Vc2, Fc2, _ = remove_unreferenced(Vc, Fc[~near[Fc].any(axis=1)])
+        before = {k: info[k] for k in ("unmatched_preserved_loops", "unmatched_iso_loops", "orientation_warnings")}
+        again = bridged(Vc2, Fc2)
+        if (len(again[1]) == 0 or info["unmatched_preserved_loops"] > before["unmatched_preserved_loops"]
+                or not is_edge_manifold(again[1])):
+            info.update(before)
+            info["bridge_recuts_rejected"] = info.get("bridge_recuts_rejected", 0) + 1
+            break
+        Vc, Fc, bridge = Vc2, Fc2, again
+        info["bridge_recuts"] = info.get("bridge_recuts", 0) + 1
+    JV, JF, nI, keys, nb, edge, fans = bridge
     timings["cut_bridge"] = timings.get("cut_bridge", 0.0) + time.perf_counter() - t0
     t0 = time.perf_counter()
     # remesh the union with the preserved loops fixed (drop unused fixed vertices first)
@@ -413,7 +465,9 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
                                                             feature_tol, params.feature_rounds, points=corners,
                                                             points_tol=0.1 * h, max_insert=3.0 * h)
             U = smooth_interior(U, G, np.arange(nfix), iterations=params.taubin_iterations)
-            U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels)
+            # a projection that folds the junction through itself is undone there
+            U = revert_crossing_moves(U, _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h,
+                                                            params.project_voxels), G)
             G = flip_to_improve_angles(U, G, forbidden=forb)
             U = relocate_poor_vertices(U, G, nfix, surface=(RV, RF))
             G = flip_to_improve_angles(U, G, forbidden=forb)
@@ -428,7 +482,9 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
             if feature_tol > 0:
                 # the quality moves above slide vertices along the reference, whose bridge
                 # strips chord across a voxel or two: back onto the inputs where they agree
-                U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels)
+                U = revert_crossing_moves(U, _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h,
+                                                                params.project_voxels), G)
+            U, _ = untangle(U, G, nfix)
             return _separate_coincident(U, G, len(fx)), G, nfix - len(fx)
 
         try:
@@ -437,34 +493,45 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
             corners = None
             if params.keep_input_corners and tol > 0:
                 corners = _input_vertices_on_surface(replaced, pres, surfaces, inputs_fields, actions, band, 0.1 * h)
-            U, G, nfeat = finish(tol)
-            info["fidelity"] = bool(tol > 0)
-            info["fidelity_tolerance"] = float(tol)
-            angle = _angle_p05(U, G)
-            if tol > 0 and angle < params.min_angle_p05:
-                # fidelity never at the price of slivers: the features stand only while the
-                # junction's 5th-percentile minimum angle stays at the acceptance level, or
-                # is no worse than the plain remeshing's. Where the plain remeshing loses
-                # more of the shape than a looser tolerance allows, that looser tolerance
-                # (fewer kept features) is tried first; keeping less, it may cost little.
+            # candidates: (U, G, feature vertices, tolerance, p05, self-intersections)
+            strict = (*finish(tol), tol)
+            cands = {"strict": (*strict, _angle_p05(strict[0], strict[1]), _crossings(strict[0], strict[1]))}
+            choice = "strict"
+            angle = cands["strict"][4]
+            if tol > 0 and (angle < params.min_angle_p05 or cands["strict"][5] > 0):
+                # fidelity never at the price of slivers or folds: the features stand only while
+                # the junction's 5th-percentile minimum angle stays at the acceptance level (or
+                # no worse than the plain remeshing's) and it crosses itself no more than the
+                # plain remeshing. Where the plain remeshing loses more of the shape than a
+                # looser tolerance allows, that looser tolerance (fewer kept features) is
+                # tried first; keeping less, it may cost little.
                 U0, G0, _ = finish(0.0)
                 plain_angle = _angle_p05(U0, G0)
+                cands["plain"] = (U0, G0, 0, 0.0, plain_angle, _crossings(U0, G0))
                 lost = np.sqrt(igl.point_mesh_squared_distance(JV, U0, G0)[0]).max()  # JV: the reference
                 info["plain_deviation"] = float(lost)
-                chosen = False
                 for loose in [tol * f for f in params.fidelity_relax]:
                     if lost <= loose:
                         break
                     U1, G1, n1 = finish(loose)
                     a1 = _angle_p05(U1, G1)
                     if a1 >= params.min_angle_p05 and a1 >= plain_angle - params.relax_max_angle_loss:
-                        U, G, nfeat, chosen = U1, G1, n1, True
-                        info["fidelity_tolerance"] = float(loose)
+                        cands["loose"] = (U1, G1, n1, loose, a1, _crossings(U1, G1))
                         break
-                if not chosen and plain_angle > angle:
-                    U, G, nfeat = U0, G0, 0
-                    info["fidelity"] = False
-                    info["fidelity_tolerance"] = 0.0
+                if angle < params.min_angle_p05:
+                    if "loose" in cands:
+                        choice = "loose"
+                    elif plain_angle > angle:
+                        choice = "plain"
+                fewest = min(c[5] for c in cands.values())
+                if cands[choice][5] > fewest:
+                    choice = max((k for k, c in cands.items() if c[5] == fewest), key=lambda k: cands[k][4])
+            U, G, nfeat, used_tol, _, crossings = cands[choice]
+            info["fidelity_candidates"] = {k: {"tolerance": float(c[3]), "junction_min_angle_p05": float(c[4]),
+                                               "self_intersections": int(c[5])} for k, c in cands.items()}
+            info["fidelity"] = bool(used_tol > 0)
+            info["fidelity_tolerance"] = float(used_tol)
+            info["self_intersections"] = int(crossings)
             info["feature_vertices"] = int(nfeat)
             fkeys = [fixed_keys[int(old[v] - nI)] for v in fx]
             JV, JF = U, G

@@ -335,6 +335,8 @@ def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
     if plane is None:
         key = _key(g.V)
         if key not in _PLANES:
+            if len(_PLANES) >= 8:  # a memo of the last meshes, not a store: bounded like _FEATURES
+                _PLANES.pop(next(iter(_PLANES)))
             _PLANES[key] = symmetry_plane(g.V)
         plane = _PLANES[key]
     if plane is None:  # no mirror prior, nothing for a field to judge: no distillation either
