@@ -15,7 +15,7 @@ junction weight method (``nearest``, ``inpaint``, ``dfd``) then fills W_R, and w
 * junction stretch ratio (:func:`rigmix.quality.junction_stretch_ratio`; the completed clips of a
   self-composition are the character's own).
 
-Two protocols (PIPELINE.md section 7):
+Three protocols (PIPELINE.md section 7):
 
 ``identity``
     the limb is replaced by the same limb of the same character, with the junction rebuilt from
@@ -35,12 +35,20 @@ Two protocols (PIPELINE.md section 7):
     ``pairing_distance``). Preserved vertices copy their input's row under every method, so the
     skinned error is measured with the truth on the junction vertices only (the donor's own
     asymmetry is not the weight stage's error).
+``hidden``
+    as ``identity`` (a limb replaced by itself, the junction rebuilt), but every junction row is
+    hidden: no junction vertex is matched to an input (:data:`HIDDEN`: every one counts as
+    low-confidence), so each method fills the whole junction band from the preserved vertices
+    around it alone. This is what a method does where the inputs tell nothing (a donor whose
+    surface does not meet the body's), measured against a known truth. ``nearest`` here is
+    :func:`rigmix.weights.fill_weights`' ``nearest`` fill (the closest preserved vertex's
+    weights): the paper's closest-point rule has nothing to read from.
 
 Each method is run with its defaults; ``dfd_no_field`` is ``dfd`` with ``feature_field=False``
 (no distilled DFD field), to measure what the field does.
 
 Writes ``benchmarks/results/self_composition.json`` and ``self_composition.md``.
-Usage: ``python -m benchmarks.self_composition [--protocol identity|mirrored|both] [CHARACTER ...]``.
+Usage: ``python -m benchmarks.self_composition [--protocol identity|mirrored|hidden|all] [CHARACTER ...]``.
 """
 
 from __future__ import annotations
@@ -68,7 +76,7 @@ from rigmix.skin_weights import blend_weights  # noqa: E402
 METHODS = (("nearest", {"method": "nearest"}), ("inpaint", {"method": "inpaint"}), ("dfd", {"method": "dfd"}),
            ("dfd_no_field", {"method": "dfd", "feature_field": False}))
 LABELS = tuple(label for label, _ in METHODS)
-PROTOCOLS = ("identity", "mirrored")
+PROTOCOLS = ("identity", "mirrored", "hidden")
 
 #: Limb roots per shared character (SimpleSkin has no limb; the Wasp's body is 13 parts).
 LIMBS = {
@@ -172,6 +180,53 @@ def run_case(path: Path, joint: str, *, methods=METHODS, max_frames=None) -> dic
         full = self_composition_errors(comp, skin, max_frames=max_frames, truth_influences=None)
         figures["full_truth"] = {k: full[k] for k in ("junction_weight_error_mean", "junction_weight_error_max",
                                                       "skinned_error_max")}
+        out["methods"][label] = {**_measure(comp, skin, figures), "weights_s": t_w}
+    return out
+
+
+#: blend_weights options of the hidden protocol: junction vertices weighted by joints mapped with
+#: less than this confidence are never matched, and confidences are at most 1, so none is.
+HIDDEN = {"min_confidence": 1.5}
+
+
+def hidden_weights(comp, options):
+    """W_R with every junction row filled from the preserved rows alone (the hidden protocol).
+
+    ``inpaint`` and ``dfd`` run :func:`blend_weights` with :data:`HIDDEN`; ``nearest`` (whose
+    closest-point rule fills nothing) gives each junction vertex the weights of its closest
+    preserved vertex (:func:`rigmix.weights.fill_weights`, ``nearest``), split copies of one
+    position welded as :func:`blend_weights` does.
+
+    Returns
+    -------
+    skin : SkinWeights
+    seconds : float
+    """
+    from rigmix.skin_weights import weld_consistent
+    from rigmix.weights import fill_weights
+
+    if options.get("method") != "nearest":
+        return _weights(comp, {**options, **HIDDEN})
+    t0 = time.perf_counter()
+    skin, _ = _weights(comp, options)
+    surface = comp.stages["surface"]
+    junction = np.asarray(surface.junction_vertices, bool)
+    W = fill_weights(surface.V, surface.F, skin.W, junction, method="nearest", max_influences=4)
+    W, _ = weld_consistent(surface.V, surface.F, W, junction, 4)
+    skin = replace(skin, W=W, matched=np.zeros_like(junction),
+                   report={**skin.report, "matched_vertices": 0,
+                           "max_influences": int(np.count_nonzero(W > 0, axis=1).max())})
+    return skin, round(time.perf_counter() - t0, 3)
+
+
+def run_hidden_case(path: Path, joint: str, *, methods=METHODS, max_frames=None) -> dict:
+    """Hidden protocol: fuse once (junction rebuilt), fill every junction row with every method, measure."""
+    t0 = time.perf_counter()
+    comp = compose(self_config(path, joint, fusion=REBUILT), until="completion")
+    out = _case_info(comp, time.perf_counter() - t0)
+    for label, options in methods:
+        skin, t_w = hidden_weights(comp, options)
+        figures = self_composition_errors(comp, skin, max_frames=max_frames)
         out["methods"][label] = {**_measure(comp, skin, figures), "weights_s": t_w}
     return out
 
@@ -432,14 +487,14 @@ def main(argv=None) -> int:
     from conftest import ASSETS, CHARACTERS
 
     parser = argparse.ArgumentParser(prog="python -m benchmarks.self_composition")
-    parser.add_argument("--protocol", choices=(*PROTOCOLS, "both"), default="both")
+    parser.add_argument("--protocol", choices=(*PROTOCOLS, "all"), default="all")
     parser.add_argument("characters", nargs="*", help=f"default: {' '.join(LIMBS)}")
-    # argv None (``benchmarks.run`` calls main()): every character, both protocols; the runner's
+    # argv None (``benchmarks.run`` calls main()): every character, every protocol; the runner's
     # own command line names benchmarks, not characters
     args = parser.parse_args(list(argv or []))
     logging.basicConfig(level=logging.ERROR)
     names = args.characters or list(LIMBS)
-    protocols = PROTOCOLS if args.protocol == "both" else (args.protocol,)
+    protocols = PROTOCOLS if args.protocol == "all" else (args.protocol,)
     rows = {p: [] for p in protocols}
     seconds = {}
     for protocol in protocols:
@@ -449,9 +504,10 @@ def main(argv=None) -> int:
             if not path.exists():
                 print(f"self_composition: missing {path}; skipped", file=sys.stderr)
                 continue
-            if protocol == "identity":
+            if protocol in ("identity", "hidden"):
+                case = run_case if protocol == "identity" else run_hidden_case
                 for limb, joint in LIMBS[name].items():
-                    rows[protocol].append(_run(name, limb, joint, run_case, path, joint))
+                    rows[protocol].append(_run(name, limb, joint, case, path, joint))
             else:
                 for limb, other in mirror_pairs(name):
                     joint = LIMBS[name][limb]
@@ -473,6 +529,11 @@ def main(argv=None) -> int:
             lines += ["", "## Identity: a limb replaced by itself", "",
                       "The truth is the closest original point's weights, which is `nearest`'s own rule: nearest "
                       "scores 0 by construction.", ""]
+        elif p == "hidden":
+            lines += ["", "## Hidden: a limb replaced by itself, every junction row filled from the preserved rows", "",
+                      "No junction vertex is matched to an input: each method fills the whole band from the preserved "
+                      "vertices around it (`nearest`: the closest preserved vertex). Truth and errors as in the "
+                      "identity protocol.", ""]
         else:
             lines += ["", "## Mirrored: limb X replaced by X of the mirrored character (the opposite limb, reflected)",
                       "", "Truth: the original's weights at the closest original point, at the junction vertices "
