@@ -157,7 +157,7 @@ def _weights(comp, options):
     ids = comp.stages["fusion_ids"]
     t1 = time.perf_counter()
     skin = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
-                         comp.skeleton.num_joints, **options)
+                         comp.skeleton.num_joints, skeleton=comp.skeleton, **options)
     return skin, round(time.perf_counter() - t1, 3)
 
 

@@ -117,7 +117,8 @@ def weights_stage(composition: Composition, progress: Progress | None = None) ->
     ids = composition.stages["fusion_ids"]
     try:
         skin = blend_weights(composition.stages["surface"], composition.stages["fusion_inputs"],
-                             [composition.maps[cid] for cid in ids], composition.skeleton.num_joints, **opts)
+                             [composition.maps[cid] for cid in ids], composition.skeleton.num_joints,
+                             skeleton=composition.skeleton, **opts)
     except TypeError as e:  # an unknown option name in the config
         raise InputError(f"config {composition.config.source}: [weights]: {e}") from None
     return replace(composition, stages={**composition.stages, "weights": skin},

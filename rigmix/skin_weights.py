@@ -27,9 +27,10 @@
     tolerance (see ``match_angle``), and whatever the normals on an input's surface (within 0.5%
     of the diagonal, ``match_on_surface``); the rest (far or low-confidence vertices) filled by
     ``fill_weights(method="dfd")`` (prior borrowed from similar known parts, inpainting energy
-    as regularizer); then *geodesic locality*: a joint keeps its
-    weight on an unknown vertex only if the joint drives a known vertex within a geodesic
-    radius of it, so weights never leak to a look-alike part elsewhere (the other hand).
+    as regularizer) with *geodesic locality*: a joint keeps its weight on an unknown vertex
+    only if the joint drives a known vertex (or, by the trusted mirror prior, a filled one)
+    within a geodesic radius of it, so weights never leak to a look-alike part elsewhere (the
+    other hand).
     The DFD feature field of the fused surface is distilled (:data:`FIELD_DISTILL`, a few
     seconds on two cores) and decides how far the mirror prior is trusted: a vertex borrows its
     mirror point's weights only where the two points look alike. ``feature_field=False`` (config
@@ -49,13 +50,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components, dijkstra
+from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 
 from .errors import InputError, NumericalError
 from .geometry import bounding_box_diagonal, weld
 from .weights import feature_field as distill_feature_field
 from .weights import fill_weights, sparsify
+from .weights.locality import geodesic_locality, welded_graph as _welded_graph
 
 __all__ = ["SkinWeights", "WEIGHT_METHODS", "BLEND_FACTORS", "FIELD_DISTILL", "retarget_weights",
            "closest_point_weights", "harmonic_blend_factors", "match_junction", "geodesic_locality", "smooth_rows",
@@ -304,77 +306,6 @@ def weld_consistent(V, F, W, junction, max_influences=4):
     return W, int(changed.sum())
 
 
-def _welded_graph(V, F):
-    """Welded vertex index and the edge-length graph of the welded mesh."""
-    Vw, F_w, index = _weld(V, F)
-    E = np.concatenate([F_w[:, [0, 1]], F_w[:, [1, 2]], F_w[:, [2, 0]]])
-    E = E[E[:, 0] != E[:, 1]]
-    E = np.unique(np.sort(E, axis=1), axis=0)  # each edge once: duplicates would sum their lengths
-    lengths = np.linalg.norm(Vw[E[:, 0]] - Vw[E[:, 1]], axis=1) + 1e-12
-    G = sp.csr_matrix((np.r_[lengths, lengths], (np.r_[E[:, 0], E[:, 1]], np.r_[E[:, 1], E[:, 0]])),
-                      shape=(len(Vw), len(Vw)))
-    return Vw, index, G
-
-
-def _weld(V, F):
-    Vw, index, Fw = weld(np.asarray(V, np.float64), np.asarray(F, np.int64).reshape(-1, 3))
-    return Vw, Fw, index
-
-
-def geodesic_locality(V, F, W, unknown, *, radius, power=1.0, support=0.05):
-    """Restrict filled weights to joints that drive known vertices geodesically nearby.
-
-    Parameters
-    ----------
-    V : (n, 3) float array
-    F : (m, 3) int array
-    W : (n, J) float array
-        Filled weights (known rows as given).
-    unknown : (n,) bool array
-        Rows to restrict.
-    radius : float
-        Geodesic radius (graph distance over welded edges, same units as ``V``).
-    power : float
-        ``w_j(v) <- w_j(v) (1 - d_j(v) / radius)^power``, ``d_j(v)`` the graph distance from
-        ``v`` to the nearest known vertex where joint ``j`` weighs at least ``support``.
-    support : float
-
-    Returns
-    -------
-    W : (n, J) float64
-        Unknown rows attenuated and renormalized; a row left empty keeps its input value.
-    """
-    W = np.asarray(W, np.float64).copy()
-    unknown = np.asarray(unknown, bool)
-    if not unknown.any():
-        return W
-    Vw, index, G = _welded_graph(V, F)
-    k = len(Vw)
-    unk_w = np.zeros(k, bool)
-    unk_w[index[unknown]] = True
-    known_w = np.zeros(k, bool)
-    known_w[index[~unknown]] = True
-    known_w &= ~unk_w
-    Wk = np.zeros((k, W.shape[1]))
-    Wk[index[~unknown]] = W[~unknown]
-    rows_u = np.flatnonzero(unknown)
-    joints = np.flatnonzero(W[rows_u].max(axis=0) > 0)
-    atten = np.ones((len(rows_u), W.shape[1]))
-    for j in joints:
-        src = np.flatnonzero(known_w & (Wk[:, j] >= support))
-        if not len(src):
-            atten[:, j] = 0.0
-            continue
-        d = dijkstra(G, directed=False, indices=src, min_only=True, limit=radius)
-        dj = d[index[rows_u]]
-        atten[:, j] = np.clip(1.0 - dj / radius, 0.0, 1.0) ** power
-    Wu = W[rows_u] * atten
-    s = Wu.sum(axis=1)
-    ok = s > 1e-9
-    W[rows_u[ok]] = Wu[ok] / s[ok, None]
-    return W
-
-
 def harmonic_blend_factors(V, F, T, free):
     """Blend factors that vary harmonically across the junction, fixed on the preserved parts.
 
@@ -482,7 +413,7 @@ def to_influences(W, k=4):
 def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max_influences=4,
                   match_distance=0.05, match_angle=None, match_on_surface=None, min_confidence=0.5, locality=0.1,
                   locality_power=1.0, feature_field=True, blend=None, smoothing=0, seam_spread=0.1,
-                  seam_rings=2, **fill_options):
+                  seam_rings=2, skeleton=None, **fill_options):
     """W_R on the fused surface.
 
     Parameters
@@ -526,7 +457,8 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
         confidence than this are never matched (filled instead).
     locality : float
         ``dfd``: geodesic radius as a fraction of the diagonal (at least twice the farthest
-        unknown vertex's distance to a known one).
+        unknown vertex's distance to a known one), passed to the fill
+        (:func:`rigmix.weights.locality.geodesic_locality`).
     locality_power : float
     smoothing : int
         Iterations of ``w <- 0.5 w + 0.5 mean(neighbours)`` after the fill on the junction
@@ -539,6 +471,13 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
         factors avoid.
     seam_spread : float
     seam_rings : int
+    skeleton : rigmix.character.Skeleton, optional
+        The output skeleton, its rest pose in the surface's space. ``dfd`` takes its joints'
+        names and rest positions for the joint mirror (instead of inferring it from the known
+        weights) and its bones as a weak prior where a filled region has no mirror (a band
+        across the symmetry plane: a tail's or a neck's root). Measured with every junction row
+        filled (the self-composition benchmark's ``hidden`` protocol), Fox mean junction weight
+        error without / with: tail 0.72 / 0.37, right leg 0.49 / 0.18.
     feature_field : bool
         ``dfd`` (default True): distill the DFD feature field of the fused surface (settings
         :data:`FIELD_DISTILL`, or ``distill_options``) and trust the mirror prior only where a
@@ -574,6 +513,10 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
             lazy = _LazyField(surface.V, surface.F, cache=fill_options.pop("field_cache", None),
                               options={**FIELD_DISTILL, **(fill_options.pop("distill_options", None) or {})})
         fill_options["field"] = lazy if feature_field else False
+    if method == "dfd" and skeleton is not None:
+        fill_options.setdefault("joint_names", list(skeleton.names))
+        fill_options.setdefault("joint_positions", skeleton.rest_worlds()[:, :3, 3])
+        fill_options.setdefault("joint_parents", np.asarray(skeleton.parents))
     if len(inputs) != len(maps) or len(inputs) != len(surface.preserved):
         raise InputError(f"weights: {len(inputs)} inputs and {len(maps)} maps for a surface fused from "
                          f"{len(surface.preserved)} inputs")
@@ -629,10 +572,11 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
             matched[jrows] = m & ~low[jrows]
             unknown = junction & ~matched
             if unknown.any() and (~unknown).any():
+                if method == "dfd" and locality > 0:
+                    fill_options.setdefault("locality", locality * diag)
+                    fill_options.setdefault("locality_power", locality_power)
                 W = fill_weights(surface.V, surface.F, W, unknown, method=method,
                                  max_influences=max_influences, **fill_options)
-                if method == "dfd" and locality > 0:
-                    W = _local(surface, W, unknown, diag, locality, locality_power, max_influences)
     seam = np.zeros(N, bool)
     if len(jrows) and smoothing > 0:
         seam[jrows] = spread > seam_spread
@@ -685,25 +629,6 @@ class _LazyField:
             self.seconds = time.perf_counter() - t0
             log.debug("weights: feature field distilled in %.2f s", self.seconds)
         return self.field.evaluate(X)
-
-
-def _local(surface, W, unknown, diag, locality, power, k):
-    """Geodesic locality on the filled rows, radius scaled to the unknown band's reach."""
-    Vw, index, G = _welded_graph(surface.V, surface.F)
-    known_w = np.zeros(len(Vw), bool)
-    known_w[index[~unknown]] = True
-    unk_w = np.zeros(len(Vw), bool)
-    unk_w[index[unknown]] = True
-    known_w &= ~unk_w
-    src = np.flatnonzero(known_w)
-    reach = 0.0
-    if len(src):
-        d = dijkstra(G, directed=False, indices=src, min_only=True)
-        fin = d[unk_w][np.isfinite(d[unk_w])]
-        reach = float(fin.max()) if len(fin) else 0.0
-    radius = max(locality * diag, 2.0 * reach)
-    out = geodesic_locality(surface.V, surface.F, W, unknown, radius=radius, power=power)
-    return np.where(unknown[:, None], sparsify(out, k), W)
 
 
 def _grow(V, F, mask, rings):

@@ -209,6 +209,24 @@ def test_fidelity_refinement_recovers_what_remeshing_chords_off():
     assert m["junction_min_angle_p05"] >= 20.0
 
 
+def test_fewer_folds_never_cost_the_junction_its_triangles():
+    """The Fox's right hind leg replaced by itself (through the pipeline, as the self-composition
+    benchmark does): the shape-keeping junction crosses itself
+    once (one pair of faces), the plain remeshing not at all but with p05 19 degrees, below the
+    acceptance level. The plain one is not taken for its fewer folds: the junction keeps its
+    triangles (p05 >= 20) and its shape."""
+    from benchmarks.self_composition import REBUILT, self_config
+    from rigmix.pipeline import compose
+
+    comp = compose(self_config(asset("Fox"), "b_RightLeg01_019", fusion=REBUILT), until="fusion")
+    out = comp.stages["surface"]
+    grid = out.report["fields"]["grids"][0]
+    cands = grid["fidelity_candidates"]
+    assert cands["plain"]["self_intersections"] < cands["strict"]["self_intersections"]
+    assert cands["plain"]["junction_min_angle_p05"] < 20.0 <= cands["strict"]["junction_min_angle_p05"]
+    assert grid["fidelity"] is True and out.report["mesh"]["junction_min_angle_p05"] >= 20.0
+
+
 def test_collapses_let_the_junction_keep_the_shape_of_a_low_poly_tail():
     """The Horse's tail root: its preserved faces leave seam edges up to five target edges long,
     and the remeshed strip beside them is flat caps (p05 of the minimum angle 19 degrees with

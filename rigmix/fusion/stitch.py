@@ -523,9 +523,14 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
                         choice = "loose"
                     elif plain_angle > angle:
                         choice = "plain"
-                fewest = min(c[5] for c in cands.values())
+                # fewer folds, but never at the price of triangles below the acceptance level
+                # (the Fox's right leg replaced by itself: a strict junction with one crossing
+                # pair at p05 22 degrees, a plain one with none at 19)
+                floor = min(params.min_angle_p05, cands[choice][4])
+                fair = {k: c for k, c in cands.items() if c[4] >= floor}
+                fewest = min(c[5] for c in fair.values())
                 if cands[choice][5] > fewest:
-                    choice = max((k for k, c in cands.items() if c[5] == fewest), key=lambda k: cands[k][4])
+                    choice = max((k for k, c in fair.items() if c[5] == fewest), key=lambda k: fair[k][4])
             U, G, nfeat, used_tol, _, crossings = cands[choice]
             info["fidelity_candidates"] = {k: {"tolerance": float(c[3]), "junction_min_angle_p05": float(c[4]),
                                                "self_intersections": int(c[5])} for k, c in cands.items()}

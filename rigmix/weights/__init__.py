@@ -93,7 +93,10 @@ def fill_weights(V, F, W, unknown, *, method="inpaint", max_influences=4, **opti
         length), ``strength`` (10, the data term's weight), ``joint_parents`` ((J,) int, with
         ``joint_positions``: enables the bone prior for hidden regions without a mirror),
         ``bone_prior`` (0.1, its largest confidence), ``iterations`` / ``alpha`` (0: no
-        post-smoothing).
+        post-smoothing), ``locality`` (0: off; a graph radius in units of ``V``, raised to
+        twice the band's reach: each filled joint fades with the distance to a vertex known,
+        or trusted by the prior, to carry it; :mod:`rigmix.weights.locality`) and
+        ``locality_power`` (1).
         All: ``uniform`` (1e-3), the weight of the uniform Laplacian regularizer.
 
     Returns

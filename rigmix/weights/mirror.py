@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import InputError
 from ..geometry import bounding_box_diagonal
+from .locality import geodesic_locality, locality_radius
 from .methods import _fill_inpaint
 from .mesh import (
     _Welded,
@@ -320,7 +321,7 @@ def _solve_prior(g: _Welded, W, unk, P, c, *, strength=10.0):
 def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
               joint_names=None, joint_positions=None, mirror_tol=0.25, strength=10.0,
               iterations=0, alpha=0.8, field_cache=None, distill_options=None,
-              joint_parents=None, bone_prior=0.1):
+              joint_parents=None, bone_prior=0.1, locality=0.0, locality_power=1.0):
     """The project's fill: the inpainting energy pulled toward a prior from similar known parts.
 
     Prior: each unknown vertex reflected across the symmetry plane (given, or detected on the
@@ -329,8 +330,30 @@ def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
     DFD feature field, by the feature agreement of the two points. Where the mirror is hidden
     too (a band across the plane) and ``joint_parents`` is given, the skeleton's bones give a
     weaker prior (:func:`_bone_prior`). Where no prior exists, the fill is the inpainting.
+    With ``locality`` (a graph radius), each filled joint then fades with the distance to its
+    nearest witness (:func:`.locality.geodesic_locality`): a known vertex it drives, or a filled
+    vertex whose prior, trusted (confidence at least 0.5), gives it. A joint whose surface is
+    all hidden is witnessed by its mirror image; without the prior's witnesses the Fox's left
+    upper arm, hidden across a self-composition's junction band, lost it (mean junction weight
+    error 0.87 against 0.20).
     Options are listed in :func:`rigmix.weights.fill_weights`.
     """
+    out, P, c = _fill_dfd_prior(g, W, unk, field=field, plane=plane, joint_mirror=joint_mirror,
+                                joint_names=joint_names, joint_positions=joint_positions, mirror_tol=mirror_tol,
+                                strength=strength, iterations=iterations, alpha=alpha, field_cache=field_cache,
+                                distill_options=distill_options, joint_parents=joint_parents,
+                                bone_prior=bone_prior)
+    if locality and locality > 0:
+        radius = locality_radius(g.V, g.F, unk, locality)
+        witness = np.where(c[:, None] >= 0.5, P, 0.0) if P is not None else None
+        out = geodesic_locality(g.V, g.F, out, unk, radius=radius, power=locality_power, witness=witness)
+    return out
+
+
+def _fill_dfd_prior(g: _Welded, W, unk, *, field, plane, joint_mirror, joint_names, joint_positions,
+                    mirror_tol, strength, iterations, alpha, field_cache, distill_options, joint_parents,
+                    bone_prior):
+    """:func:`_fill_dfd` before the locality: ``(filled W, prior P or None, confidence c or None)``."""
     J = W.shape[1]
     if plane is None:
         key = _key(g.V)
@@ -340,7 +363,7 @@ def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
             _PLANES[key] = symmetry_plane(g.V)
         plane = _PLANES[key]
     if plane is None:  # no mirror prior, nothing for a field to judge: no distillation either
-        return _fill_inpaint(g, W, unk, iterations=iterations, alpha=alpha)
+        return _fill_inpaint(g, W, unk, iterations=iterations, alpha=alpha), None, None
     if field is False:  # ablation: geometry only
         field = None
     elif field is None:
@@ -362,7 +385,7 @@ def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
         P = (c[:, None] * P + cb[:, None] * Pb) / total[:, None]
         c = c + cb
     out = _solve_prior(g, W, unk, P, c, strength=strength)
-    return _smooth(g, out, unk, iterations=iterations, alpha=alpha) if iterations else out
+    return (_smooth(g, out, unk, iterations=iterations, alpha=alpha) if iterations else out), P, c
 
 
 def _bone_distances(V, positions, parents):
