@@ -217,6 +217,57 @@ def average_edge_length(V, F):
     return float(np.linalg.norm(V[uE[:, 0]] - V[uE[:, 1]], axis=1).mean())
 
 
+def _grid_pairs(lo, hi, in_set, max_cells=64):
+    """Broad phase: pairs of boxes that share a cell of a uniform grid, one of them in ``in_set``.
+
+    Cells are as large as the median box (at least 1/``max_cells`` of the largest box, so that
+    no box spans more than ``max_cells`` cells a side); each box is entered in every cell its
+    extent touches.
+
+    Parameters
+    ----------
+    lo, hi : (m, 3) float arrays
+        Box corners.
+    in_set : (m,) bool array
+
+    Returns
+    -------
+    a, b : (p,) int64 arrays
+        Each unordered pair once, ``a != b``, ``a`` in ``in_set``.
+    """
+    ext = (hi - lo).max(axis=1)
+    cell = max(float(np.median(ext)), float(ext.max()) / max_cells, 1e-300)
+    origin = lo.min(axis=0)
+    c0 = np.floor((lo - origin) / cell).astype(np.int64)
+    c1 = np.floor((hi - origin) / cell).astype(np.int64)
+    n = c1 - c0 + 1
+    count = n.prod(axis=1)
+    box = np.repeat(np.arange(len(lo)), count)
+    k = np.arange(len(box)) - np.repeat(np.cumsum(count) - count, count)
+    nx, ny = n[box, 0], n[box, 1]
+    dims = c1.max(axis=0) + 1
+    key = ((c0[box, 0] + k % nx) * dims[1] + c0[box, 1] + (k // nx) % ny) * dims[2] + c0[box, 2] + k // (nx * ny)
+    order = np.argsort(key, kind="stable")
+    key, box = key[order], box[order]
+    start = np.r_[0, np.flatnonzero(np.diff(key)) + 1]
+    end = np.r_[start[1:], len(key)]
+    group_end = np.repeat(end, end - start)
+    later = group_end - np.arange(len(key)) - 1  # members after this one in its cell
+    a = np.repeat(box, later)
+    first = np.repeat(np.arange(len(key)) + 1, later)
+    b = box[first + np.arange(len(a)) - np.repeat(np.cumsum(later) - later, later)]
+    keep = (a != b) & (in_set[a] | in_set[b])
+    a, b = a[keep], b[keep]
+    swap = ~in_set[a]  # ``a`` from the set
+    a[swap], b[swap] = b[swap], a[swap].copy()
+    m = np.int64(len(lo))
+    pair = np.unique(np.minimum(a, b) * m + np.maximum(a, b))
+    a, b = pair // m, pair % m
+    swap = ~in_set[a]
+    a[swap], b[swap] = b[swap], a[swap].copy()
+    return a, b
+
+
 def intersecting_face_pairs(V, F, faces=None, *, tol=1e-9):
     """Pairs of triangles that cross each other (self-intersections), by the separating axis test.
 
@@ -237,28 +288,19 @@ def intersecting_face_pairs(V, F, faces=None, *, tol=1e-9):
     (p, 2) int64
         Face index pairs ``(a, b)``, ``a`` from ``faces``; each unordered pair once.
     """
-    from scipy.spatial import cKDTree
-
     V = np.asarray(V, np.float64)
     F = np.asarray(F, np.int64).reshape(-1, 3)
     if len(F) < 2:
         return np.zeros((0, 2), np.int64)
     T = V[F]
     lo, hi = T.min(axis=1), T.max(axis=1)
-    C = 0.5 * (lo + hi)
-    R = 0.5 * np.linalg.norm(hi - lo, axis=1)
     faces = np.arange(len(F)) if faces is None else np.unique(np.asarray(faces, np.int64))
     if len(faces) == 0:
         return np.zeros((0, 2), np.int64)
-    tree = cKDTree(C)
-    near = tree.query_ball_point(C[faces], R[faces] + R.max())
-    a = np.repeat(faces, [len(x) for x in near])
-    b = np.concatenate([np.asarray(x, np.int64) for x in near]) if len(a) else np.zeros(0, np.int64)
+    eps = tol * float(np.ptp(V, axis=0).max() or 1.0)
     in_set = np.zeros(len(F), bool)
     in_set[faces] = True
-    keep = (a != b) & ~(in_set[b] & (b < a))  # each unordered pair once
-    a, b = a[keep], b[keep]
-    eps = tol * float(np.ptp(V, axis=0).max() or 1.0)
+    a, b = _grid_pairs(lo - eps, hi + eps, in_set)
     keep = np.all((lo[a] <= hi[b] + eps) & (lo[b] <= hi[a] + eps), axis=1)
     keep &= ~(F[a][:, :, None] == F[b][:, None, :]).any(axis=(1, 2))
     a, b = a[keep], b[keep]
