@@ -175,6 +175,10 @@ class FusionParams:
         Horse + Knight centaur: 8 bridge triangles spanning 0.26 to 0.33 units, against a median
         of 0.076, crossed an 87-vertex fan 101 times, and the remeshed junction kept 35 of the
         crossings); the report's grids give ``bridge_recuts``.
+    untangle_move : folds left in a remeshed junction are smoothed open
+        (:func:`.remesh.untangle`) only if no vertex of a shape-keeping junction moves farther
+        than this many fidelity tolerances (the box corners of RiggedFigure's arm, replaced by
+        itself, were rounded to 0.9% of the diagonal from 0.23% to open five folds).
     min_island_faces : preserved parts bordering a junction with fewer faces join it (specks
         left by the presence pattern have no isosurface hole to meet).
     backend : "numpy" (numpy + libigl) or "openvdb".
@@ -212,6 +216,7 @@ class FusionParams:
     collapse_poor: bool = True
     copy_coincident: bool = True
     bridge_recuts: int = 6
+    untangle_move: float = 2.0
     backend: str = "numpy"
     keep_fields: bool = False
 

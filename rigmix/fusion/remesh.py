@@ -603,52 +603,14 @@ def insert_points(V, F, fixed, X, *, max_dist, passes=4):
     return V, G, np.asarray(placed, np.int64)
 
 
-def revert_crossing_moves(V0, V1, F, *, rounds=8):
-    """Undo the vertex moves that make triangles cross each other.
-
-    ``V1`` is ``V0`` after a move that keeps the topology (a projection onto the inputs).
-    Where two triangles cross in ``V1`` but not in ``V0``, the corners of both go back to
-    ``V0``; repeated until no new crossing is left (or ``rounds`` passes).
-
-    Parameters
-    ----------
-    V0, V1 : (n, 3) float arrays
-    F : (m, 3) int array
-
-    Returns
-    -------
-    (n, 3) float64
-        ``V1`` with some rows of ``V0``.
-    """
-    V0 = np.asarray(V0, np.float64)
-    V = np.array(V1, np.float64)
-    F = np.asarray(F, np.int64).reshape(-1, 3)
-    moved = np.any(V0 != V, axis=1)
-    if not moved.any() or len(F) < 2:
-        return V
-    cand = np.flatnonzero(moved[F].any(axis=1))
-    before = {tuple(p) for p in np.sort(intersecting_face_pairs(V0, F, cand), axis=1).tolist()}
-    for _ in range(rounds):
-        moved = np.any(V0 != V, axis=1)
-        cand = np.flatnonzero(moved[F].any(axis=1))
-        if len(cand) == 0:
-            break
-        pairs = np.sort(intersecting_face_pairs(V, F, cand), axis=1)
-        new = [p for p in pairs.tolist() if tuple(p) not in before]
-        if not new:
-            break
-        back = np.unique(F[np.asarray(new).ravel()])
-        V[back] = V0[back]
-    return V
-
-
-def untangle(V, F, nfixed, *, rounds=8, step=0.5):
+def untangle(V, F, nfixed, *, rounds=8, step=0.5, max_move=None):
     """Smooth the corners of crossing triangles until they cross no more.
 
     Each round moves the free corners (index ``>= nfixed``) of every crossing pair, and their
     neighbours, a ``step`` towards the mean of their neighbours (umbrella smoothing): a fold
     left by a projection or an inserted feature point opens up with the least change of shape.
-    The result is kept only if it crosses itself less than ``V`` does.
+    The result is kept only if it crosses itself less than ``V`` does and, with ``max_move``,
+    no vertex moved farther than that (a fold at a sharp corner is not worth the corner).
 
     Parameters
     ----------
@@ -656,6 +618,7 @@ def untangle(V, F, nfixed, *, rounds=8, step=0.5):
     F : (m, 3) int array
     nfixed : int
         Vertices ``0 .. nfixed - 1`` never move (the seam).
+    max_move : float, optional
 
     Returns
     -------
@@ -683,6 +646,7 @@ def untangle(V, F, nfixed, *, rounds=8, step=0.5):
         pairs = intersecting_face_pairs(U, F)
         if len(pairs) == 0:
             break
-    if len(pairs) < len(start):
+    moved = float(np.linalg.norm(U - V, axis=1).max())
+    if len(pairs) < len(start) and (max_move is None or moved <= max_move):
         return U, int(len(pairs))
     return V, int(len(start))
