@@ -169,13 +169,14 @@ def _case_info(comp, t_fuse) -> dict:
             "methods": {}}
 
 
-def run_case(path: Path, joint: str, *, methods=METHODS, max_frames=None) -> dict:
-    """Identity protocol: fuse once, fill W_R with every method, measure."""
+def run_case(path: Path, joint: str, protocol: str = "identity", *, methods=METHODS, max_frames=None) -> dict:
+    """Identity or hidden protocol: fuse once (junction rebuilt), fill W_R with every method, measure."""
+    fill = hidden_weights if protocol == "hidden" else _weights
     t0 = time.perf_counter()
     comp = compose(self_config(path, joint, fusion=REBUILT), until="completion")
     out = _case_info(comp, time.perf_counter() - t0)
     for label, options in methods:
-        skin, t_w = _weights(comp, options)
+        skin, t_w = fill(comp, options)
         figures = self_composition_errors(comp, skin, max_frames=max_frames)
         full = self_composition_errors(comp, skin, max_frames=max_frames, truth_influences=None)
         figures["full_truth"] = {k: full[k] for k in ("junction_weight_error_mean", "junction_weight_error_max",
@@ -217,18 +218,6 @@ def hidden_weights(comp, options):
                    report={**skin.report, "matched_vertices": 0,
                            "max_influences": int(np.count_nonzero(W > 0, axis=1).max())})
     return skin, round(time.perf_counter() - t0, 3)
-
-
-def run_hidden_case(path: Path, joint: str, *, methods=METHODS, max_frames=None) -> dict:
-    """Hidden protocol: fuse once (junction rebuilt), fill every junction row with every method, measure."""
-    t0 = time.perf_counter()
-    comp = compose(self_config(path, joint, fusion=REBUILT), until="completion")
-    out = _case_info(comp, time.perf_counter() - t0)
-    for label, options in methods:
-        skin, t_w = hidden_weights(comp, options)
-        figures = self_composition_errors(comp, skin, max_frames=max_frames)
-        out["methods"][label] = {**_measure(comp, skin, figures), "weights_s": t_w}
-    return out
 
 
 def limb_pairing(skeleton, x: int, y: int, plane) -> tuple[np.ndarray, float]:
@@ -505,9 +494,8 @@ def main(argv=None) -> int:
                 print(f"self_composition: missing {path}; skipped", file=sys.stderr)
                 continue
             if protocol in ("identity", "hidden"):
-                case = run_case if protocol == "identity" else run_hidden_case
                 for limb, joint in LIMBS[name].items():
-                    rows[protocol].append(_run(name, limb, joint, case, path, joint))
+                    rows[protocol].append(_run(name, limb, joint, run_case, path, joint, protocol))
             else:
                 for limb, other in mirror_pairs(name):
                     joint = LIMBS[name][limb]

@@ -258,13 +258,11 @@ def _grid_pairs(lo, hi, in_set, max_cells=64):
     b = box[first + np.arange(len(a)) - np.repeat(np.cumsum(later) - later, later)]
     keep = (a != b) & (in_set[a] | in_set[b])
     a, b = a[keep], b[keep]
-    swap = ~in_set[a]  # ``a`` from the set
-    a[swap], b[swap] = b[swap], a[swap].copy()
     m = np.int64(len(lo))
-    pair = np.unique(np.minimum(a, b) * m + np.maximum(a, b))
+    pair = np.unique(np.minimum(a, b) * m + np.maximum(a, b))  # two boxes share several cells
     a, b = pair // m, pair % m
-    swap = ~in_set[a]
-    a[swap], b[swap] = b[swap], a[swap].copy()
+    swap = ~in_set[a]  # ``a`` from the set
+    a[swap], b[swap] = b[swap], a[swap]
     return a, b
 
 

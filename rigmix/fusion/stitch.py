@@ -105,11 +105,6 @@ def _position_keys(P):
     return P.view(np.dtype((np.void, P.dtype.itemsize * 3))).ravel()
 
 
-def _crossings(U, G):
-    """Pairs of junction triangles that cross each other (:func:`.meshutil.intersecting_face_pairs`)."""
-    return int(len(intersecting_face_pairs(U, G)))
-
-
 def _preserved_edges_between(pres, preserved, keys, fid_to_final):
     """Edges of preserved faces whose two ends are junction border vertices, in final indices.
 
@@ -154,9 +149,8 @@ def _replaced_input_vertices(pres, inputs, junction_masks, preserved, grid):
     if len(X) == 0:
         return X
     kept = [P.welded.V[np.unique(P.welded.F[preserved[i]].ravel())] for i, P in enumerate(pres)]
-    K = np.ascontiguousarray(np.concatenate(kept)) if kept else np.zeros((0, 3))
-    key = np.dtype((np.void, 24))
-    return X[~np.isin(np.ascontiguousarray(X).view(key).ravel(), K.view(key).ravel())]
+    K = np.concatenate(kept) if kept else np.zeros((0, 3))
+    return X[~np.isin(_position_keys(X), _position_keys(K))]
 
 
 def _surface_input_vertices(X, grid, field3, h):
@@ -491,11 +485,10 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
             corners = None
             if params.keep_input_corners and tol > 0:
                 corners = _input_vertices_on_surface(replaced, pres, surfaces, inputs_fields, actions, band, 0.1 * h)
-            # candidates: (U, G, feature vertices, tolerance, p05, self-intersections)
-            strict = (*finish(tol), tol)
-            cands = {"strict": (*strict, _angle_p05(strict[0], strict[1]), _crossings(strict[0], strict[1]))}
-            choice = "strict"
-            angle = cands["strict"][4]
+            U, G, nfeat = finish(tol)
+            info["fidelity"] = bool(tol > 0)
+            info["fidelity_tolerance"] = float(tol)
+            angle = _angle_p05(U, G)
             if tol > 0 and angle < params.min_angle_p05:
                 # fidelity never at the price of slivers: the features stand only while the
                 # junction's 5th-percentile minimum angle stays at the acceptance level, or is
@@ -506,9 +499,9 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
                 # themselves, 1.4% of the diagonal against 0.08%.)
                 U0, G0, _ = finish(0.0)
                 plain_angle = _angle_p05(U0, G0)
-                cands["plain"] = (U0, G0, 0, 0.0, plain_angle, _crossings(U0, G0))
                 lost = np.sqrt(igl.point_mesh_squared_distance(JV, U0, G0)[0]).max()  # JV: the reference
                 info["plain_deviation"] = float(lost)
+                chosen = False
                 for loose in [tol * f for f in params.fidelity_relax]:
                     if lost <= loose:
                         break
@@ -517,19 +510,14 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
                     info.setdefault("fidelity_retries", []).append(
                         {"tolerance": float(loose), "junction_min_angle_p05": float(a1)})
                     if a1 >= params.min_angle_p05 and a1 >= plain_angle - params.relax_max_angle_loss:
-                        cands["loose"] = (U1, G1, n1, loose, a1, _crossings(U1, G1))
+                        U, G, nfeat, chosen = U1, G1, n1, True
+                        info["fidelity_tolerance"] = float(loose)
                         break
-                if angle < params.min_angle_p05:
-                    if "loose" in cands:
-                        choice = "loose"
-                    elif plain_angle > angle:
-                        choice = "plain"
-            U, G, nfeat, used_tol, _, crossings = cands[choice]
-            info["fidelity_candidates"] = {k: {"tolerance": float(c[3]), "junction_min_angle_p05": float(c[4]),
-                                               "self_intersections": int(c[5])} for k, c in cands.items()}
-            info["fidelity"] = bool(used_tol > 0)
-            info["fidelity_tolerance"] = float(used_tol)
-            info["self_intersections"] = int(crossings)
+                if not chosen and plain_angle > angle:
+                    U, G, nfeat = U0, G0, 0
+                    info["fidelity"] = False
+                    info["fidelity_tolerance"] = 0.0
+            info["self_intersections"] = int(len(intersecting_face_pairs(U, G)))
             info["feature_vertices"] = int(nfeat)
             fkeys = [fixed_keys[int(old[v] - nI)] for v in fx]
             JV, JF = U, G

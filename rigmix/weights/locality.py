@@ -63,22 +63,25 @@ def locality_radius(V, F, unknown, radius):
     -------
     float
     """
-    unknown = np.asarray(unknown, bool)
-    Vw, index, G = welded_graph(V, F)
-    unk_w = np.zeros(len(Vw), bool)
+    _, index, G = welded_graph(V, F)
+    return max(float(radius), 2.0 * _reach(index, G, np.asarray(unknown, bool)))
+
+
+def _reach(index, G, unknown):
+    """Largest graph distance from an unknown vertex to the nearest known one (welded graph ``G``)."""
+    unk_w = np.zeros(G.shape[0], bool)
     unk_w[index[unknown]] = True
-    known_w = np.zeros(len(Vw), bool)
+    known_w = np.zeros(G.shape[0], bool)
     known_w[index[~unknown]] = True
     src = np.flatnonzero(known_w & ~unk_w)
-    reach = 0.0
-    if len(src) and unk_w.any():
-        d = dijkstra(G, directed=False, indices=src, min_only=True)
-        fin = d[unk_w][np.isfinite(d[unk_w])]
-        reach = float(fin.max()) if len(fin) else 0.0
-    return max(float(radius), 2.0 * reach)
+    if not len(src) or not unk_w.any():
+        return 0.0
+    d = dijkstra(G, directed=False, indices=src, min_only=True)
+    fin = d[unk_w][np.isfinite(d[unk_w])]
+    return float(fin.max()) if len(fin) else 0.0
 
 
-def geodesic_locality(V, F, W, unknown, *, radius, power=1.0, support=0.05, witness=None):
+def geodesic_locality(V, F, W, unknown, *, radius, power=1.0, support=0.05, witness=None, reach=0.0):
     """Restrict filled weights to joints that drive vertices geodesically nearby.
 
     Parameters
@@ -99,6 +102,9 @@ def geodesic_locality(V, F, W, unknown, *, radius, power=1.0, support=0.05, witn
     witness : (n, J) float array, optional
         Further evidence on unknown rows (a trusted prior): an unknown vertex witnesses joint
         ``j`` where ``witness[:, j] >= support``.
+    reach : float
+        The radius is raised to ``reach`` times the farthest unknown vertex's graph distance
+        from a known one (:func:`locality_radius` with 2).
 
     Returns
     -------
@@ -110,6 +116,8 @@ def geodesic_locality(V, F, W, unknown, *, radius, power=1.0, support=0.05, witn
     if not unknown.any():
         return W
     Vw, index, G = welded_graph(V, F)
+    if reach > 0:
+        radius = max(float(radius), reach * _reach(index, G, unknown))
     k = len(Vw)
     unk_w = np.zeros(k, bool)
     unk_w[index[unknown]] = True

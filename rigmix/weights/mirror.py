@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import InputError
 from ..geometry import bounding_box_diagonal
-from .locality import geodesic_locality, locality_radius
+from .locality import geodesic_locality
 from .methods import _fill_inpaint
 from .mesh import (
     _Welded,
@@ -344,9 +344,9 @@ def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
                                 distill_options=distill_options, joint_parents=joint_parents,
                                 bone_prior=bone_prior)
     if locality and locality > 0:
-        radius = locality_radius(g.V, g.F, unk, locality)
         witness = np.where(c[:, None] >= 0.5, P, 0.0) if P is not None else None
-        out = geodesic_locality(g.V, g.F, out, unk, radius=radius, power=locality_power, witness=witness)
+        out = geodesic_locality(g.V, g.F, out, unk, radius=locality, power=locality_power, witness=witness,
+                                reach=2.0)
     return out
 
 
