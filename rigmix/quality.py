@@ -192,6 +192,53 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
     return out
 
 
+def self_composition_truth(composition, *, truth_influences=4):
+    """The true W_R of a self-composition: ``(n, J_out)``, rows summing to 1, over the fused surface.
+
+    A copied input vertex's truth is its own retargeted weights; a generated junction vertex's
+    is the original's barycentric interpolation at its closest original point, cut to its
+    ``truth_influences`` largest and renormalized (``None``: uncut). See
+    :func:`self_composition_errors`.
+    """
+    plan = composition.plan
+    surface = composition.stages["surface"]
+    ids = list(composition.stages["fusion_ids"])
+    inputs = composition.stages["fusion_inputs"]
+    original = composition.inputs[ids[0]]
+    J_out = plan.skeleton.num_joints
+    # original joint -> output joint (the kept copy of either id)
+    t = np.full(original.skeleton.num_joints, -1)
+    for cid in ids:
+        img = plan.image[cid]
+        t = np.where(t >= 0, t, img)
+    G = np.zeros((len(surface.V), J_out))
+    oi, ov = np.asarray(surface.origin_input), np.asarray(surface.origin_vertex)
+    for i in range(len(ids)):
+        rows = np.flatnonzero(oi == i)
+        Wi = np.asarray(inputs[i].W)[ov[rows]]
+        for j in range(Wi.shape[1]):
+            if t[j] >= 0:
+                G[rows, t[j]] += Wi[:, j]
+    # the truth of a copied input vertex is its own weights (above), of a generated one the
+    # original's at its closest point
+    jrows = np.flatnonzero(surface.junction_vertices)
+    gen = np.flatnonzero(oi < 0)
+    if len(gen):
+        s = surface.junction_sources[0]  # the whole original surface (input 0 keeps everything at rest)
+        k = np.searchsorted(jrows, gen)
+        T = np.asarray(inputs[0].F)[np.asarray(s["face"])[k]]
+        Wc = np.einsum("qk,qkj->qj", np.asarray(s["bary"])[k], np.asarray(inputs[0].W)[T])
+        for j in range(Wc.shape[1]):
+            if t[j] >= 0:
+                G[gen, t[j]] += Wc[:, j]
+    G /= np.maximum(G.sum(axis=1, keepdims=True), 1e-12)
+    if truth_influences is not None and len(jrows):
+        from .weights import sparsify
+
+        G[jrows] = sparsify(G[jrows], truth_influences)
+    return G
+
+
 def self_composition_errors(composition, skin, *, fps=30.0, max_frames=None, truth_influences=4) -> dict:
     """Weight and skinning errors of a self-composition against the original character.
 
@@ -225,43 +272,12 @@ def self_composition_errors(composition, skin, *, fps=30.0, max_frames=None, tru
         relative to the bounding-box diagonal; the max is the worst frame),
         ``frames``, ``junction_vertices``.
     """
-    plan = composition.plan
     surface = composition.stages["surface"]
-    ids = list(composition.stages["fusion_ids"])
-    inputs = composition.stages["fusion_inputs"]
-    original = composition.inputs[ids[0]]
-    J_out = plan.skeleton.num_joints
-    # original joint -> output joint (the kept copy of either id), and back
-    t = np.full(original.skeleton.num_joints, -1)
-    for cid in ids:
-        img = plan.image[cid]
-        t = np.where(t >= 0, t, img)
-    src = np.array([plan.provenance[o][0][1] for o in range(J_out)])
-    G = np.zeros((len(surface.V), J_out))
-    oi, ov = np.asarray(surface.origin_input), np.asarray(surface.origin_vertex)
-    for i in range(len(ids)):
-        rows = np.flatnonzero(oi == i)
-        Wi = np.asarray(inputs[i].W)[ov[rows]]
-        for j in range(Wi.shape[1]):
-            if t[j] >= 0:
-                G[rows, t[j]] += Wi[:, j]
-    # measured: every vertex whose weights were computed; the truth of a copied input vertex is
-    # its own weights (above), of a generated one the original's at its closest point
-    jrows = np.flatnonzero(surface.junction_vertices)
-    gen = np.flatnonzero(oi < 0)
-    if len(gen):
-        s = surface.junction_sources[0]  # the whole original surface (input 0 keeps everything at rest)
-        k = np.searchsorted(jrows, gen)
-        T = np.asarray(inputs[0].F)[np.asarray(s["face"])[k]]
-        Wc = np.einsum("qk,qkj->qj", np.asarray(s["bary"])[k], np.asarray(inputs[0].W)[T])
-        for j in range(Wc.shape[1]):
-            if t[j] >= 0:
-                G[gen, t[j]] += Wc[:, j]
-    G /= np.maximum(G.sum(axis=1, keepdims=True), 1e-12)
-    if truth_influences is not None and len(jrows):
-        from .weights import sparsify
-
-        G[jrows] = sparsify(G[jrows], truth_influences)
+    plan = composition.plan
+    original = composition.inputs[list(composition.stages["fusion_ids"])[0]]
+    src = np.array([plan.provenance[o][0][1] for o in range(plan.skeleton.num_joints)])
+    G = self_composition_truth(composition, truth_influences=truth_influences)
+    jrows = np.flatnonzero(surface.junction_vertices)  # measured: every row the weight stage computed
     W = np.asarray(skin.W)
     l1 = np.abs(W[jrows] - G[jrows]).sum(axis=1) if len(jrows) else np.zeros(0)
     V = np.asarray(surface.V)
