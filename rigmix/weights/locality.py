@@ -67,13 +67,20 @@ def locality_radius(V, F, unknown, radius):
     return max(float(radius), 2.0 * _reach(index, G, np.asarray(unknown, bool)))
 
 
+def _welded_masks(index, k, unknown):
+    """``(unknown, known)`` masks ``(k,)`` over the welded vertices: a welded vertex is unknown
+    when any of its split copies is, known when all are."""
+    unk_w = np.zeros(k, bool)
+    unk_w[index[unknown]] = True
+    known_w = np.zeros(k, bool)
+    known_w[index[~unknown]] = True
+    return unk_w, known_w & ~unk_w
+
+
 def _reach(index, G, unknown):
     """Largest graph distance from an unknown vertex to the nearest known one (welded graph ``G``)."""
-    unk_w = np.zeros(G.shape[0], bool)
-    unk_w[index[unknown]] = True
-    known_w = np.zeros(G.shape[0], bool)
-    known_w[index[~unknown]] = True
-    src = np.flatnonzero(known_w & ~unk_w)
+    unk_w, known_w = _welded_masks(index, G.shape[0], unknown)
+    src = np.flatnonzero(known_w)
     if not len(src) or not unk_w.any():
         return 0.0
     d = dijkstra(G, directed=False, indices=src, min_only=True)
@@ -119,11 +126,7 @@ def geodesic_locality(V, F, W, unknown, *, radius, power=1.0, support=0.05, witn
     if reach > 0:
         radius = max(float(radius), reach * _reach(index, G, unknown))
     k = len(Vw)
-    unk_w = np.zeros(k, bool)
-    unk_w[index[unknown]] = True
-    known_w = np.zeros(k, bool)
-    known_w[index[~unknown]] = True
-    known_w &= ~unk_w
+    unk_w, known_w = _welded_masks(index, k, unknown)
     Wk = np.zeros((k, W.shape[1]))
     Wk[index[~unknown]] = W[~unknown]
     seen = known_w[:, None] & (Wk >= support)
