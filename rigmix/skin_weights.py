@@ -481,7 +481,9 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
     feature_field : bool
         ``dfd`` (default True): distill the DFD feature field of the fused surface (settings
         :data:`FIELD_DISTILL`, or ``distill_options``) and trust the mirror prior only where a
-        vertex and its mirror point have similar features; ``field_cache=DIR`` caches the field.
+        vertex and its mirror point differ in features by no more than the field's known vertices
+        differ from theirs (:func:`rigmix.weights.mirror._mirror_prior`); ``field_cache=DIR``
+        caches the field.
         Only distilled when some junction vertex is filled and the surface has a mirror plane
         (report ``feature_field_distilled``, ``feature_field_s``).
         False: the prior is trusted by the reflection distance alone (no torch, no distillation).

@@ -494,6 +494,29 @@ def test_hidden_junction_of_a_limb_posed_asymmetrically():
     assert figs["dfd"]["skinned_error_max"] < 0.15, figs["dfd"]
 
 
+def test_hidden_junction_with_a_field_that_tells_the_sides_apart():
+    """The shared Knight's distilled field differs between its two sides by a median feature
+    distance of 0.17 on the known surface, as much as between the right leg's hidden band and
+    its mirror (0.15). Judged by the raw distance, the field cut the trust of correct mirror
+    rows below the locality's witness threshold: hidden protocol on the right leg, mean junction
+    weight error 0.25 and skinned 9.9% of the diagonal with the field against 0.10 and 4.0%
+    without it. The mirror prior now only counts what exceeds the field's own difference between
+    the sides: 0.09 and 4.0%."""
+    from benchmarks.self_composition import REBUILT, hidden_weights, self_config
+    from rigmix.pipeline import compose
+    from rigmix.quality import self_composition_errors
+
+    comp = compose(self_config(asset("Knight"), "UpperLeg.R", fusion=REBUILT), until="fusion")
+    figs = {}
+    for label, options in (("field", {}), ("no_field", {"feature_field": False})):
+        skin, _ = hidden_weights(comp, {"method": "dfd", **options})
+        figs[label] = self_composition_errors(comp, skin, max_frames=20)
+    assert skin.report["feature_field"] is False
+    err = {k: f["junction_weight_error_mean"] for k, f in figs.items()}
+    assert err["field"] < 0.15 and err["field"] <= 1.1 * err["no_field"], err
+    assert figs["field"]["skinned_error_max"] < 0.06, figs["field"]
+
+
 def test_split_copies_of_a_position_get_the_same_weights():
     """Two triangles sharing an edge, each with its own copies of the edge's vertices (a glTF
     seam). A junction copy takes the preserved copy's row (never the reverse); two junction
