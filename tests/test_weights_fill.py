@@ -189,6 +189,32 @@ def test_dfd_borrows_the_mirror_side():
     assert err["dfd"] < 0.25 * err["inpaint"]
 
 
+def test_posed_reflection_follows_the_bone_onto_its_mirror_bone():
+    """A right arm hanging down, a left arm held out: the reflection of a point on the right arm
+    moves with the reflected bone onto the left bone (same distance along it, same offset); a
+    point may only follow the bones of its owner joints."""
+    from rigmix.weights.mirror import _posed_reflection
+
+    plane = Plane(np.array([1.0, 0.0, 0.0]), 0.0)
+    positions = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [-1, 0, 0], [-1, -1, 0]], float)
+    parents = np.array([-1, 0, 1, 0, 3])
+    mirror = np.array([0, 3, 4, 1, 2])
+    X = plane.reflect(np.array([[-1.0, -0.5, 0.1], [-1.1, -0.9, 0.0]]))
+    Xp, own = _posed_reflection(X, plane, positions, parents, mirror)
+    np.testing.assert_allclose(Xp, [[1.5, 0.0, 0.1], [1.9, 0.1, 0.0]], atol=1e-12)
+    assert own.tolist() == [[3, 4, 0], [3, 4, 0]]  # followed bone: right shoulder -> right hand
+    # a symmetric pose gives the plain reflection back
+    sym = positions.copy()
+    sym[4] = [-2, 0, 0]
+    Y = plane.reflect(np.array([[-1.5, 0.2, 0.1]]))
+    np.testing.assert_allclose(_posed_reflection(Y, plane, sym, parents, mirror)[0], Y, atol=1e-12)
+    # owned by the root only: the point follows the root's bones, not the arm's
+    owner = np.zeros((2, 5), bool)
+    owner[:, 0] = True
+    _, own = _posed_reflection(X, plane, positions, parents, mirror, owner=owner)
+    assert set(own[:, 0]) == {0}
+
+
 def test_dfd_trusts_a_field_that_tells_the_sides_apart_everywhere():
     """A field whose features differ between the sides by the same amount everywhere (a
     rendering lit from one side) says nothing about the hidden band: the mirror prior keeps its

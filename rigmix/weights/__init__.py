@@ -19,10 +19,11 @@ components are only meaningful after welding). Four methods, kept side by side a
 ``dfd``
     the project's method (:mod:`rigmix.weights.mirror`): each unknown vertex borrows the known
     weights of its mirror point (symmetry plane of the welded mesh, joints mapped through the
-    skeleton's mirror), trusted where the reflection lands on the known surface, where the
-    known weights around it are painted symmetrically, and where the DFD feature field agrees
-    (beyond its own difference between the sides, measured on the known surface);
-    where the mirror is hidden too (a band across the symmetry plane) a soft nearest-bone
+    skeleton's mirror; with the skeleton, a reflection that lands in the air follows its bone
+    onto the mirror bone, for limbs posed differently on the two sides), trusted where the
+    reflection lands on the known surface, where the known weights around it are painted
+    symmetrically, and where the DFD feature field agrees (beyond its own difference between
+    the sides, measured on the known surface); where the mirror is hidden too (a band across the symmetry plane) a soft nearest-bone
     assignment from the skeleton is the prior, trusted only as far as it explains the known
     weights around the region. The prior enters the inpainting energy as a data term
     ``min w^T Q w + lam sum_v c_v m_v |w_v - P_v|^2``. Without a prior it is the inpainting.

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import igl
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
+from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
@@ -175,18 +175,43 @@ def _mirror_by_names(names):
     return np.where(out[out] == np.arange(len(names)), out, np.arange(len(names))).astype(np.int64)
 
 
-def _mirror_lookup(g: _Welded, W, unk, plane: Plane, mirror, rows):
+def _mirror_lookup(g: _Welded, W, unk, plane: Plane, mirror, rows, *, bones=None, far=None):
     """Weights at the reflection of ``rows`` on the known surface, joints mirrored.
 
     Only known rows are read (faces with three known corners, interpolated, or the closest
     known vertex): a reflection landing inside the hidden band finds no nearby source.
 
+    With ``bones`` (rest positions ``(J, 3)``, parents ``(J,)``) and ``far`` ``(k,)`` (a distance
+    per welded vertex), a row whose reflection lands farther than ``far`` from the known surface
+    tries its *posed reflection* (:func:`_posed_reflection`: where the two sides' rest poses
+    differ, a limb's mirror is posed elsewhere) and keeps it where it lands closer, on a point
+    weighted by the followed bone's joints.
+
     Returns
     -------
     P : (r, J) mirrored weights; d : (r,) distance from each reflection to its source.
     """
-    known = np.flatnonzero(~unk)
+    rows = np.asarray(rows, dtype=np.int64)
     X = plane.reflect(g.V[rows])
+    src, d = _known_surface_weights(g, W, unk, X)
+    if bones is not None and far is not None:
+        retry = np.flatnonzero(d > far[rows])
+        if len(retry):
+            owner = _owner_joints(g, W, unk, rows[retry])
+            Xp, own = _posed_reflection(X[retry], plane, bones[0], bones[1], mirror, owner=owner)
+            sp_, dp = _known_surface_weights(g, W, unk, Xp)
+            mirror_own = np.asarray(mirror)[own]
+            better = (dp < d[retry]) & (np.take_along_axis(sp_, mirror_own, axis=1).sum(axis=1) > 0)
+            src[retry[better]] = sp_[better]
+            d[retry[better]] = dp[better]
+    return src[:, mirror], d
+
+
+def _known_surface_weights(g: _Welded, W, unk, X):
+    """Weights ``(q, J)`` at the points of the known surface closest to ``X`` ``(q, 3)``, and the
+    distances ``(q,)``: interpolated on faces with three known corners, else the closest known
+    vertex's."""
+    known = np.flatnonzero(~unk)
     d, i = cKDTree(g.V[known]).query(X)
     src = W[known[i]]
     Fk = g.F[~unk[g.F].any(axis=1)] if len(g.F) else g.F
@@ -200,7 +225,96 @@ def _mirror_lookup(g: _Welded, W, unk, plane: Plane, mirror, rows):
         closer = ds < d
         src[closer] = np.einsum("nc,ncj->nj", B[closer], W[T[closer]])
         d = np.where(closer, ds, d)
-    return src[:, mirror], d
+    return src, d
+
+
+def _owner_joints(g: _Welded, W, unk, rows, *, min_weight=0.1):
+    """``(r, J)`` bool: the joints weighting (at least ``min_weight``) the known vertex nearest
+    to each row along the surface (the row itself when it is known).
+
+    Along the surface, not in space: the shared Knight's right thumb touches its thigh, and the
+    thigh is the closest bone in space to the thumb's hidden vertices."""
+    known = np.flatnonzero(~unk)
+    A = g.A.tocoo()
+    lengths = np.linalg.norm(g.V[A.row] - g.V[A.col], axis=1)
+    graph = sp.csr_matrix((lengths, (A.row, A.col)), shape=A.shape)
+    _, _, source = dijkstra(graph, directed=False, indices=known, min_only=True, return_predecessors=True)
+    source = source[np.asarray(rows, dtype=np.int64)]
+    out = np.zeros((len(source), W.shape[1]), dtype=bool)
+    reached = source >= 0
+    out[reached] = W[source[reached]] >= min_weight
+    return out
+
+
+def _posed_reflection(X, plane: Plane, positions, parents, mirror, *, owner=None):
+    """Reflected points moved with their bone onto its mirror bone, where the rest pose of the two
+    sides differs.
+
+    Each point ``X`` (already reflected) follows the nearest reflected bone (a segment from a
+    joint to a child) among the bones of its ``owner`` joints: the rigid motion that takes the
+    reflected bone onto its mirror bone (the mirror joints' rest positions: translation of the
+    parent end, least rotation of the direction) moves the point. A symmetric rest pose gives the
+    plain reflection back. Without this, the shared Velociraptor's rest pose, which steps forward
+    with its left foot, leaves the reflection of each hip in the air.
+
+    Parameters
+    ----------
+    X : (q, 3) reflected points.
+    positions : (J, 3) rest positions of the joints; parents : (J,) parent indices (-1: root).
+    mirror : (J,) mirror joint of each joint.
+    owner : (q, J) bool, optional
+        Joints whose bones each point may follow (:func:`_owner_joints`); all where none.
+
+    Returns
+    -------
+    Xp : (q, 3) moved points.
+    own : (q, 3) int64
+        The followed bone's joint, child and parent (the joint itself at a root), on the
+        points' own (unreflected) side.
+    """
+    P = np.asarray(positions, dtype=np.float64)
+    parents = np.asarray(parents, dtype=np.int64)
+    mirror = np.asarray(mirror, dtype=np.int64)
+    child = np.flatnonzero(parents >= 0)
+    joint = parents[child]
+    Xp = np.array(X, dtype=np.float64)
+    if len(child) == 0 or len(X) == 0:
+        return Xp, np.zeros((len(X), 3), dtype=np.int64)
+    RP = plane.reflect(P)
+    a, b = RP[joint], RP[child]  # reflected bones
+    a2, b2 = P[mirror[joint]], P[mirror[child]]  # their mirror bones
+    D = np.empty((len(X), len(child)))
+    for k in range(len(child)):
+        ab = b[k] - a[k]
+        t = np.clip(((X - a[k]) @ ab) / max(float(ab @ ab), 1e-300), 0.0, 1.0)
+        D[:, k] = np.linalg.norm(X - (a[k] + t[:, None] * ab), axis=1)
+    if owner is not None:
+        allowed = owner[:, joint] | owner[:, child]
+        D = np.where(allowed | ~allowed.any(axis=1, keepdims=True), D, np.inf)
+    which = np.argmin(D, axis=1)
+    for k in np.unique(which):
+        R = _least_rotation(b[k] - a[k], b2[k] - a2[k])
+        if R is not None:
+            sel = which == k
+            Xp[sel] = a2[k] + (X[sel] - a[k]) @ R.T
+    own = np.stack([joint, child, np.where(parents[joint] >= 0, parents[joint], joint)], axis=1)
+    return Xp, own[which]
+
+
+def _least_rotation(u, v):
+    """``(3, 3)`` rotation of least angle taking direction ``u`` onto ``v`` (column vectors:
+    ``R @ u``); None for a zero-length direction or opposite directions (no unique one)."""
+    nu, nv = np.linalg.norm(u), np.linalg.norm(v)
+    if nu < 1e-12 or nv < 1e-12:
+        return None
+    u, v = u / nu, v / nv
+    axis = np.cross(u, v)
+    sin, cos = float(np.linalg.norm(axis)), float(u @ v)
+    if sin < 1e-9:
+        return np.eye(3) if cos > 0 else None
+    axis /= sin
+    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + sin * K + (1.0 - cos) * (K @ K)
 
 
 def _empty_prior(W, unk):
@@ -210,7 +324,7 @@ def _empty_prior(W, unk):
 
 
 def _mirror_prior(g: _Welded, W, unk, plane: Plane, mirror, *, tol=0.25, field=None,
-                  feature_scale=0.5, agreement=0.1, neighbours=16, self_mirror=0.5):
+                  feature_scale=0.5, agreement=0.1, neighbours=16, self_mirror=0.5, bones=None):
     """The prior of each unknown vertex: its mirror point's known weights, with a confidence.
 
     The confidence multiplies three terms: the reflection lands on the known surface (distance
@@ -236,10 +350,10 @@ def _mirror_prior(g: _Welded, W, unk, plane: Plane, mirror, *, tol=0.25, field=N
     if len(rows) == 0 or len(known) == 0:
         return P, c
     scale = tol * _edge_scale(g)
-    P[rows], d = _mirror_lookup(g, W, unk, plane, mirror, rows)
+    P[rows], d = _mirror_lookup(g, W, unk, plane, mirror, rows, bones=bones, far=scale)
     conf = np.exp(-((d / scale[rows]) ** 2))
     # symmetry of the artist's painting, measured on the known vertices around each unknown one
-    Pk, dk = _mirror_lookup(g, W, unk, plane, mirror, known)
+    Pk, dk = _mirror_lookup(g, W, unk, plane, mirror, known, bones=bones, far=scale)
     valid = dk <= scale[known]
     if not np.any(valid):
         c[rows] = 0.0
@@ -356,7 +470,10 @@ def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
     Prior: each unknown vertex reflected across the symmetry plane (given, or detected on the
     welded mesh) lands on the known surface of the other side; its weights, with joints mapped
     through the skeleton's mirror, are the prior, trusted by the reflection distance and, with a
-    DFD feature field, by the feature agreement of the two points. Where the mirror is hidden
+    DFD feature field, by the feature agreement of the two points. With the skeleton
+    (``joint_positions`` and ``joint_parents``), a reflection that lands away from the known
+    surface follows its bone onto the mirror bone (:func:`_posed_reflection`: a limb posed
+    differently on the two sides). Where the mirror is hidden
     too (a band across the plane) and ``joint_parents`` is given, the skeleton's bones give a
     weaker prior (:func:`_bone_prior`). Where no prior exists, the fill is the inpainting.
     With ``locality`` (a graph radius), each filled joint then fades with the distance to its
@@ -406,7 +523,8 @@ def _fill_dfd_prior(g: _Welded, W, unk, *, field, plane, joint_mirror, joint_nam
         else:
             joint_mirror = _mirror_from_weights(g, W, unk, plane)
     mirror = np.asarray(joint_mirror, dtype=np.int64).reshape(J)
-    P, c = _mirror_prior(g, W, unk, plane, mirror, tol=mirror_tol, field=field)
+    bones = (joint_positions, joint_parents) if joint_positions is not None and joint_parents is not None else None
+    P, c = _mirror_prior(g, W, unk, plane, mirror, tol=mirror_tol, field=field, bones=bones)
     if joint_parents is not None and joint_positions is not None and bone_prior > 0:
         Pb, cb = _bone_prior(g, W, unk, joint_positions, joint_parents, confidence=bone_prior)
         cb = cb * (1.0 - c)  # the mirror, where it exists, is the better witness
