@@ -23,9 +23,9 @@ components are only meaningful after welding). Four methods, kept side by side a
     onto the mirror bone, for limbs posed differently on the two sides), trusted where the
     reflection lands on the known surface, where the known weights around it are painted
     symmetrically, and where the DFD feature field agrees (beyond its own difference between
-    the sides, measured on the known surface); where the mirror is hidden too (a band across the symmetry plane) a soft nearest-bone
-    assignment from the skeleton is the prior, trusted only as far as it explains the known
-    weights around the region. The prior enters the inpainting energy as a data term
+    the sides, measured on the known surface); where the mirror is hidden too (a band across
+    the symmetry plane) a soft nearest-bone assignment from the skeleton is the prior, trusted
+    only as far as it explains the known weights around the region. The prior enters the inpainting energy as a data term
     ``min w^T Q w + lam sum_v c_v m_v |w_v - P_v|^2``. Without a prior it is the inpainting.
 
 Degenerate geometry

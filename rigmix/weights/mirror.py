@@ -234,12 +234,15 @@ def _owner_joints(g: _Welded, W, unk, rows, *, min_weight=0.1):
 
     Along the surface, not in space: the shared Knight's right thumb touches its thigh, and the
     thigh is the closest bone in space to the thumb's hidden vertices."""
-    known = np.flatnonzero(~unk)
-    A = g.A.tocoo()
-    lengths = np.linalg.norm(g.V[A.row] - g.V[A.col], axis=1)
-    graph = sp.csr_matrix((lengths, (A.row, A.col)), shape=A.shape)
-    _, _, source = dijkstra(graph, directed=False, indices=known, min_only=True, return_predecessors=True)
-    source = source[np.asarray(rows, dtype=np.int64)]
+    source = np.asarray(rows, dtype=np.int64).copy()
+    hidden = unk[source]
+    if hidden.any():  # a known row is its own nearest known vertex
+        A = g.A.tocoo()
+        lengths = np.linalg.norm(g.V[A.row] - g.V[A.col], axis=1)
+        graph = sp.csr_matrix((lengths, (A.row, A.col)), shape=A.shape)
+        _, _, nearest = dijkstra(graph, directed=False, indices=np.flatnonzero(~unk), min_only=True,
+                                 return_predecessors=True)
+        source[hidden] = nearest[source[hidden]]
     out = np.zeros((len(source), W.shape[1]), dtype=bool)
     reached = source >= 0
     out[reached] = W[source[reached]] >= min_weight
@@ -283,11 +286,7 @@ def _posed_reflection(X, plane: Plane, positions, parents, mirror, *, owner=None
     RP = plane.reflect(P)
     a, b = RP[joint], RP[child]  # reflected bones
     a2, b2 = P[mirror[joint]], P[mirror[child]]  # their mirror bones
-    D = np.empty((len(X), len(child)))
-    for k in range(len(child)):
-        ab = b[k] - a[k]
-        t = np.clip(((X - a[k]) @ ab) / max(float(ab @ ab), 1e-300), 0.0, 1.0)
-        D[:, k] = np.linalg.norm(X - (a[k] + t[:, None] * ab), axis=1)
+    D = _segment_distances(Xp, a, b)
     if owner is not None:
         allowed = owner[:, joint] | owner[:, child]
         D = np.where(allowed | ~allowed.any(axis=1, keepdims=True), D, np.inf)
@@ -525,7 +524,7 @@ def _fill_dfd_prior(g: _Welded, W, unk, *, field, plane, joint_mirror, joint_nam
     mirror = np.asarray(joint_mirror, dtype=np.int64).reshape(J)
     bones = (joint_positions, joint_parents) if joint_positions is not None and joint_parents is not None else None
     P, c = _mirror_prior(g, W, unk, plane, mirror, tol=mirror_tol, field=field, bones=bones)
-    if joint_parents is not None and joint_positions is not None and bone_prior > 0:
+    if bones is not None and bone_prior > 0:
         Pb, cb = _bone_prior(g, W, unk, joint_positions, joint_parents, confidence=bone_prior)
         cb = cb * (1.0 - c)  # the mirror, where it exists, is the better witness
         total = np.maximum(c + cb, 1e-12)
@@ -535,19 +534,29 @@ def _fill_dfd_prior(g: _Welded, W, unk, *, field, plane, joint_mirror, joint_nam
     return (_smooth(g, out, unk, iterations=iterations, alpha=alpha) if iterations else out), P, c
 
 
+def _segment_distances(X, a, b):
+    """``(q, S)`` distance from each point ``X`` ``(q, 3)`` to each segment ``a[s] b[s]``
+    (``(S, 3)`` each; a zero-length segment is a point)."""
+    D = np.empty((len(X), len(a)))
+    for s in range(len(a)):
+        ab = b[s] - a[s]
+        t = np.clip(((X - a[s]) @ ab) / max(float(ab @ ab), 1e-300), 0.0, 1.0)
+        D[:, s] = np.linalg.norm(X - (a[s] + t[:, None] * ab), axis=1)
+    return D
+
+
 def _bone_distances(V, positions, parents):
     """``(k, J)`` distance from each point to each joint's bones (segments to its children;
     a leaf joint is a point)."""
     P = np.asarray(positions, dtype=np.float64)
     parents = np.asarray(parents, dtype=np.int64)
+    child = np.flatnonzero(parents >= 0)
+    leaf = np.setdiff1d(np.arange(len(P)), parents[child])
+    joint, end = np.r_[parents[child], leaf], np.r_[child, leaf]
+    Ds = _segment_distances(np.asarray(V, dtype=np.float64), P[joint], P[end])
     D = np.full((len(V), len(P)), np.inf)
-    for j in range(len(P)):
-        kids = np.flatnonzero(parents == j)
-        ends = P[kids] if len(kids) else P[[j]]
-        for e in ends:
-            ab = e - P[j]
-            t = np.clip(((V - P[j]) @ ab) / max(float(ab @ ab), 1e-300), 0.0, 1.0)
-            D[:, j] = np.minimum(D[:, j], np.linalg.norm(V - (P[j] + t[:, None] * ab), axis=1))
+    for s, j in enumerate(joint):
+        D[:, j] = np.minimum(D[:, j], Ds[:, s])
     return D
 
 
