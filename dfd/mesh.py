@@ -23,6 +23,7 @@ __all__ = [
     "face_normals",
     "vertex_normals",
     "face_areas",
+    "surface_samples",
 ]
 
 
@@ -148,6 +149,28 @@ def face_areas(V, F):
     """Areas ``(m,)`` of the triangles."""
     V = np.asarray(V, dtype=np.float64)
     return 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
+
+
+def surface_samples(V, F, n, rng):
+    """``n`` points drawn uniformly by area on the triangles, ``(n, 3)``.
+
+    Independent of the tessellation: a remeshed region and a coarse original one are sampled
+    equally densely. ``rng`` is a :class:`numpy.random.Generator`.
+
+    Raises
+    ------
+    DfdInputError
+        The mesh has zero area.
+    """
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64).reshape(-1, 3)
+    A = face_areas(V, F)
+    if len(F) == 0 or A.sum() <= 0:
+        raise DfdInputError("mesh: cannot sample a surface with zero area")
+    face = rng.choice(len(F), n, p=A / A.sum())
+    s, r = np.sqrt(rng.random(n)), rng.random(n)
+    bary = np.stack([1 - s, s * (1 - r), s * r], axis=1)
+    return np.einsum("nk,nkj->nj", bary, V[F[face]])
 
 
 def vertex_normals(V, F):

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dfd.errors import DfdInputError
-from dfd.mesh import face_areas
+from dfd.mesh import face_areas, surface_samples
 
 __all__ = ["SymmetryPlane", "detect_symmetry", "symmetry_scores", "reflect", "AXES"]
 
@@ -69,11 +69,7 @@ def _samples(V, F, n_samples, rng):
     if A.sum() <= 0:
         raise DfdInputError("symmetry: the mesh has zero area")
     centroid = (A[:, None] * V[F].mean(axis=1)).sum(axis=0) / A.sum()
-    face = rng.choice(len(F), n_samples, p=A / A.sum())
-    r1, r2 = rng.random(n_samples), rng.random(n_samples)
-    s = np.sqrt(r1)
-    bary = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
-    return np.einsum("nk,nkj->nj", bary, V[F[face]]), centroid
+    return surface_samples(V, F, n_samples, rng), centroid
 
 
 def symmetry_scores(field, V, F=None, *, n_samples=4096, seed=0, snap=True):

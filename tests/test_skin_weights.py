@@ -22,6 +22,7 @@ from rigmix.skin_weights import (
     retarget_weights,
     to_influences,
 )
+from rigmix.weights import symmetry_plane
 
 EXAMPLES = sorted((ROOT / "examples").glob("*.toml"))
 
@@ -534,6 +535,34 @@ def test_hidden_junction_with_a_field_that_tells_the_sides_apart():
     err = {k: f["junction_weight_error_mean"] for k, f in figs.items()}
     assert err["field"] < 0.15 and err["field"] <= 1.1 * err["no_field"], err
     assert figs["field"]["skinned_error_max"] < 0.06, figs["field"]
+
+
+def test_hidden_junction_of_a_coarse_character_mirrors_across_its_body_plane():
+    """The shared RiggedFigure is coarse: with a leg's junction band remeshed, the band holds 72%
+    of the welded vertices. Judged by vertex-to-vertex reflection, the symmetry plane was the
+    front/back one; the mirror prior then read the torso and the arms, and the geodesic locality
+    dropped the hidden thigh joints (hidden protocol, mean junction weight error 1.22 on the left
+    leg, 1.20 on the right, against inpaint's 1.45 and 1.44). Judged on the surface, the plane is
+    x = 0 and the prior reads the other leg: 0.07."""
+    from benchmarks.self_composition import REBUILT, hidden_weights, self_config
+    from rigmix.pipeline import compose
+    from rigmix.quality import self_composition_errors
+    from rigmix.weights.mesh import _welded
+
+    for joint in ("leg_joint_L_1", "leg_joint_R_1"):
+        comp = compose(self_config(asset("RiggedFigure"), joint, fusion=REBUILT), until="fusion")
+        surface = comp.stages["surface"]
+        g = _welded(surface.V, surface.F)
+        plane = symmetry_plane(g.V, g.F)
+        assert plane is not None and abs(plane.normal[0]) > 1 - 1e-9, (joint, plane)
+        figs = {}
+        for method, options in (("inpaint", {}), ("dfd", {"feature_field": False})):
+            skin, _ = hidden_weights(comp, {"method": method, **options})
+            _check_invariants(replace(comp, stages={**comp.stages, "weights": skin}))
+            figs[method] = self_composition_errors(comp, skin, max_frames=20)
+        err = {k: f["junction_weight_error_mean"] for k, f in figs.items()}
+        assert err["dfd"] < 0.15 and err["dfd"] < 0.2 * err["inpaint"], (joint, err)
+        assert figs["dfd"]["skinned_error_max"] < 0.005, (joint, figs["dfd"])
 
 
 def test_split_copies_of_a_position_get_the_same_weights():

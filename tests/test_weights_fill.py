@@ -332,6 +332,22 @@ def test_symmetry_plane_rejects_an_asymmetric_shape():
     assert symmetry_plane(V, tol=0.005) is None
 
 
+def test_symmetry_plane_of_a_surface_remeshed_on_one_side():
+    """A fusion remeshes a junction band many times denser than the coarse original it replaces.
+    Reflected onto the coarse side, the dense vertices land on the surface but far from its
+    vertices, so the vertex median prefers a plane that maps the dense part onto itself (here a
+    diagonal one the cross-section nearly has). The surface, sampled by area, has one plane."""
+    Vl, Fl = tube(nx=5, x0=-2.0, x1=0.0)  # coarse half: rings 0.5 apart
+    Vr, Fr = tube(nx=81, x0=0.0, x1=2.0)  # dense half: rings 0.025 apart, the same surface mirrored
+    V, F = np.vstack([Vl, Vr]), np.vstack([Fl, Fr + len(Vl)])
+    by_vertices = symmetry_plane(V)
+    assert by_vertices is not None and abs(by_vertices.normal[0]) < 0.5  # what the surface fixes
+    plane = symmetry_plane(V, F)
+    assert plane is not None and abs(plane.normal[0]) > 1 - 1e-9 and abs(plane.offset) < 1e-6, plane
+    again = symmetry_plane(V, F)  # seeded: the same mesh, the same plane
+    assert np.array_equal(again.normal, plane.normal) and again.offset == plane.offset and again.error == plane.error
+
+
 def test_dfd_infers_the_joint_mirror_from_known_weights():
     """Without a skeleton, joints mirror by the centroids of their known weights."""
     V, F, W, names, P = mirrored_arms()

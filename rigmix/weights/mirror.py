@@ -17,6 +17,8 @@ from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
+from dfd.mesh import face_areas, surface_samples
+
 from ..errors import InputError
 from ..geometry import bounding_box_diagonal
 from .locality import geodesic_locality
@@ -57,40 +59,65 @@ class Plane:
         return X - 2.0 * ((X @ self.normal) - self.offset)[:, None] * self.normal[None, :]
 
 
-def symmetry_plane(V, *, tol=0.02, iterations=3):
-    """The best mirror plane of a point set among the axis and principal directions.
+def symmetry_plane(V, F=None, *, tol=0.02, iterations=3, samples=2000, seed=0):
+    """The best mirror plane of a surface (or a point set) among the axis and principal directions.
 
-    Among the candidates whose mean reflection error is within ``tol``, the one with the least
-    median error (the plane of the body, robust to a limb posed asymmetrically).
+    Each candidate's offset moves to the median midpoint between each vertex and the vertex
+    closest to its reflection (exact where the mesh has mirror pairs of vertices). Among the
+    candidates whose mean reflection error is within ``tol``, the one with the least median
+    error wins (the plane of the body, robust to a limb posed asymmetrically).
+
+    With faces, the errors are measured between points drawn uniformly by area on the surface
+    (``samples`` reflected, onto ten times as many and the vertices), not between vertices:
+    a remeshed junction band is many times denser than the coarse original it replaces, and
+    its vertices, reflected onto the coarse side, land on the surface but far from its
+    vertices. On the shared RiggedFigure with a leg's band remeshed (72% of the welded
+    vertices), the vertex median picked the front/back plane (0.011 of the diagonal against
+    0.022 for the true plane, x = 0); the surface median picks x = 0.
 
     Parameters
     ----------
     V : (n, 3) float array
         Vertex positions (welded or not).
+    F : (m, 3) int array, optional
+        Triangles over ``V``. Without them (or with zero area) the errors are the vertices'.
     tol : float
         Largest accepted mean reflection error, relative to the bounding-box diagonal.
     iterations : int
-        Offset refinements (the plane moves to the mean midpoint of reflected correspondences).
+        Offset refinements.
+    samples : int
+        Surface points reflected per candidate (with ``F``).
+    seed : int
+        Of the surface samples: the same mesh always gives the same plane.
 
     Returns
     -------
     Plane or None
         ``None`` when no candidate is within ``tol``.
     """
-    V = np.unique(np.asarray(V, dtype=np.float64), axis=0)
-    diag = bounding_box_diagonal(V)
-    if len(V) < 3 or diag <= 0:
+    V = np.asarray(V, dtype=np.float64)
+    U = np.unique(V, axis=0)
+    diag = bounding_box_diagonal(U)
+    if len(U) < 3 or diag <= 0:
         return None
-    tree = cKDTree(V)
-    c = V.mean(axis=0)
-    _, _, axes = np.linalg.svd(V - c, full_matrices=False)
+    tree = cKDTree(U)
+    score = None  # (reflected points, tree of their targets) measuring each candidate
+    if F is not None and len(F) and face_areas(V, np.asarray(F, np.int64).reshape(-1, 3)).sum() > 0:
+        rng = np.random.default_rng(seed)
+        Q = surface_samples(V, F, samples, rng)
+        score = (Q, cKDTree(np.vstack([surface_samples(V, F, 10 * samples, rng), U])))
+    c = U.mean(axis=0)
+    _, _, axes = np.linalg.svd(U - c, full_matrices=False)
     best, best_median = None, np.inf
     for n in np.vstack([np.eye(3), axes]):
         n = n / np.linalg.norm(n)
-        plane = Plane(n, float(0.5 * (V @ n).max() + 0.5 * (V @ n).min()))
+        plane = Plane(n, float(0.5 * (U @ n).max() + 0.5 * (U @ n).min()))
         for _ in range(iterations + 1):
-            d, i = tree.query(plane.reflect(V))
-            plane = Plane(n, float(np.median(0.5 * (V @ n + V[i] @ n))), float(d.mean() / diag))
+            d, i = tree.query(plane.reflect(U))
+            plane = Plane(n, float(np.median(0.5 * (U @ n + U[i] @ n))), float(d.mean() / diag))
+        if score is not None:
+            d, _ = score[1].query(plane.reflect(score[0]))
+            plane = Plane(n, plane.offset, float(d.mean() / diag))
         # the median picks the plane of the body, not of its pose: a limb posed asymmetrically
         # in the rest pose (the shared Velociraptor steps forward with its left foot) tilts the
         # plane of least mean error (normal 6 degrees off the x axis), which pairs no foot joint
@@ -501,11 +528,11 @@ def _fill_dfd_prior(g: _Welded, W, unk, *, field, plane, joint_mirror, joint_nam
     """:func:`_fill_dfd` before the locality: ``(filled W, prior P or None, confidence c or None)``."""
     J = W.shape[1]
     if plane is None:
-        key = _key(g.V)
+        key = _key(g.V, g.F)
         if key not in _PLANES:
             if len(_PLANES) >= 8:  # a memo of the last meshes, not a store: bounded like _FEATURES
                 _PLANES.pop(next(iter(_PLANES)))
-            _PLANES[key] = symmetry_plane(g.V)
+            _PLANES[key] = symmetry_plane(g.V, g.F)
         plane = _PLANES[key]
     if plane is None:  # no mirror prior, nothing for a field to judge: no distillation either
         return _fill_inpaint(g, W, unk, iterations=iterations, alpha=alpha), None, None
