@@ -30,7 +30,8 @@
     as regularizer) with *geodesic locality*: a joint keeps its weight on an unknown vertex
     only if the joint drives a known vertex (or, by the trusted mirror prior, a filled one)
     within a geodesic radius of it, so weights never leak to a look-alike part elsewhere (the
-    other hand).
+    other hand); a joint that deforms the inputs but no known vertex of the surface (its whole
+    surface is filled: a head inside the junction band) keeps what the fill gives it.
     The DFD feature field of the fused surface is distilled (:data:`FIELD_DISTILL`, a few
     seconds on two cores) and decides how far the mirror prior is trusted: a vertex borrows its
     mirror point's weights only where the two points look alike. ``feature_field=False`` (config
@@ -531,6 +532,8 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
         Wr, c = retarget_weights(x.W, bm.target, J, confidence=bm.confidence)
         retargeted.append(Wr)
         conf.append(c)
+    if method == "dfd":  # what the locality may keep where no known vertex witnesses it
+        fill_options.setdefault("deforming_joints", np.any([(Wr > 0).any(axis=0) for Wr in retargeted], axis=0))
     W = np.zeros((N, J))
     junction = np.asarray(surface.junction_vertices, bool)
     pres = np.flatnonzero(~junction)

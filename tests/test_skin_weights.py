@@ -224,6 +224,29 @@ def test_geodesic_locality_keeps_a_joint_its_trusted_prior_witnesses():
     assert np.allclose(kept.sum(axis=1), 1.0) and np.array_equal(kept[~unknown], W[~unknown])
 
 
+def test_geodesic_locality_keeps_a_hidden_joint_that_deforms_the_inputs():
+    """A joint no vertex witnesses is cut: a root or an IK bone that deforms nothing. A joint of
+    ``hidden_joints`` with no witness is one whose whole surface is unknown (a head inside a
+    junction band): it keeps its filled weights; one with witnesses is still limited by them."""
+    from rigmix.weights.locality import geodesic_locality, locality_radius
+
+    V, F = _sphere()
+    W = np.zeros((len(V), 3))
+    W[:, 0] = 1.0
+    unknown = V[:, 1] > 0.3
+    filled = W.copy()
+    filled[unknown] = [0.3, 0.6, 0.1]  # joint 1: the cap's own, from its bone; joint 2: a leak
+    radius = locality_radius(V, F, unknown, 0.1)
+    cut = geodesic_locality(V, F, filled, unknown, radius=radius)
+    assert np.allclose(cut[unknown], [1.0, 0.0, 0.0])
+    hidden = np.array([True, True, False])
+    kept = geodesic_locality(V, F, filled, unknown, radius=radius, hidden_joints=hidden)
+    assert np.all(kept[unknown, 2] == 0) and np.all(kept[unknown, 1] > 0.6)
+    assert np.allclose(kept.sum(axis=1), 1.0) and np.array_equal(kept[~unknown], W[~unknown])
+    # joint 0 is witnessed below the cap: it still fades with the distance from there
+    assert np.all(np.diff(kept[unknown, 0][np.argsort(V[unknown, 1])]) <= 1e-12)
+
+
 def test_to_influences_keeps_the_largest_four():
     W = np.array([[0.1, 0.2, 0.3, 0.4, 0.0], [1.0, 0, 0, 0, 0]])
     J, w = to_influences(W, 4)
@@ -563,6 +586,37 @@ def test_hidden_junction_of_a_coarse_character_mirrors_across_its_body_plane():
         err = {k: f["junction_weight_error_mean"] for k, f in figs.items()}
         assert err["dfd"] < 0.15 and err["dfd"] < 0.2 * err["inpaint"], (joint, err)
         assert figs["dfd"]["skinned_error_max"] < 0.005, (joint, figs["dfd"])
+
+
+def test_hidden_junction_that_swallows_a_whole_part_keeps_its_joint():
+    """The shared RiggedFigure is coarse: with its head replaced by itself, the junction band
+    covers the whole head, so no known vertex carries the head joint (``neck_joint_2``). The
+    locality removed it (hidden protocol: mean junction weight error 1.18, the head following
+    the neck); a joint that deforms the inputs keeps what the fill gives it: 0.49. The Knight's
+    root ``Bone`` deforms nothing and stays out of its right hip's band (kept, 11% of the band's
+    weight and skinned error 19% of the diagonal)."""
+    from benchmarks.self_composition import REBUILT, hidden_weights, self_config
+    from rigmix.pipeline import compose
+    from rigmix.quality import self_composition_errors, self_composition_truth
+
+    comp = compose(self_config(asset("RiggedFigure"), "neck_joint_1", fusion=REBUILT), until="fusion")
+    junction = np.asarray(comp.stages["surface"].junction_vertices, bool)
+    head = comp.skeleton.index("neck_joint_2")
+    truth = self_composition_truth(comp)[junction, head].sum()
+    figs = {}
+    for method in ("inpaint", "dfd"):
+        skin, _ = hidden_weights(comp, {"method": method, "feature_field": False} if method == "dfd"
+                                 else {"method": method})
+        figs[method] = self_composition_errors(comp, skin, max_frames=20)
+    assert truth > 0.3 * junction.sum() and skin.W[junction, head].sum() > 0.5 * truth
+    err = {k: f["junction_weight_error_mean"] for k, f in figs.items()}
+    assert err["dfd"] < 0.7 and err["dfd"] < 0.5 * err["inpaint"], err
+    assert figs["dfd"]["skinned_error_max"] < figs["inpaint"]["skinned_error_max"], figs
+
+    comp = compose(self_config(asset("Knight"), "UpperLeg.R", fusion=REBUILT), until="fusion")
+    junction = np.asarray(comp.stages["surface"].junction_vertices, bool)
+    skin, _ = hidden_weights(comp, {"method": "dfd", "feature_field": False})
+    assert not skin.W[junction, comp.skeleton.index("Bone")].any()
 
 
 def test_split_copies_of_a_position_get_the_same_weights():

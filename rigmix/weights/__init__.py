@@ -98,7 +98,10 @@ def fill_weights(V, F, W, unknown, *, method="inpaint", max_influences=4, **opti
         post-smoothing), ``locality`` (0: off; a graph radius in units of ``V``, raised to
         twice the band's reach: each filled joint fades with the distance to a vertex known,
         or trusted by the prior, to carry it; :mod:`rigmix.weights.locality`) and
-        ``locality_power`` (1).
+        ``locality_power`` (1), ``deforming_joints`` ((J,) bool, the joints that deform the
+        source characters anywhere: with ``locality``, such a joint that no known vertex
+        carries keeps its filled weights, its whole surface being hidden; any other joint
+        nothing witnesses is removed).
         All: ``uniform`` (1e-3), the weight of the uniform Laplacian regularizer.
 
     Returns
