@@ -225,8 +225,8 @@ def test_geodesic_locality_keeps_a_joint_its_trusted_prior_witnesses():
 
 
 def test_geodesic_locality_keeps_a_hidden_joint_that_deforms_the_inputs():
-    """A joint no vertex witnesses is cut: a root or an IK bone that deforms nothing. A joint of
-    ``hidden_joints`` with no witness is one whose whole surface is unknown (a head inside a
+    """A joint no vertex witnesses is cut: a root or an IK bone that deforms nothing. One of
+    ``deforming_joints`` with no witness is one whose whole surface is unknown (a head inside a
     junction band): it keeps its filled weights; one with witnesses is still limited by them."""
     from rigmix.weights.locality import geodesic_locality, locality_radius
 
@@ -239,8 +239,8 @@ def test_geodesic_locality_keeps_a_hidden_joint_that_deforms_the_inputs():
     radius = locality_radius(V, F, unknown, 0.1)
     cut = geodesic_locality(V, F, filled, unknown, radius=radius)
     assert np.allclose(cut[unknown], [1.0, 0.0, 0.0])
-    hidden = np.array([True, True, False])
-    kept = geodesic_locality(V, F, filled, unknown, radius=radius, hidden_joints=hidden)
+    deforming = np.array([True, True, False])
+    kept = geodesic_locality(V, F, filled, unknown, radius=radius, deforming_joints=deforming)
     assert np.all(kept[unknown, 2] == 0) and np.all(kept[unknown, 1] > 0.6)
     assert np.allclose(kept.sum(axis=1), 1.0) and np.array_equal(kept[~unknown], W[~unknown])
     # joint 0 is witnessed below the cap: it still fades with the distance from there

@@ -89,7 +89,7 @@ def _reach(index, G, unknown):
 
 
 def geodesic_locality(V, F, W, unknown, *, radius, power=1.0, support=0.05, witness=None, reach=0.0,
-                      hidden_joints=None):
+                      deforming_joints=None):
     """Restrict filled weights to joints that drive vertices geodesically nearby.
 
     Parameters
@@ -113,11 +113,12 @@ def geodesic_locality(V, F, W, unknown, *, radius, power=1.0, support=0.05, witn
     reach : float
         The radius is raised to ``reach`` times the farthest unknown vertex's graph distance
         from a known one (:func:`locality_radius` with 2).
-    hidden_joints : (J,) bool array, optional
-        Joints that may have no witness at all because their whole surface is unknown (a head
-        swallowed by a junction band): such a joint with no witness keeps its filled weights.
-        Any other joint with no witness is removed from the unknown rows (a joint that drives
-        no surface: a root, an IK target, a prop's bone).
+    deforming_joints : (J,) bool array, optional
+        Joints that deform the source characters. One of them with no witness at all has its
+        whole surface unknown (a head swallowed by a junction band) and keeps its filled
+        weights; any other joint with no witness drives no surface (a root, an IK target, a
+        prop's bone) and is removed from the unknown rows. Default: every joint with no witness
+        is removed.
 
     Returns
     -------
@@ -146,7 +147,7 @@ def geodesic_locality(V, F, W, unknown, *, radius, power=1.0, support=0.05, witn
     for j in joints:
         src = np.flatnonzero(seen[:, j])
         if not len(src):
-            atten[:, j] = 1.0 if hidden_joints is not None and hidden_joints[j] else 0.0
+            atten[:, j] = 1.0 if deforming_joints is not None and deforming_joints[j] else 0.0
             continue
         d = dijkstra(G, directed=False, indices=src, min_only=True, limit=radius)
         dj = d[index[rows_u]]

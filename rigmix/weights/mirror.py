@@ -525,7 +525,7 @@ def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
     if locality and locality > 0:
         witness = np.where(c[:, None] >= 0.5, P, 0.0) if P is not None else None
         out = geodesic_locality(g.V, g.F, out, unk, radius=locality, power=locality_power, witness=witness,
-                                reach=2.0, hidden_joints=deforming_joints)
+                                reach=2.0, deforming_joints=deforming_joints)
     return out
 
 
