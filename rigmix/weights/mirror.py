@@ -487,9 +487,14 @@ def _solve_prior(g: _Welded, W, unk, P, c, *, strength=10.0):
     return _orphans(g, out, unk, solve)
 
 
+#: Confidence from which a prior row is trusted: it witnesses its joints for the geodesic
+#: locality, and the post-smoothing leaves it as the prior made it.
+TRUSTED = 0.5
+
+
 def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
               joint_names=None, joint_positions=None, mirror_tol=0.25, strength=10.0,
-              iterations=0, alpha=0.8, field_cache=None, distill_options=None,
+              iterations=10, alpha=0.8, field_cache=None, distill_options=None,
               joint_parents=None, bone_prior=0.1, locality=0.0, locality_power=1.0,
               deforming_joints=None):
     """The project's fill: the inpainting energy pulled toward a prior from similar known parts.
@@ -523,7 +528,7 @@ def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
                                 distill_options=distill_options, joint_parents=joint_parents,
                                 bone_prior=bone_prior)
     if locality and locality > 0:
-        witness = np.where(c[:, None] >= 0.5, P, 0.0) if P is not None else None
+        witness = np.where(c[:, None] >= TRUSTED, P, 0.0) if P is not None else None
         out = geodesic_locality(g.V, g.F, out, unk, radius=locality, power=locality_power, witness=witness,
                                 reach=2.0, deforming_joints=deforming_joints)
     return out
@@ -565,7 +570,11 @@ def _fill_dfd_prior(g: _Welded, W, unk, *, field, plane, joint_mirror, joint_nam
         P = (c[:, None] * P + cb[:, None] * Pb) / total[:, None]
         c = c + cb
     out = _solve_prior(g, W, unk, P, c, strength=strength)
-    return (_smooth(g, out, unk, iterations=iterations, alpha=alpha) if iterations else out), P, c
+    # where no prior is trusted the fill is the inpainting, and gets its post-smoothing; a
+    # trusted row keeps the painting it borrowed (smoothed, the Horse's mirrored legs went from
+    # 0.005 to 0.07 mean junction weight error, hidden protocol)
+    smooth = unk & (c < TRUSTED)
+    return (_smooth(g, out, smooth, iterations=iterations, alpha=alpha) if iterations else out), P, c
 
 
 def _segment_distances(X, a, b):
