@@ -267,6 +267,10 @@ def test_dfd_does_not_mirror_a_band_across_the_plane():
                          field=lambda X: np.c_[np.abs(X[:, :1]), X[:, 1:]], iterations=iterations)
         np.testing.assert_allclose(a, b, atol=1e-9)
     assert not np.allclose(fill_weights(V, F, hidden, band, method="inpaint", iterations=0)[band], a[band])
+    # fill_weights' dfd does not smooth by default (an artist's mesh: the band fill benchmark)
+    plain = fill_weights(V, F, hidden, band, method="dfd", joint_names=names, joint_positions=P,
+                         field=lambda X: np.c_[np.abs(X[:, :1]), X[:, 1:]])
+    np.testing.assert_allclose(plain, fill_weights(V, F, hidden, band, method="inpaint", iterations=0), atol=1e-9)
 
 
 # --- real characters ------------------------------------------------------------------------

@@ -494,7 +494,7 @@ TRUSTED = 0.5
 
 def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
               joint_names=None, joint_positions=None, mirror_tol=0.25, strength=10.0,
-              iterations=10, alpha=0.8, field_cache=None, distill_options=None,
+              iterations=0, alpha=0.8, field_cache=None, distill_options=None,
               joint_parents=None, bone_prior=0.1, locality=0.0, locality_power=1.0,
               deforming_joints=None):
     """The project's fill: the inpainting energy pulled toward a prior from similar known parts.
@@ -570,7 +570,7 @@ def _fill_dfd_prior(g: _Welded, W, unk, *, field, plane, joint_mirror, joint_nam
         P = (c[:, None] * P + cb[:, None] * Pb) / total[:, None]
         c = c + cb
     out = _solve_prior(g, W, unk, P, c, strength=strength)
-    # where no prior is trusted the fill is the inpainting, and gets its post-smoothing; a
+    # where no prior is trusted the fill is the inpainting, and the post-smoothing is its; a
     # trusted row keeps the painting it borrowed (smoothed, the Horse's mirrored legs went from
     # 0.005 to 0.07 mean junction weight error, hidden protocol)
     smooth = unk & (c < TRUSTED)
