@@ -570,9 +570,9 @@ def _fill_dfd_prior(g: _Welded, W, unk, *, field, plane, joint_mirror, joint_nam
         P = (c[:, None] * P + cb[:, None] * Pb) / total[:, None]
         c = c + cb
     out = _solve_prior(g, W, unk, P, c, strength=strength)
-    # where no prior is trusted the fill is the inpainting, and the post-smoothing is its; a
-    # trusted row keeps the painting it borrowed (smoothed, the Horse's mirrored legs went from
-    # 0.005 to 0.07 mean junction weight error, hidden protocol)
+    # where no prior is trusted the fill is the inpainting and gets the inpainting's
+    # post-smoothing; a trusted row keeps the painting it borrowed (smoothed, the Horse's
+    # mirrored legs went from 0.005 to 0.07 mean junction weight error, hidden protocol)
     smooth = unk & (c < TRUSTED)
     return (_smooth(g, out, smooth, iterations=iterations, alpha=alpha) if iterations else out), P, c
 
