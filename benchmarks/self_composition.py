@@ -352,20 +352,34 @@ def mirrored_errors(comp, skin, pair, *, fps=30.0, max_frames=None, truth_influe
             "frames": frames, "junction_vertices": int(len(jall)), "measured_vertices": int(len(jrows))}
 
 
-def run_mirror_case(path: Path, limb_joint: str, opposite_joint: str, *, methods=METHODS, max_frames=None) -> dict:
-    """Mirrored protocol: limb X of the body replaced by X of the mirrored character."""
+def mirror_case(path: Path, limb_joint: str, opposite_joint: str, *, until="completion"):
+    """The mirrored composition of one limb pair, composed up to ``until``.
+
+    Returns
+    -------
+    comp : Composition
+    pair : (J,) int array
+        :func:`limb_pairing` of the donor's limb joints with the original's.
+    donor_joint : str
+        The opposite limb's root in the mirrored character, reflected onto X's side.
+    distance : float
+        :func:`limb_pairing`'s pairing distance.
+    """
     from rigmix.mirror import mirror_plane
     from rigmix.pipeline import load_characters
 
-    t0 = time.perf_counter()
-    probe = self_config(path, limb_joint)  # the unmirrored character, for the joint indices
-    original = load_characters(probe)["body"]
+    original = load_characters(self_config(path, limb_joint))["body"]  # unmirrored, for the joint indices
     x, y = original.skeleton.index(limb_joint), original.skeleton.index(opposite_joint)
-    cfg = mirror_config(path, limb_joint, "")
-    donor_joint = load_characters(cfg)["donor"].skeleton.names[y]  # the opposite limb, reflected onto X's side
-    cfg = mirror_config(path, limb_joint, donor_joint)
-    comp = compose(cfg, until="completion")
+    donor_joint = load_characters(mirror_config(path, limb_joint, ""))["donor"].skeleton.names[y]
+    comp = compose(mirror_config(path, limb_joint, donor_joint), until=until)
     pair, dist = limb_pairing(original.skeleton, x, y, mirror_plane(original))
+    return comp, pair, donor_joint, dist
+
+
+def run_mirror_case(path: Path, limb_joint: str, opposite_joint: str, *, methods=METHODS, max_frames=None) -> dict:
+    """Mirrored protocol: limb X of the body replaced by X of the mirrored character."""
+    t0 = time.perf_counter()
+    comp, pair, donor_joint, dist = mirror_case(path, limb_joint, opposite_joint)
     out = _case_info(comp, time.perf_counter() - t0)
     out.update(donor_joint=donor_joint, pairing_distance=round(dist, 5))
     for label, options in methods:

@@ -439,17 +439,10 @@ def test_mirrored_limb_harmonic_blend_keeps_the_artists_weights():
     paintings (mean junction weight error 0.034, skinned 2.3% of the diagonal); dfd's harmonic
     blend factors ramp across the junction and land within 0.005 and 0.5%. Also: every method
     keeps the invariants, and ``blend = "paper"`` is the paper's rule under dfd too."""
-    from benchmarks.self_composition import LIMBS, limb_pairing, mirror_config, mirrored_errors, self_config
-    from rigmix.mirror import mirror_plane
-    from rigmix.pipeline import compose, load_characters
+    from benchmarks.self_composition import LIMBS, mirror_case, mirrored_errors
 
-    path = asset("Velociraptor")
-    joint, other = LIMBS["Velociraptor"]["leg.L"], LIMBS["Velociraptor"]["leg.R"]
-    original = load_characters(self_config(path, joint))["body"]
-    x, y = original.skeleton.index(joint), original.skeleton.index(other)
-    donor_joint = load_characters(mirror_config(path, joint, ""))["donor"].skeleton.names[y]
-    comp = compose(mirror_config(path, joint, donor_joint), until="fusion")
-    pair, _ = limb_pairing(original.skeleton, x, y, mirror_plane(original))
+    limbs = LIMBS["Velociraptor"]
+    comp, pair, _, _ = mirror_case(asset("Velociraptor"), limbs["leg.L"], limbs["leg.R"], until="fusion")
     ids = comp.stages["fusion_ids"]
     figs, skins = {}, {}
     for label, opts in {"nearest": {"method": "nearest"}, "dfd": {"method": "dfd"},
@@ -474,17 +467,10 @@ def test_mirrored_truth_only_where_the_junction_faces_the_original_surface():
     of the thigh, facing it. The thigh's weights are no truth for them (every method scored about
     59% of the diagonal against them); measured only where the vertex faces the same way as the
     original surface, the closest-point rule is within 2%."""
-    from benchmarks.self_composition import LIMBS, limb_pairing, mirror_config, mirrored_errors, self_config
-    from rigmix.mirror import mirror_plane
-    from rigmix.pipeline import compose, load_characters
+    from benchmarks.self_composition import LIMBS, mirror_case, mirrored_errors
 
-    path = asset("Knight")
-    joint, other = LIMBS["Knight"]["arm.L"], LIMBS["Knight"]["arm.R"]
-    original = load_characters(self_config(path, joint))["body"]
-    x, y = original.skeleton.index(joint), original.skeleton.index(other)
-    donor_joint = load_characters(mirror_config(path, joint, ""))["donor"].skeleton.names[y]
-    comp = compose(mirror_config(path, joint, donor_joint), until="fusion")
-    pair, _ = limb_pairing(original.skeleton, x, y, mirror_plane(original))
+    limbs = LIMBS["Knight"]
+    comp, pair, _, _ = mirror_case(asset("Knight"), limbs["arm.L"], limbs["arm.R"], until="fusion")
     ids = comp.stages["fusion_ids"]
     skin = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
                          comp.skeleton.num_joints, method="nearest")
