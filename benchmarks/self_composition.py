@@ -282,8 +282,8 @@ def mirrored_errors(comp, skin, pair, *, fps=30.0, max_frames=None, truth_influe
         vertex and frame, truth on the measured junction rows, relative to the diagonal),
         ``frames``, ``junction_vertices``, ``measured_vertices`` (on the original surface).
     """
+    from dfd.mesh import face_normals, vertex_normals
     from rigmix.animation import clip_times, sample_clip
-    from rigmix.skin_weights import _vertex_normals
     from rigmix.transforms import trs_to_matrix
     from rigmix.weights import sparsify
 
@@ -312,9 +312,8 @@ def mirrored_errors(comp, skin, pair, *, fps=30.0, max_frames=None, truth_influe
     if tolerance is None:
         tolerance = float(comp.report["fields"]["voxel_size"])
     s = surface.junction_sources[b]  # closest point on the whole original surface
-    Vb, Fb = np.asarray(body_in.V), np.asarray(body_in.F)[np.asarray(s["face"])]
-    face_normal = np.cross(Vb[Fb[:, 1]] - Vb[Fb[:, 0]], Vb[Fb[:, 2]] - Vb[Fb[:, 0]])
-    same_side = np.einsum("qk,qk->q", face_normal, _vertex_normals(surface.V, surface.F)[jall]) > 0
+    face_normal = face_normals(body_in.V, np.asarray(body_in.F)[np.asarray(s["face"])])
+    same_side = np.einsum("qk,qk->q", face_normal, vertex_normals(surface.V, surface.F)[jall]) > 0
     near = (np.asarray(s["distance"]) <= tolerance) & same_side
     jrows = jall[near]
     if len(jrows):

@@ -25,10 +25,10 @@ components are only meaningful after welding). Four methods, kept side by side a
     symmetrically, and where the DFD feature field agrees (beyond its own difference between
     the sides, measured on the known surface); where the mirror is hidden too (a band across
     the symmetry plane) a soft nearest-bone assignment from the skeleton is the prior, trusted
-    only as far as it explains the known weights around the region. The prior enters the inpainting energy as a data term
-    ``min w^T Q w + lam sum_v c_v m_v |w_v - P_v|^2``; with ``iterations``, the rows no prior
-    decides (confidence under 0.5) then get the inpainting's post-smoothing. Without a prior it
-    is the inpainting.
+    only as far as it explains the known weights around the region. The prior enters the
+    inpainting energy as a data term ``min w^T Q w + lam sum_v c_v m_v |w_v - P_v|^2``; with
+    ``iterations``, the rows no prior decides (confidence under 0.5) then get the inpainting's
+    post-smoothing. Without a prior it is the inpainting.
 
 Degenerate geometry
 -------------------
@@ -97,9 +97,10 @@ def fill_weights(V, F, W, unknown, *, method="inpaint", max_influences=4, **opti
         length), ``strength`` (10, the data term's weight), ``joint_parents`` ((J,) int, with
         ``joint_positions``: enables the bone prior for hidden regions without a mirror),
         ``bone_prior`` (0.1, its largest confidence), ``iterations`` / ``alpha`` (0 / 0.8:
-        the inpainting's post-smoothing, on the rows no prior decides; 0: none), ``locality`` (0: off; a graph radius in units of ``V``, raised to
-        twice the band's reach: each filled joint fades with the distance to a vertex known,
-        or trusted by the prior, to carry it; :mod:`rigmix.weights.locality`) and
+        the inpainting's post-smoothing, on the rows no prior decides; 0: none), ``locality``
+        (0: off; a graph radius in units of ``V``, raised to twice the band's reach: each
+        filled joint fades with the distance to a vertex known, or trusted by the prior, to
+        carry it; :mod:`rigmix.weights.locality`) and
         ``locality_power`` (1), ``deforming_joints`` ((J,) bool, the joints that deform the
         source characters anywhere: with ``locality``, such a joint that no known vertex
         carries keeps its filled weights, its whole surface being hidden; any other joint

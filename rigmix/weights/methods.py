@@ -23,31 +23,40 @@ from .mesh import (
 
 def _fill_nearest(g: _Welded, W, unk, *, mode="vertex"):
     """Closest known welded vertex (``mode="vertex"``, the anchor protocol) or closest point of
-    the known surface (faces with three known corners), interpolated (``mode="surface"``)."""
+    the known surface (:func:`_known_surface_weights`, ``mode="surface"``)."""
     out = W.copy()
     rows = np.flatnonzero(unk)
     if len(rows) == 0:
         return out
-    Fk = g.F[~unk[g.F].any(axis=1)] if len(g.F) else g.F
-    if mode == "vertex" or len(Fk) == 0:
+    if mode == "vertex":
         out[rows] = _nearest_vertex(g.V, W, unk, rows)
-        return out
-    if mode != "surface":
+    elif mode == "surface":
+        out[rows] = _known_surface_weights(g, W, unk, g.V[rows])[0]
+    else:
         raise InputError(f"weights: unknown nearest mode {mode!r} (use 'surface' or 'vertex')")
-    P = g.V[rows]
-    sqd, fi, C = igl.point_mesh_squared_distance(P, g.V, Fk)
-    T = Fk[fi]
-    B = igl.barycentric_coordinates(C, g.V[T[:, 0]], g.V[T[:, 1]], g.V[T[:, 2]])
-    B = np.clip(np.nan_to_num(B, nan=1.0 / 3.0), 0.0, None)
-    B /= np.maximum(B.sum(axis=1, keepdims=True), 1e-300)
-    fill = np.einsum("nc,ncj->nj", B, W[T])
-    # a known vertex outside every known face (isolated, or only on faces touching the band)
-    # may be closer than the known surface
-    dv, iv = cKDTree(g.V[~unk]).query(P)
-    closer = dv**2 < sqd - 1e-15
-    fill[closer] = W[np.flatnonzero(~unk)[iv[closer]]]
-    out[rows] = fill
     return out
+
+
+def _known_surface_weights(g: _Welded, W, unk, X):
+    """Weights ``(q, J)`` at the points of the known surface closest to ``X`` ``(q, 3)``, and the
+    distances ``(q,)``: interpolated on faces with three known corners, else the closest known
+    vertex's (a known vertex outside every known face, isolated or only on faces touching the
+    unknown rows, may be closer than the known faces)."""
+    known = np.flatnonzero(~unk)
+    d, i = cKDTree(g.V[known]).query(X)
+    src = W[known[i]]
+    Fk = g.F[~unk[g.F].any(axis=1)] if len(g.F) else g.F
+    if len(Fk):
+        sqd, fi, C = igl.point_mesh_squared_distance(X, g.V, Fk)
+        T = Fk[fi]
+        B = igl.barycentric_coordinates(C, g.V[T[:, 0]], g.V[T[:, 1]], g.V[T[:, 2]])
+        B = np.clip(np.nan_to_num(B, nan=1.0 / 3.0), 0.0, None)
+        B /= np.maximum(B.sum(axis=1, keepdims=True), 1e-300)
+        ds = np.sqrt(np.maximum(sqd, 0.0))
+        closer = ds < d
+        src[closer] = np.einsum("nc,ncj->nj", B[closer], W[T[closer]])
+        d = np.where(closer, ds, d)
+    return src, d
 
 
 def _fill_harmonic(g: _Welded, W, unk):

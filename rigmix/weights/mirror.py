@@ -10,7 +10,6 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-import igl
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
@@ -22,7 +21,7 @@ from dfd.mesh import face_areas, surface_samples
 from ..errors import InputError
 from ..geometry import bounding_box_diagonal
 from .locality import geodesic_locality
-from .methods import _fill_inpaint
+from .methods import _fill_inpaint, _known_surface_weights
 from .mesh import (
     _Welded,
     _bilaplacian,
@@ -101,11 +100,11 @@ def symmetry_plane(V, F=None, *, tol=0.02, iterations=3, samples=2000, seed=0):
     if len(U) < 3 or diag <= 0:
         return None
     tree = cKDTree(U)
-    score = None  # (reflected points, tree of their targets) measuring each candidate
+    Q = None  # surface points reflected to score each candidate, and the tree of their targets
     if F is not None and len(F) and face_areas(V, np.asarray(F, np.int64).reshape(-1, 3)).sum() > 0:
         rng = np.random.default_rng(seed)
         Q = surface_samples(V, F, samples, rng)
-        score = (Q, cKDTree(np.vstack([surface_samples(V, F, 10 * samples, rng), U])))
+        targets = cKDTree(np.vstack([surface_samples(V, F, 10 * samples, rng), U]))
     c = U.mean(axis=0)
     _, _, axes = np.linalg.svd(U - c, full_matrices=False)
     best, best_median = None, np.inf
@@ -115,8 +114,8 @@ def symmetry_plane(V, F=None, *, tol=0.02, iterations=3, samples=2000, seed=0):
         for _ in range(iterations + 1):
             d, i = tree.query(plane.reflect(U))
             plane = Plane(n, float(np.median(0.5 * (U @ n + U[i] @ n))), float(d.mean() / diag))
-        if score is not None:
-            d, _ = score[1].query(plane.reflect(score[0]))
+        if Q is not None:
+            d, _ = targets.query(plane.reflect(Q))
             plane = Plane(n, plane.offset, float(d.mean() / diag))
         # the median picks the plane of the body, not of its pose: a limb posed asymmetrically
         # in the rest pose (the shared Velociraptor steps forward with its left foot) tilts the
@@ -232,27 +231,6 @@ def _mirror_lookup(g: _Welded, W, unk, plane: Plane, mirror, rows, *, bones=None
             src[retry[better]] = sp_[better]
             d[retry[better]] = dp[better]
     return src[:, mirror], d
-
-
-def _known_surface_weights(g: _Welded, W, unk, X):
-    """Weights ``(q, J)`` at the points of the known surface closest to ``X`` ``(q, 3)``, and the
-    distances ``(q,)``: interpolated on faces with three known corners, else the closest known
-    vertex's."""
-    known = np.flatnonzero(~unk)
-    d, i = cKDTree(g.V[known]).query(X)
-    src = W[known[i]]
-    Fk = g.F[~unk[g.F].any(axis=1)] if len(g.F) else g.F
-    if len(Fk):
-        sqd, fi, C = igl.point_mesh_squared_distance(X, g.V, Fk)
-        T = Fk[fi]
-        B = igl.barycentric_coordinates(C, g.V[T[:, 0]], g.V[T[:, 1]], g.V[T[:, 2]])
-        B = np.clip(np.nan_to_num(B, nan=1.0 / 3.0), 0.0, None)
-        B /= np.maximum(B.sum(axis=1, keepdims=True), 1e-300)
-        ds = np.sqrt(np.maximum(sqd, 0.0))
-        closer = ds < d
-        src[closer] = np.einsum("nc,ncj->nj", B[closer], W[T[closer]])
-        d = np.where(closer, ds, d)
-    return src, d
 
 
 def _owner_joints(g: _Welded, W, unk, rows, *, min_weight=0.1):
