@@ -19,6 +19,7 @@ import logging
 from functools import lru_cache
 
 import numpy as np
+from dfd.mesh import vertex_normals
 
 from .character import Character, Material, Mesh, Prop
 from .skin_weights import closest_point_weights, to_influences
@@ -92,16 +93,6 @@ def _mesh_attributes(positioned, k, local):
     return (tuple(np.asarray(u)[local] for u in m.uvs),
             None if m.normals is None else np.asarray(m.normals)[local],
             None if m.colors is None else np.asarray(m.colors)[local])
-
-
-def _vertex_normals(V, F):
-    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    N = np.zeros_like(V)
-    for c in range(3):
-        np.add.at(N, F[:, c], fn)
-    n = np.linalg.norm(N, axis=1, keepdims=True)
-    out = np.where(n > 1e-20, N / np.maximum(n, 1e-20), np.array([0.0, 1.0, 0.0]))
-    return out
 
 
 def assemble_character(composition) -> Character:
@@ -179,7 +170,8 @@ def assemble_character(composition) -> Character:
         verts, Fl = np.unique(F[jf].ravel(), return_inverse=True)
         Fl = Fl.reshape(-1, 3)
         colors = _junction_colors(surface, inputs, ids, plan, verts)
-        normals = _vertex_normals(V, F)[verts]
+        normals = vertex_normals(V, F)[verts]
+        normals[~normals.any(axis=1)] = (0.0, 1.0, 0.0)  # glTF requires unit normals
         rough = [m.roughness for m in materials] or [1.0]
         materials.append(Material(name=f"{composition.config.name}.junction", base_color=np.ones(4),
                                   metallic=0.0, roughness=float(np.median(rough))))

@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+from dfd.mesh import face_areas
 
 from .animation import clip_times, sample_clip
 from .skinning import linear_blend_skinning, rest_skinning_matrices, skinning_matrices
@@ -83,7 +84,7 @@ def vertex_stretch(V0, U, F, vertices):
     faces = np.flatnonzero(mark[F].any(axis=1))
     Fb = F[faces]
     s = face_stretch(V0, U, Fb)  # (k, mb)
-    area = 0.5 * np.linalg.norm(np.cross(V0[Fb[:, 1]] - V0[Fb[:, 0]], V0[Fb[:, 2]] - V0[Fb[:, 0]]), axis=1)
+    area = face_areas(V0, Fb)
     pos = np.full(len(V0), -1)
     pos[vertices] = np.arange(len(vertices))
     num = np.zeros((len(U), len(vertices)))

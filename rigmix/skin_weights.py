@@ -54,6 +54,8 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 
+from dfd.mesh import face_normals, vertex_normals
+
 from .errors import InputError, NumericalError
 from .geometry import bounding_box_diagonal, weld
 from .weights import feature_field as distill_feature_field
@@ -253,9 +255,7 @@ def match_junction(JV, JN, sources, inputs_V, inputs_F, *, diagonal, match_dista
             continue
         Vx, Fx = np.asarray(inputs_V[i], np.float64), np.asarray(inputs_F[i], np.int64)
         T = Fx[np.asarray(s["face"], np.int64)[rows]]
-        n = np.cross(Vx[T[:, 1]] - Vx[T[:, 0]], Vx[T[:, 2]] - Vx[T[:, 0]])
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)
-        cos = np.einsum("qk,qk->q", n, JN[rows])
+        cos = np.einsum("qk,qk->q", face_normals(Vx, T), JN[rows])
         d = np.asarray(s["distance"])[rows]
         on = (d <= on_surface * diagonal) if on_surface > 0 else False
         matched[rows] = ((d <= match_distance * diagonal) & (cos >= cos_max)) | on
@@ -579,7 +579,7 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
         if method != "nearest":
             if match_angle is None:
                 match_angle = 30.0 if method == "inpaint" else 90.0
-            JN = _vertex_normals(surface.V, surface.F)[jrows]
+            JN = vertex_normals(surface.V, surface.F)[jrows]
             if match_on_surface is None:
                 match_on_surface = 0.005 if method == "dfd" else 0.0
             m = match_junction(surface.V[jrows], JN, srcs, [x.V for x in inputs], [x.F for x in inputs],
@@ -661,14 +661,3 @@ def _grow(V, F, mask, rings):
     for _ in range(rings):
         m = m | (A @ m.astype(np.float64) > 0)
     return m[index]
-
-
-def _vertex_normals(V, F):
-    """Area-weighted unit vertex normals ``(n, 3)`` (zero for isolated vertices)."""
-    V = np.asarray(V, np.float64)
-    F = np.asarray(F, np.int64)
-    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    N = np.zeros_like(V)
-    for c in range(3):
-        np.add.at(N, F[:, c], fn)
-    return N / np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-20)

@@ -15,6 +15,7 @@ import struct
 from pathlib import Path
 
 import numpy as np
+from dfd.mesh import vertex_normals
 
 from ..character import Character, Material, Mesh
 from ..errors import InputError, UnsupportedError
@@ -125,12 +126,8 @@ def _unit_normals(N: np.ndarray, V: np.ndarray, F: np.ndarray) -> np.ndarray:
     length = np.linalg.norm(N, axis=1)
     bad = length < 1e-12
     if bad.any():
-        fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-        vn = np.zeros_like(V)
-        for c in range(3):
-            np.add.at(vn, F[:, c], fn)
         N = N.copy()
-        N[bad] = vn[bad]
+        N[bad] = vertex_normals(V, F)[bad]
         N[bad & (np.linalg.norm(N, axis=1) < 1e-12)] = (0.0, 0.0, 1.0)
         length = np.linalg.norm(N, axis=1)
     return N / length[:, None]

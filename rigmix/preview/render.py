@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from dfd.mesh import vertex_normals
 
 from ..animation import clip_times, sample_clip
 from ..errors import InputError, UnsupportedError
@@ -200,15 +201,6 @@ def camera_matrices(lo, hi, *, width, height, azimuth=30.0, elevation=15.0, fov=
     proj[2, 2], proj[2, 3] = (far + near) / (near - far), 2 * far * near / (near - far)
     proj[3, 2] = -1.0
     return view, proj
-
-
-def _vertex_normals(P, F):
-    """Area-weighted vertex normals of posed vertices ``(n, 3)`` (zero for unused vertices)."""
-    fn = np.cross(P[F[:, 1]] - P[F[:, 0]], P[F[:, 2]] - P[F[:, 0]])
-    N = np.zeros_like(P)
-    for k in range(3):
-        np.add.at(N, F[:, k], fn)
-    return N / np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-30)
 
 
 def _srgb(c):
@@ -389,7 +381,7 @@ def _render_gl(ctx, scene, view, proj, width, height, progress):
         msaa.clear(*bg, 1.0)
         for P, F, pos_buf, nrm_buf, vao, tex in draws:
             pos_buf.write(P[f].astype("f4").tobytes())
-            nrm_buf.write(_vertex_normals(P[f], F).astype("f4").tobytes())
+            nrm_buf.write(vertex_normals(P[f], F).astype("f4").tobytes())
             prog["use_tex"].value = tex is not None
             if tex is not None:
                 tex.use(0)

@@ -16,6 +16,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
+from dfd.mesh import face_areas
 from scipy.spatial import cKDTree
 
 from ..geometry import bounding_box_diagonal, weld
@@ -66,7 +67,7 @@ def _clean_faces(V, F):
         return F
     _, first = np.unique(np.sort(F, axis=1), axis=0, return_index=True)
     F = F[np.sort(first)]
-    area = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
+    area = face_areas(V, F)
     tiny = max(bounding_box_diagonal(V) ** 2 * 1e-14, 1e-300)
     return F[area > tiny]
 
