@@ -89,7 +89,9 @@ def _compose_report(config_path):
             "voxels": r.get("fields", {}).get("voxels"),
             "junction_min_angle_p05": r.get("mesh", {}).get("junction_min_angle_p05"),
             "junction_self_intersections": r.get("mesh", {}).get("junction_self_intersections"),
-            "junction_stretch_ratio": r.get("quality", {}).get("junction_stretch_ratio")}
+            "junction_stretch_ratio": r.get("quality", {}).get("junction_stretch_ratio"),
+            "junction_weight_roughness_max": r.get("quality", {}).get("junction_weight_roughness_max"),
+            "source_weight_roughness_max": r.get("quality", {}).get("source_weight_roughness_max")}
 
 
 def _scaling_case(levels, queue):
@@ -151,8 +153,9 @@ def _markdown(configs, scaling):
     stages = ["load", "operations", "mapping", "fusion", "weights", "completion", "assembly", "quality", "total"]
     lines = ["Per-stage times of `rigmix.compose` (seconds; the SkinMixer paper reports 12 s on average "
              "per composition).", "",
-             "| config | " + " | ".join(stages) + " | faces | voxels | min angle p05 | crossing pairs | stretch ratio |",
-             "|---|" + "---:|" * (len(stages) + 5)]
+             "| config | " + " | ".join(stages) + " | faces | voxels | min angle p05 | crossing pairs | stretch ratio "
+             "| weight roughness max, junction / sources |",
+             "|---|" + "---:|" * (len(stages) + 6)]
     for r in configs:
         if "error" in r:
             lines.append(f"| {r['config']} | error: {r['error']} |")
@@ -161,9 +164,11 @@ def _markdown(configs, scaling):
         cells = [f"{t[s]:.2f}" if s in t else "" for s in stages]
         ang = r["junction_min_angle_p05"]
         sr = r["junction_stretch_ratio"]
+        rough = " / ".join("-" if r.get(k) is None else f"{r[k]:.2f}"
+                           for k in ("junction_weight_roughness_max", "source_weight_roughness_max"))
         lines.append(f"| {r['config']} | " + " | ".join(cells) +
                      f" | {r['faces']} | {r['voxels']} | {'' if ang is None else f'{ang:.1f}'} | "
-                     f"{r.get('junction_self_intersections', '')} | {'' if sr is None else f'{sr:.2f}'} |")
+                     f"{r.get('junction_self_intersections', '')} | {'' if sr is None else f'{sr:.2f}'} | {rough} |")
     lines += ["", "Fusion time against mesh resolution (CesiumMan subdivided, left arm replaced by itself, "
               "junction rebuilt from the fields):", "",
               "| input faces | fusion s | total s | output faces | voxels | peak RSS MB |", "|---:|---:|---:|---:|---:|---:|"]

@@ -10,7 +10,8 @@ Reads like the paper's overview (PIPELINE.md):
 5. skinning weights W_R (:func:`rigmix.skin_weights.blend_weights`);
 6. animation completion A_R (:func:`rigmix.completion.complete_clips`);
 7. assembly of the output character (:func:`rigmix.assemble.assemble_character`);
-8. quality figures (:func:`rigmix.quality.junction_stretch_ratio`).
+8. quality figures (:func:`rigmix.quality.junction_stretch_ratio`,
+   :func:`rigmix.quality.junction_weight_roughness`).
 
 Each stage is one explicit call in :func:`compose`; stage functions take a
 :class:`Composition` and return ``dataclasses.replace(composition, ...)`` with their results
@@ -135,10 +136,11 @@ def assembly_stage(composition: Composition, progress: Progress | None = None) -
 
 
 def quality_stage(composition: Composition, progress: Progress | None = None) -> Composition:
-    """Figures that need no ground truth: the junction stretch ratio under animation."""
-    from .quality import junction_stretch_ratio
+    """Figures that need no ground truth: the junction stretch ratio under animation and the
+    junction weight roughness (weight spikes)."""
+    from .quality import junction_stretch_ratio, junction_weight_roughness
 
-    q = junction_stretch_ratio(composition)
+    q = {**junction_stretch_ratio(composition), **junction_weight_roughness(composition)}
     return replace(composition, report={**composition.report, "quality": q})
 
 
