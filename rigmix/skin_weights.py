@@ -322,7 +322,7 @@ def weld_consistent(V, F, W, junction, max_influences=4):
     return W, int(changed.sum())
 
 
-def harmonic_blend_factors(V, F, T, free):
+def harmonic_blend_factors(V, F, T, free, *, graph=None):
     """Blend factors that vary harmonically across the junction, fixed on the preserved parts.
 
     Solves the graph Laplace equation ``L t = 0`` on the welded mesh for the ``free`` rows, the
@@ -339,6 +339,8 @@ def harmonic_blend_factors(V, F, T, free):
         Blend factors per input: one-hot of the source input on fixed rows; on free rows the
         value kept where a connected component of free vertices touches no fixed vertex.
     free : (n,) bool array
+    graph : tuple, optional
+        :func:`rigmix.weights.locality.welded_graph` of ``(V, F)``, when the caller has it.
 
     Returns
     -------
@@ -350,18 +352,19 @@ def harmonic_blend_factors(V, F, T, free):
     free = np.asarray(free, bool)
     if not free.any() or free.all():
         return T
-    return _harmonic_rows(V, F, T, ~free, free)
+    return _harmonic_rows(V, F, T, ~free, free, graph=graph)
 
 
-def _harmonic_rows(V, F, X, fixed, free):
+def _harmonic_rows(V, F, X, fixed, free, graph=None):
     """Rows ``free`` of ``X`` ``(n, c)`` harmonic (graph Laplace equation on the welded mesh
     restricted to the ``fixed`` and ``free`` rows), the ``fixed`` rows as boundary values (a
     welded vertex is fixed when any of its split vertices is, with their mean). Solved rows are
     clipped at 0 and normalized to sum 1 (a convex combination of the boundary rows); a free
-    row whose component of the subgraph has no fixed row keeps its value."""
+    row whose component of the subgraph has no fixed row keeps its value. ``graph``: the
+    :func:`rigmix.weights.locality.welded_graph` of ``(V, F)`` when the caller has it."""
     X = np.asarray(X, np.float64).copy()
     fixed, free = np.asarray(fixed, bool), np.asarray(free, bool) & ~np.asarray(fixed, bool)
-    Vw, index, G = _welded_graph(V, F)
+    Vw, index, G = graph if graph is not None else _welded_graph(V, F)
     k = len(Vw)
     fixed_w = np.zeros(k, bool)
     fixed_w[index[fixed]] = True
@@ -390,7 +393,7 @@ def _harmonic_rows(V, F, X, fixed, free):
     return X
 
 
-def continue_far_parts(V, F, parts, distances, junction, known, *, near, jump=0.2):
+def continue_far_parts(V, F, parts, distances, junction, known, *, near, jump=0.2, graph=None):
     """Each input's closest-point weights, continued harmonically where they jump far from it.
 
     At a junction vertex farther than ``near`` from an input, that input's closest point is a
@@ -420,6 +423,8 @@ def continue_far_parts(V, F, parts, distances, junction, known, *, near, jump=0.
     near : float
         Units of ``V``.
     jump : float
+    graph : tuple, optional
+        :func:`rigmix.weights.locality.welded_graph` of ``(V, F)``, when the caller has it.
 
     Returns
     -------
@@ -432,8 +437,9 @@ def continue_far_parts(V, F, parts, distances, junction, known, *, near, jump=0.
     for P, d, (rows, K) in zip(parts, distances, known):
         P = np.asarray(P, np.float64)
         far = np.asarray(d) > near
-        rough = _junction_roughness(V, F, P, jrows)
-        cont = far & (rough > jump)
+        if far.any() and graph is None:
+            graph = _welded_graph(V, F)  # built once: at a million faces it is the cost
+        cont = far & (_junction_roughness(graph, P, jrows) > jump) if far.any() else far
         if not cont.any():
             out.append(P.copy())
             continue
@@ -445,26 +451,23 @@ def continue_far_parts(V, F, parts, distances, junction, known, *, near, jump=0.
         fixed[jrows[~cont]] = True
         free = np.zeros(len(V), bool)
         free[jrows[cont]] = True
-        out.append(_harmonic_rows(V, F, X, fixed, free)[jrows])
+        out.append(_harmonic_rows(V, F, X, fixed, free, graph=graph)[jrows])
     return out
 
 
-def _junction_roughness(V, F, P, jrows):
+def _junction_roughness(graph, P, jrows):
     """Half L1 from each junction row of ``P`` ``(q, J)`` to the mean of its junction neighbours'
-    (welded mesh; 0 for a row without one)."""
-    Vw, index, G = _welded_graph(V, F)
-    k = len(Vw)
-    jw = np.zeros(k, bool)
-    jw[index[jrows]] = True
-    Pw = np.zeros((k, P.shape[1]))
-    np.add.at(Pw, index[jrows], P)
-    Pw[jw] /= np.bincount(index[jrows], minlength=k)[jw, None]
-    A = (G > 0).astype(np.float64)[jw][:, jw]
+    (on the welded ``graph``; 0 for a row without one)."""
+    Vw, index, G = graph
+    ids, pos = np.unique(index[jrows], return_inverse=True)
+    Pw = np.zeros((len(ids), P.shape[1]))
+    np.add.at(Pw, pos, P)
+    Pw /= np.bincount(pos, minlength=len(ids))[:, None]
+    A = (G[ids][:, ids] > 0).astype(np.float64)
     deg = np.asarray(A.sum(axis=1)).ravel()
-    mean = (A @ Pw[jw]) / np.maximum(deg, 1)[:, None]
-    r = np.zeros(k)
-    r[jw] = np.where(deg > 0, 0.5 * np.abs(Pw[jw] - mean).sum(axis=1), 0.0)
-    return r[index[jrows]]
+    mean = (A @ Pw) / np.maximum(deg, 1)[:, None]
+    r = np.where(deg > 0, 0.5 * np.abs(Pw - mean).sum(axis=1), 0.0)
+    return r[pos]
 
 
 def smooth_rows(V, F, W, rows, *, iterations=10, alpha=0.5):
@@ -671,11 +674,12 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
             T = np.zeros((N, len(inputs)))
             T[pres, surface.origin_input[pres]] = 1.0
             T[jrows] = t
-            t = harmonic_blend_factors(surface.V, surface.F, T, junction)[jrows]
+            graph = _welded_graph(surface.V, surface.F)  # built once: at a million faces it is the cost
+            t = harmonic_blend_factors(surface.V, surface.F, T, junction, graph=graph)[jrows]
             owned = [pres[surface.origin_input[pres] == i] for i in range(len(inputs))]
             known = [(r, retargeted[i][surface.origin_vertex[r]]) for i, r in enumerate(owned)]
             parts = continue_far_parts(surface.V, surface.F, parts, [s["distance"] for s in srcs], junction, known,
-                                       near=ON_SURFACE * diag)
+                                       near=ON_SURFACE * diag, graph=graph)
         Wn, spread = _blend(t, parts)
         cj = np.zeros(len(jrows))
         for i, s in enumerate(srcs):
