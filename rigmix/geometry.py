@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["weld", "bounding_box_diagonal"]
+__all__ = ["weld", "bounding_box_diagonal", "neighbour_roughness"]
 
 
 def weld(V, F=None, *, tol=0.0):
@@ -60,3 +60,27 @@ def bounding_box_diagonal(V) -> float:
     if len(V) == 0:
         return 0.0
     return float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+
+
+def neighbour_roughness(A, X):
+    """Half the L1 distance from each row of ``X`` to the mean of its neighbours' rows.
+
+    Parameters
+    ----------
+    A : (k, k) scipy.sparse matrix
+        Adjacency of the rows; any positive entry is an edge (its value is not used), no
+        self-loops.
+    X : (k, c) float array
+        Rows summing to 1 (skinning weights): the figure is in ``[0, 1]``, 1 for a row sharing
+        nothing with its neighbours.
+
+    Returns
+    -------
+    roughness : (k,) float64
+        0 for a row without neighbours.
+    has_neighbours : (k,) bool
+    """
+    A = (A > 0).astype(np.float64)
+    deg = np.asarray(A.sum(axis=1)).ravel()
+    mean = (A @ X) / np.maximum(deg, 1)[:, None]
+    return np.where(deg > 0, 0.5 * np.abs(X - mean).sum(axis=1), 0.0), deg > 0

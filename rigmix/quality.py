@@ -225,26 +225,24 @@ def weight_roughness(V, F, W, rows=None):
     """
     import scipy.sparse as sp
 
-    from .geometry import weld
+    from .geometry import neighbour_roughness, weld
 
     W = np.asarray(W, np.float64)
     Vw, index, Fw = weld(np.asarray(V, np.float64), np.asarray(F, np.int64).reshape(-1, 3))
     k = len(Vw)
     copies = np.bincount(index, minlength=k)
     Ww = sp.csr_matrix((1.0 / copies[index], (index, np.arange(len(index)))), shape=(k, len(index))) @ W
+    # the welded edges, each face's three both ways (not welded_graph: no lengths, and no sort
+    # of the edges, which is most of its cost at a million faces)
     a, b = Fw.T.ravel(), Fw[:, [1, 2, 0]].T.ravel()
     A = sp.csr_matrix((np.ones(2 * len(a)), (np.r_[a, b], np.r_[b, a])), shape=(k, k))
     A.setdiag(0)
-    A.eliminate_zeros()
-    A.data[:] = 1.0  # an edge shared by two faces counts once
-    deg = np.asarray(A.sum(axis=1)).ravel()
-    mean = (A @ Ww) / np.maximum(deg, 1)[:, None]
-    measured = np.ones(k, bool)
+    r, measured = neighbour_roughness(A, Ww)
     if rows is not None:
-        measured = np.zeros(k, bool)
-        measured[index[np.asarray(rows, bool)]] = True
-    measured &= deg > 0
-    return 0.5 * np.abs(Ww[measured] - mean[measured]).sum(axis=1)
+        selected = np.zeros(k, bool)
+        selected[index[np.asarray(rows, bool)]] = True
+        measured &= selected
+    return r[measured]
 
 
 def junction_weight_roughness(composition) -> dict:
@@ -272,9 +270,9 @@ def junction_weight_roughness(composition) -> dict:
     def figures(x):
         return (float(np.percentile(x, 99.0)), float(x.max())) if len(x) else (None, None)
 
-    (jp, jm), (sp_, sm) = figures(r), figures(src)
-    return {"junction_weight_roughness_p99": jp, "junction_weight_roughness_max": jm,
-            "source_weight_roughness_p99": sp_, "source_weight_roughness_max": sm}
+    (junction_p99, junction_max), (source_p99, source_max) = figures(r), figures(src)
+    return {"junction_weight_roughness_p99": junction_p99, "junction_weight_roughness_max": junction_max,
+            "source_weight_roughness_p99": source_p99, "source_weight_roughness_max": source_max}
 
 
 def self_composition_truth(composition, *, truth_influences=4):

@@ -57,14 +57,14 @@ from scipy.sparse.linalg import splu
 from dfd.mesh import face_normals, vertex_normals
 
 from .errors import InputError, NumericalError
-from .geometry import bounding_box_diagonal, weld
+from .geometry import bounding_box_diagonal, neighbour_roughness, weld
 from .weights import feature_field as distill_feature_field
 from .weights import fill_weights, sparsify
 from .weights.locality import geodesic_locality, welded_graph as _welded_graph
 
-__all__ = ["SkinWeights", "WEIGHT_METHODS", "BLEND_FACTORS", "ON_SURFACE", "JUNCTION_SMOOTHING", "FIELD_DISTILL", "retarget_weights",
-           "closest_point_weights", "harmonic_blend_factors", "continue_far_parts", "match_junction", "geodesic_locality", "smooth_rows",
-           "blend_weights", "to_influences"]
+__all__ = ["SkinWeights", "WEIGHT_METHODS", "BLEND_FACTORS", "ON_SURFACE", "JUNCTION_SMOOTHING", "FIELD_DISTILL",
+           "retarget_weights", "closest_point_weights", "harmonic_blend_factors", "continue_far_parts",
+           "match_junction", "geodesic_locality", "smooth_rows", "blend_weights", "to_influences"]
 
 log = logging.getLogger(__name__)
 
@@ -463,11 +463,7 @@ def _junction_roughness(graph, P, jrows):
     Pw = np.zeros((len(ids), P.shape[1]))
     np.add.at(Pw, pos, P)
     Pw /= np.bincount(pos, minlength=len(ids))[:, None]
-    A = (G[ids][:, ids] > 0).astype(np.float64)
-    deg = np.asarray(A.sum(axis=1)).ravel()
-    mean = (A @ Pw) / np.maximum(deg, 1)[:, None]
-    r = np.where(deg > 0, 0.5 * np.abs(Pw - mean).sum(axis=1), 0.0)
-    return r[pos]
+    return neighbour_roughness(G[ids][:, ids], Pw)[0][pos]
 
 
 def smooth_rows(V, F, W, rows, *, iterations=10, alpha=0.5):

@@ -328,7 +328,7 @@ def test_every_example_config_weight_invariants_and_stretch_ratio_for_every_meth
     comp = compose(cfg, until="completion")
     _check_invariants(comp)
     ids = comp.stages["fusion_ids"]
-    ratios, roughness = {}, {}
+    ratios, roughness, source_roughness = {}, {}, None
     for method in WEIGHT_METHODS:
         skin = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
                              comp.skeleton.num_joints, method=method)
@@ -336,11 +336,12 @@ def test_every_example_config_weight_invariants_and_stretch_ratio_for_every_meth
         _check_invariants(c)
         q = quality_stage(assembly_stage(c)).report["quality"]
         ratios[method], roughness[method] = q["junction_stretch_ratio"], q["junction_weight_roughness_max"]
+        source_roughness = q["source_weight_roughness_max"]  # the inputs' painting: the same for every method
     assert all(r is not None and np.isfinite(r) and r > 0 for r in ratios.values()), ratios
     assert roughness["dfd"] <= roughness["nearest"] + 1e-9, (cfg.stem, roughness)
     # and within 1.5x the inputs' own painting (beast_arms 0.29 against 0.14 before the far
     # inputs' jumping closest points were continued: striped armpits)
-    assert roughness["dfd"] <= 1.5 * q["source_weight_roughness_max"], (cfg.stem, roughness, q)
+    assert roughness["dfd"] <= 1.5 * source_roughness, (cfg.stem, roughness, source_roughness)
     # every example, beast_arms included (3.4 before its replaced limb roots were completed
     # from the quadruped in the human's clips)
     assert ratios["dfd"] <= 1.5, (cfg.stem, ratios)

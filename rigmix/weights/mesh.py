@@ -16,8 +16,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
-from dfd.mesh import face_areas
 from scipy.spatial import cKDTree
+
+from dfd.mesh import face_areas
 
 from ..geometry import bounding_box_diagonal, weld
 
