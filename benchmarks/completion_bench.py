@@ -30,7 +30,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 sys.path.insert(0, str(ROOT / "tests"))
 
 from rigmix.character import Clip, Track  # noqa: E402
-from rigmix.completion import CompletionOptions, complete_clips, completion_provenance  # noqa: E402
+from rigmix.animation.completion import CompletionOptions, complete_clips, completion_provenance  # noqa: E402
 from rigmix.transforms import quat_multiply  # noqa: E402
 
 FPS = 30.0
@@ -91,7 +91,7 @@ def time_completion(inputs, skel, prov, maps, n_clips, n_frames, repeats=3):
 
 def time_scores(inputs, skel, n_frames_total, repeats=3):
     """(wall, CPU) seconds for the score matrix alone, (F, F) float32, every joint weighted."""
-    from rigmix.completion import keyframe_scores
+    from rigmix.animation.completion import keyframe_scores
 
     rng = np.random.default_rng(0)
     J = skel.num_joints

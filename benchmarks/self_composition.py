@@ -26,7 +26,7 @@ Three protocols (PIPELINE.md section 7):
     damage what the closest point already knows.
 ``mirrored``
     for each left/right limb pair, limb X of the body is replaced by limb X of the *mirrored*
-    character (``mirror = true`` in the config, :mod:`rigmix.mirror`), which is the original's
+    character (``mirror = true`` in the config, :mod:`rigmix.operations.mirror`), which is the original's
     opposite limb reflected onto X's side. The truth is still the original character's weights
     at the closest original point (cut to 4), but the donor's surface and weights are the other
     side's, so no method can copy the truth (they differ wherever the character or its painting
@@ -70,7 +70,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 from rigmix.config import Config  # noqa: E402
 from rigmix.pipeline import assembly_stage, compose, quality_stage  # noqa: E402
 from rigmix.quality import self_composition_errors  # noqa: E402
-from rigmix.skin_weights import blend_weights  # noqa: E402
+from rigmix.weights.blend import blend_weights  # noqa: E402
 
 #: (label, blend_weights options): every method with its defaults, and dfd without the DFD field.
 METHODS = (("nearest", {"method": "nearest"}), ("inpaint", {"method": "inpaint"}), ("dfd", {"method": "dfd"}),
@@ -203,7 +203,7 @@ def hidden_weights(comp, options):
     skin : SkinWeights
     seconds : float
     """
-    from rigmix.skin_weights import weld_consistent
+    from rigmix.weights.blend import weld_consistent
     from rigmix.weights import fill_weights
 
     if options.get("method") != "nearest":
@@ -259,7 +259,7 @@ def mirrored_errors(comp, skin, pair, *, fps=30.0, max_frames=None, truth_influe
     ----------
     comp : rigmix.pipeline.Composition
         Of :func:`mirror_config`, after the fusion.
-    skin : rigmix.skin_weights.SkinWeights
+    skin : rigmix.weights.blend.SkinWeights
     pair : (J,) int array
         :func:`limb_pairing`: donor joint (= original joint index, mirrored) -> original joint.
     tolerance : float, optional
@@ -364,7 +364,7 @@ def mirror_case(path: Path, limb_joint: str, opposite_joint: str, *, until="comp
     distance : float
         :func:`limb_pairing`'s pairing distance.
     """
-    from rigmix.mirror import mirror_plane
+    from rigmix.operations.mirror import mirror_plane
     from rigmix.pipeline import load_characters
 
     original = load_characters(self_config(path, limb_joint))["body"]  # unmirrored, for the joint indices

@@ -22,7 +22,7 @@ import numpy as np
 from dfd.mesh import vertex_normals
 
 from .character import Character, Material, Mesh, Prop
-from .skin_weights import closest_point_weights, to_influences
+from .weights import closest_point_weights, to_influences
 
 __all__ = ["assemble_character", "baked_colors", "input_mesh_ranges"]
 

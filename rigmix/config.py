@@ -14,7 +14,7 @@ error naming the key), or a :class:`Config` built in code. ``rigmix schema`` pri
     path = "knight.glb"                   # relative to this config file
     scale = "auto"                        # or a number (the override)
     placement = { translation = [0, 0, 0], rotation = [0, 90, 0] }
-    mirror = false                        # true, "x", "y" or "z": reflect it first (rigmix.mirror)
+    mirror = false                        # true, "x", "y" or "z": reflect it first (rigmix.operations.mirror)
     [characters.knight.rotations]         # rest-pose rotations, degrees (XYZ) or xyzw quaternion
     "UpperArm.L" = [0, 0, -30]
     "UpperArm.R" = { quaternion = [0, 0, 0.2588, 0.9659] }
@@ -152,7 +152,7 @@ class CharacterConfig(BaseModel):
         None, description="Rigid placement of the whole character (a moved character is then "
                           "translated onto its target anyway; the rotation still counts).")
     mirror: StrictBool | Literal["x", "y", "z"] = Field(
-        False, description="Mirror the character before composing (rigmix.mirror): true reflects it "
+        False, description="Mirror the character before composing (rigmix.operations.mirror): true reflects it "
                            "across its detected symmetry plane (the axis plane of the rest pose it is "
                            "most symmetric about; x when none is), 'x', 'y' or 'z' across that axis "
                            "plane through its centre of symmetry. Joint names swap sides (.L <-> .R, "
@@ -242,7 +242,7 @@ class Config(BaseModel):
     # Options of the later stages, validated (unknown keys rejected) by the stage that reads them.
     fusion: dict[str, Any] | None = Field(None, description="Surface fusion options (rigmix.fusion).")
     weights: dict[str, Any] | None = Field(None, description="Skin weight options (rigmix.weights).")
-    animation: dict[str, Any] | None = Field(None, description="Animation completion options (rigmix.completion).")
+    animation: dict[str, Any] | None = Field(None, description="Animation completion options (rigmix.animation.completion).")
 
     _base_dir: Path | None = PrivateAttr(default=None)
     _source: str = PrivateAttr(default="")

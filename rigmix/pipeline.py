@@ -7,8 +7,8 @@ Reads like the paper's overview (PIPELINE.md):
    (:func:`rigmix.operations.plan_operations`);
 3. bone-to-bone mappings B_i with confidence (:func:`rigmix.mapping.map_bones`);
 4. surface fusion M_R (:func:`rigmix.fusion.fuse_surfaces`);
-5. skinning weights W_R (:func:`rigmix.skin_weights.blend_weights`);
-6. animation completion A_R (:func:`rigmix.completion.complete_clips`);
+5. skinning weights W_R (:func:`rigmix.weights.blend.blend_weights`);
+6. animation completion A_R (:func:`rigmix.animation.completion.complete_clips`);
 7. assembly of the output character (:func:`rigmix.assemble.assemble_character`);
 8. quality figures (:func:`rigmix.quality.junction_stretch_ratio`,
    :func:`rigmix.quality.junction_weight_roughness`).
@@ -109,10 +109,10 @@ def fusion_stage(composition: Composition, progress: Progress | None = None) -> 
 def weights_stage(composition: Composition, progress: Progress | None = None) -> Composition:
     """W_R on the fused surface (options from the config's ``[weights]`` section).
 
-    Returns the composition with ``stages["weights"]`` (:class:`rigmix.skin_weights.SkinWeights`)
+    Returns the composition with ``stages["weights"]`` (:class:`rigmix.weights.blend.SkinWeights`)
     and ``report["weights"]``.
     """
-    from .skin_weights import blend_weights
+    from .weights import blend_weights
 
     opts = _options(composition.config.weights)
     ids = composition.stages["fusion_ids"]
@@ -169,7 +169,7 @@ def load_characters(config: Config) -> dict:
     -------
     dict of str -> Character
         By character id, in the config's order; a character with ``mirror`` set in the config is
-        mirrored (:func:`rigmix.mirror.mirror_character`, joint sides swapped).
+        mirrored (:func:`rigmix.operations.mirror.mirror_character`, joint sides swapped).
 
     Raises
     ------
@@ -191,7 +191,7 @@ def load_characters(config: Config) -> dict:
             out[cid] = _load_file(str(p.resolve()), p.stat().st_mtime)
         mirror = config.characters[cid].mirror
         if mirror is not False:  # before everything else: actions name the mirrored joints
-            from .mirror import mirror_character
+            from .operations.mirror import mirror_character
 
             out[cid] = mirror_character(out[cid], axis=None if mirror is True else mirror)
     return out
@@ -251,7 +251,7 @@ def compose(config, *, progress: Progress | None = None, until: str | None = Non
               "scales": {cid: float(s) for cid, s in plan.scales.items()}, "timings": timings}
     comp = Composition(plan.skeleton, plan, maps, inputs, config, report=report)
 
-    from .completion import completion_stage
+    from .animation.completion import completion_stage
 
     for name, stage in (("fusion", fusion_stage),            # M_R
                         ("weights", weights_stage),          # W_R

@@ -34,7 +34,7 @@ import logging
 import numpy as np
 from dfd.mesh import face_areas
 
-from .animation import clip_times, sample_clip
+from .animation.sampling import clip_times, sample_clip
 from .skinning import linear_blend_skinning, rest_skinning_matrices, skinning_matrices
 
 __all__ = ["face_stretch", "vertex_stretch", "band_stretch", "junction_stretch_ratio", "weight_roughness",
@@ -156,7 +156,7 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
         ``junction_stretch_ratio`` (None without clips or fused joints), ``output_p95``,
         ``source_p95``, ``band_radius``, ``output_band_vertices``, ``source_band_vertices``.
     """
-    from .skin_weights import to_influences
+    from .weights import to_influences
 
     plan = composition.plan
     surface = composition.stages["surface"]
@@ -334,7 +334,7 @@ def self_composition_errors(composition, skin, *, fps=30.0, max_frames=None, tru
     ----------
     composition : rigmix.pipeline.Composition
         After the fusion stage; its inputs are one character under two ids.
-    skin : rigmix.skin_weights.SkinWeights
+    skin : rigmix.weights.blend.SkinWeights
         W_R to evaluate (any method).
     fps : float
     max_frames : int, optional

@@ -11,7 +11,7 @@ import pytest
 
 from rigmix.animation import clip_times, sample_clip
 from rigmix.character import Skeleton
-from rigmix.completion import (
+from rigmix.animation.completion import (
     CompletionOptions,
     FixedFrame,
     angular_acceleration,
@@ -252,7 +252,7 @@ def test_angular_acceleration_of_constant_and_accelerating_spin():
 
 
 def test_blend_seams_removes_the_jump_and_fades_out():
-    from rigmix.transitions import blend_seams
+    from rigmix.animation.transitions import blend_seams
 
     t = np.arange(40) / 30.0
     angle = 1.5 * t
@@ -463,7 +463,7 @@ def test_centaur_horse_knight(centaur):
 
 
 def test_global_positions_match_matrix_forward_kinematics(fox):
-    from rigmix.keyframes import global_positions as _global_positions
+    from rigmix.animation.keyframes import global_positions as _global_positions
     from rigmix.transforms import trs_to_matrix
 
     clip = fox.clip("Run")
@@ -516,7 +516,7 @@ def test_completion_stage_on_the_builtin_centaur(builtin_centaur):
     """The stage as the pipeline runs it, on examples/centaur.toml (built-in characters)."""
     import dataclasses
 
-    from rigmix.completion import completion_stage, options_from_config
+    from rigmix.animation.completion import completion_stage, options_from_config
 
     comp = builtin_centaur
     out = completion_stage(comp)
@@ -550,7 +550,7 @@ def test_a_static_input_leaves_the_clips_own_mapped_pose(fox, caplog):
     prov[tail] = [("A", tail), ("B", tail)]
     maps = {k: BoneMap(k, np.arange(J), np.ones(J)) for k in "AB"}
     static = dataclasses.replace(fox, clips=())
-    with caplog.at_level("WARNING", logger="rigmix.completion"):
+    with caplog.at_level("WARNING", logger="rigmix.animation.completion"):
         (clip,) = complete_clips(sk, {"A": fox, "B": static}, maps, provenance=prov,
                                  selection=[("A", "Walk")])
     assert "no clip to complete" in caplog.text
@@ -575,7 +575,7 @@ def test_replaced_limb_root_is_completed_when_the_rest_bones_disagree():
     import dataclasses
 
     import rigmix
-    from rigmix.completion import completion_stage, limb_roots_to_complete
+    from rigmix.animation.completion import completion_stage, limb_roots_to_complete
 
     examples = Path(__file__).parent.parent / "examples"
     comp = rigmix.compose(examples / "beast_arms.toml", until="mapping")

@@ -1,4 +1,4 @@
-"""Mirroring a rigged character (rigmix.mirror) and the config's ``mirror`` key, on real characters."""
+"""Mirroring a rigged character (rigmix.operations.mirror) and the config's ``mirror`` key, on real characters."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from rigmix.animation import clip_times, sample_clip
 from rigmix.config import parse_config
 from rigmix.errors import InputError
 from rigmix.io import load_character
-from rigmix.mirror import MirrorPlane, mirror_character, mirror_plane, swap_side
+from rigmix.operations.mirror import MirrorPlane, mirror_character, mirror_plane, swap_side
 from rigmix.skinning import rest_pose, skin_character
 
 # CesiumMan: a Z-up anchor above its root and a one-sided name ("arm_joint_L__4_");

@@ -14,7 +14,7 @@ from rigmix.config import Config, load_config
 from rigmix.errors import InputError
 from rigmix.io import load_character
 from rigmix.operations import plan_operations
-from rigmix.positioning import (
+from rigmix.operations.positioning import (
     chain_length,
     position_character,
     rest_world_mesh,

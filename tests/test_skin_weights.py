@@ -13,7 +13,7 @@ from rigmix.errors import InputError
 from rigmix.fusion import FusedSurface, FusionInput
 from rigmix.geometry import weld
 from rigmix.mapping import BoneMap
-from rigmix.skin_weights import (
+from rigmix.weights.blend import (
     WEIGHT_METHODS,
     blend_weights,
     closest_point_weights,
@@ -216,7 +216,7 @@ def test_junction_component_with_no_matched_vertex_gets_finite_normalized_weight
 def test_geodesic_locality_keeps_weights_off_a_look_alike_part():
     """Two identical spheres, each driven by its own joint; the right sphere's cap is unknown.
     The filled cap must take the right sphere's joint only, never the left twin's."""
-    from rigmix.skin_weights import geodesic_locality
+    from rigmix.weights.blend import geodesic_locality
 
     VA, F = _sphere(c=(-3.0, 0, 0))
     VB, _ = _sphere(c=(3.0, 0, 0))
@@ -455,7 +455,7 @@ def test_default_dfd_distills_the_feature_field_of_the_fused_surface(tmp_path):
     field changes the filled weights; ``feature_field=False`` distills nothing."""
     from dfd.field import load_field
     from rigmix.pipeline import compose
-    from rigmix.skin_weights import FIELD_DISTILL
+    from rigmix.weights.blend import FIELD_DISTILL
 
     asset("Horse"), asset("Knight")
     comp = compose(ROOT / "tests" / "configs" / "centaur.toml", until="fusion")
@@ -729,7 +729,7 @@ def test_split_copies_of_a_position_get_the_same_weights():
     """Two triangles sharing an edge, each with its own copies of the edge's vertices (a glTF
     seam). A junction copy takes the preserved copy's row (never the reverse); two junction
     copies take their mean, cut to the influence limit."""
-    from rigmix.skin_weights import weld_consistent
+    from rigmix.weights.blend import weld_consistent
 
     V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], float)
     F = np.array([[0, 1, 2], [3, 5, 4]])

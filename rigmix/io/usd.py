@@ -66,7 +66,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..animation import clip_times, sample_clip
+from ..animation.sampling import clip_times, sample_clip
 from ..errors import InputError
 from ..safety import atomic_output
 from ..transforms import matrix_to_trs, trs_to_matrix

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 from dfd.mesh import vertex_normals
 
-from ..animation import clip_times, sample_clip
+from ..animation.sampling import clip_times, sample_clip
 from ..errors import InputError, UnsupportedError
 from ..safety import atomic_output
 from ..skinning import skin_character

@@ -56,11 +56,12 @@ from scipy.sparse.linalg import splu
 
 from dfd.mesh import face_normals, vertex_normals
 
-from .errors import InputError, NumericalError
-from .geometry import bounding_box_diagonal, neighbour_roughness, weld
-from .weights import feature_field as distill_feature_field
-from .weights import fill_weights, sparsify
-from .weights.locality import geodesic_locality, welded_graph as _welded_graph
+from ..errors import InputError, NumericalError
+from ..geometry import bounding_box_diagonal, neighbour_roughness, weld
+from .mirror import feature_field as distill_feature_field
+from .fill import fill_weights
+from .mesh import sparsify
+from .locality import geodesic_locality, welded_graph as _welded_graph
 
 __all__ = ["SkinWeights", "WEIGHT_METHODS", "BLEND_FACTORS", "ON_SURFACE", "JUNCTION_SMOOTHING", "FIELD_DISTILL",
            "retarget_weights", "closest_point_weights", "harmonic_blend_factors", "continue_far_parts",

@@ -34,9 +34,9 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .errors import InputError
-from .skinning import linear_blend_skinning
-from .transforms import matrix_to_trs, quat_multiply, quat_to_matrix
+from ..errors import InputError
+from ..skinning import linear_blend_skinning
+from ..transforms import matrix_to_trs, quat_multiply, quat_to_matrix
 
 __all__ = [
     "skeleton_adjacency",

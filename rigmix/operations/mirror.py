@@ -50,8 +50,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .character import Anchor, Character, Clip, Mesh, Prop, Skeleton, Track
-from .errors import InputError
+from ..character import Anchor, Character, Clip, Mesh, Prop, Skeleton, Track
+from ..errors import InputError
 
 __all__ = ["MirrorPlane", "mirror_plane", "mirror_character", "swap_side", "AXES"]
 
@@ -126,7 +126,7 @@ class MirrorPlane:
 
 def _rest_positions(character: Character) -> np.ndarray:
     """Rest-pose positions of every skinned mesh (bind positions for unskinned ones), ``(n, 3)``."""
-    from .skinning import rest_pose
+    from ..skinning import rest_pose
 
     parts = rest_pose(character) if character.meshes else []
     return np.concatenate(parts) if parts else np.zeros((0, 3))

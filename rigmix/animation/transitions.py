@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import InputError
-from .transforms import quat_angle, quat_conjugate, quat_multiply, quat_normalize, quat_slerp
+from ..errors import InputError
+from ..transforms import quat_angle, quat_conjugate, quat_multiply, quat_normalize, quat_slerp
 
 __all__ = [
     "segments_next",

@@ -1,7 +1,7 @@
 """Built-in example characters, generated procedurally (no third-party assets).
 
 Each example is a rigged, skinned, animated :class:`rigmix.character.Character` built from a
-body plan (:mod:`rigmix.bodyplan`): joints with rest world positions and signed-distance
+body plan (:mod:`rigmix.examples.bodyplan`): joints with rest world positions and signed-distance
 primitives (round cones, ellipsoids) owned by the joints. The surface is **one closed,
 2-manifold, genus-0, consistently outward-oriented triangle mesh** (a single welded connected
 component, the zero set of the primitives' smooth union), with smooth distance-based skin
@@ -22,8 +22,8 @@ import logging
 import numpy as np
 
 from .bodyplan import build_character, cone, ellipsoid
-from .character import Character, Clip, Material, Mesh, Prop, Skeleton, Track
-from .transforms import quat_multiply
+from ..character import Character, Clip, Material, Mesh, Prop, Skeleton, Track
+from ..transforms import quat_multiply
 
 __all__ = ["humanoid", "quadruped", "static_box", "HUMANOID_JOINTS", "QUADRUPED_JOINTS"]
 

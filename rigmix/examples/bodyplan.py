@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .character import Character, Material, Mesh, Skeleton
+from ..character import Character, Material, Mesh, Skeleton
 
 __all__ = ["Shape", "cone", "ellipsoid", "build_character"]
 

@@ -29,11 +29,11 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .character import Anchor, Skeleton
-from .config import Config, closest_names
-from .errors import InputError
+from ..character import Anchor, Skeleton
+from ..config import Config, closest_names
+from ..errors import InputError
 from .positioning import position_inputs
-from .transforms import matrix_to_trs
+from ..transforms import matrix_to_trs
 
 __all__ = ["ResolvedAction", "FusedPair", "Plan", "resolve_actions", "resolve_rotations", "plan_operations"]
 

@@ -18,8 +18,8 @@ import logging
 
 import numpy as np
 
-from .character import Clip, Track
-from .transforms import quat_normalize, quat_slerp
+from ..character import Clip, Track
+from ..transforms import quat_normalize, quat_slerp
 
 __all__ = ["sample_track", "sample_clip", "clip_times", "resample_clip"]
 

@@ -28,9 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .character import Skeleton
-from .errors import InputError
-from .transforms import quat_conjugate, quat_multiply, quat_normalize, quat_slerp
+from ..character import Skeleton
+from ..errors import InputError
+from ..transforms import quat_conjugate, quat_multiply, quat_normalize, quat_slerp
 
 __all__ = [
     "map_pose",

@@ -15,8 +15,8 @@ frame, among all frames of all clips of the other input(s) Y:
 5. assemble; where the chosen frames jump (seams), fade the jump out over a few frames
    (:func:`blend_seams`) and smooth lightly around it (:func:`smooth_seams`).
 
-The kernels live in :mod:`rigmix.keyframes` (mapping onto S_R, scoring, with the choice of
-the rotation term explained there) and :mod:`rigmix.transitions` (frame choice, seams).
+The kernels live in :mod:`rigmix.animation.keyframes` (mapping onto S_R, scoring, with the choice of
+the rotation term explained there) and :mod:`rigmix.animation.transitions` (frame choice, seams).
 
 Choices where the method leaves room (all options of :class:`CompletionOptions`)
 -------------------------------------------------------------------------------
@@ -54,12 +54,12 @@ from typing import Literal, Mapping, Sequence
 
 import numpy as np
 
-from .animation import clip_times, sample_clip
-from .character import Character, Clip, Skeleton, Track
-from .errors import InputError
+from .sampling import clip_times, sample_clip
+from ..character import Character, Clip, Skeleton, Track
+from ..errors import InputError
 from .keyframes import (Candidates, continuity_scores, forward_kinematics, global_rotations,
                         hop_weights, keyframe_scores, map_pose, rotation_features)
-from .transforms import quat_normalize
+from ..transforms import quat_normalize
 from .transitions import (angular_acceleration, blend_seams, choose_frames, discontinuities,
                           segments_next, smooth_seams)
 

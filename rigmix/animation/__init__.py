@@ -1,0 +1,15 @@
+"""Animation (PIPELINE.md section 5): clip sampling and animation completion A_R.
+
+Public entry: :func:`complete_clips` (:mod:`rigmix.animation.completion`), the completion
+stage. The modules:
+
+``sampling``     clip sampling (LINEAR, STEP, CUBICSPLINE) and resampling
+``keyframes``    keyframe scores: forward kinematics, pose mapping, continuity
+``transitions``  frame choice and seam blending
+``completion``   completing every clip for the output skeleton
+"""
+
+from .sampling import clip_times, resample_clip, sample_clip, sample_track
+from .completion import CompletionOptions, complete_clips
+
+__all__ = ["complete_clips", "CompletionOptions", "sample_track", "sample_clip", "clip_times", "resample_clip"]
