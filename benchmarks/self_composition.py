@@ -70,7 +70,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 from rigmix.config import Config  # noqa: E402
 from rigmix.pipeline import assembly_stage, compose, quality_stage  # noqa: E402
 from rigmix.quality import self_composition_errors  # noqa: E402
-from rigmix.weights.blend import blend_weights  # noqa: E402
+from rigmix.weights import WeightParams, blend_weights  # noqa: E402
 
 #: (label, blend_weights options): every method with its defaults, and dfd without the DFD field.
 METHODS = (("nearest", {"method": "nearest"}), ("inpaint", {"method": "inpaint"}), ("dfd", {"method": "dfd"}),
@@ -157,7 +157,7 @@ def _weights(comp, options):
     ids = comp.stages["fusion_ids"]
     t1 = time.perf_counter()
     skin = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
-                         comp.skeleton.num_joints, skeleton=comp.skeleton, **options)
+                         comp.skeleton.num_joints, skeleton=comp.skeleton, params=WeightParams(**options))
     return skin, round(time.perf_counter() - t1, 3)
 
 

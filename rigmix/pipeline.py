@@ -112,14 +112,14 @@ def weights_stage(composition: Composition, progress: Progress | None = None) ->
     Returns the composition with ``stages["weights"]`` (:class:`rigmix.weights.blend.SkinWeights`)
     and ``report["weights"]``.
     """
-    from .weights import blend_weights
+    from .weights import WeightParams, blend_weights
 
     opts = _options(composition.config.weights)
     ids = composition.stages["fusion_ids"]
     try:
         skin = blend_weights(composition.stages["surface"], composition.stages["fusion_inputs"],
                              [composition.maps[cid] for cid in ids], composition.skeleton.num_joints,
-                             skeleton=composition.skeleton, **opts)
+                             skeleton=composition.skeleton, params=WeightParams(**opts))
     except TypeError as e:  # an unknown option name in the config
         raise InputError(f"config {composition.config.source}: [weights]: {e}") from None
     return replace(composition, stages={**composition.stages, "weights": skin},

@@ -23,7 +23,7 @@ from rigmix.weights.blend import (
     retarget_weights,
     to_influences,
 )
-from rigmix.weights import symmetry_plane
+from rigmix.weights import WeightParams, symmetry_plane
 
 EXAMPLES = sorted((ROOT / "examples").glob("*.toml"))
 
@@ -201,7 +201,7 @@ def test_continue_far_parts_replaces_jumping_far_rows_only():
 @pytest.mark.parametrize("method", WEIGHT_METHODS)
 def test_junction_component_with_no_matched_vertex_gets_finite_normalized_weights(method):
     surf, x, bm = _isolated_junction_case()
-    skin = blend_weights(surf, [x], [bm], 3, method=method)
+    skin = blend_weights(surf, [x], [bm], 3, params=WeightParams(method=method))
     j = skin.junction
     assert j.sum() == len(surf.V) - len(x.V)
     assert not skin.matched[j].any()  # too far from every input: nothing matched
@@ -331,7 +331,7 @@ def test_every_example_config_weight_invariants_and_stretch_ratio_for_every_meth
     ratios, roughness, source_roughness = {}, {}, None
     for method in WEIGHT_METHODS:
         skin = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
-                             comp.skeleton.num_joints, method=method)
+                             comp.skeleton.num_joints, params=WeightParams(method=method))
         c = replace(comp, stages={**comp.stages, "weights": skin})
         _check_invariants(c)
         q = quality_stage(assembly_stage(c)).report["quality"]
@@ -381,7 +381,7 @@ def test_self_composition_against_the_original_weights():
         figs = {}
         for method in WEIGHT_METHODS:
             skin = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"],
-                                 [comp.maps[c] for c in ids], comp.skeleton.num_joints, method=method)
+                                 [comp.maps[c] for c in ids], comp.skeleton.num_joints, params=WeightParams(method=method))
             figs[method] = self_composition_errors(comp, skin)
         assert figs["dfd"]["frames"] > 0 and figs["dfd"]["junction_vertices"] > 0
         assert figs["dfd"]["skinned_error_max"] < 1e-9 and figs["dfd"]["junction_weight_error_max"] < 1e-9, \
@@ -462,9 +462,9 @@ def test_default_dfd_distills_the_feature_field_of_the_fused_surface(tmp_path):
     ids = comp.stages["fusion_ids"]
     args = (comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
             comp.skeleton.num_joints)
-    off = blend_weights(*args, method="dfd", feature_field=False, field_cache=tmp_path / "off")
+    off = blend_weights(*args, params=WeightParams(method="dfd", feature_field=False, field_cache=tmp_path / "off"))
     assert not (tmp_path / "off").exists() and off.report["feature_field"] is False
-    on = blend_weights(*args, method="dfd", field_cache=tmp_path / "on")
+    on = blend_weights(*args, params=WeightParams(method="dfd", field_cache=tmp_path / "on"))
     assert on.report["feature_field"] is True and on.report["feature_field_distilled"] is True
     assert on.report["feature_field_s"] > 0 and off.report["feature_field_distilled"] is False
     fields = sorted((tmp_path / "on").glob("field-*.pt"))
@@ -518,7 +518,7 @@ def test_mirrored_limb_harmonic_blend_keeps_the_artists_weights():
     for label, opts in {"nearest": {"method": "nearest"}, "dfd": {"method": "dfd"},
                         "dfd_paper": {"method": "dfd", "blend": "paper", "feature_field": False}}.items():
         skins[label] = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"],
-                                     [comp.maps[c] for c in ids], comp.skeleton.num_joints, **opts)
+                                     [comp.maps[c] for c in ids], comp.skeleton.num_joints, params=WeightParams(**opts))
         figs[label] = mirrored_errors(comp, skins[label], pair, max_frames=60)
         _check_invariants(replace(comp, stages={**comp.stages, "weights": skins[label]}))
     assert skins["dfd"].report["blend"] == "harmonic" and skins["nearest"].report["blend"] == "paper"
@@ -528,7 +528,7 @@ def test_mirrored_limb_harmonic_blend_keeps_the_artists_weights():
     assert figs["dfd"]["skinned_error_max"] < 0.005 < figs["nearest"]["skinned_error_max"], figs
     with pytest.raises(InputError, match="unknown blend"):
         blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
-                      comp.skeleton.num_joints, method="dfd", blend="smooth")
+                      comp.skeleton.num_joints, params=WeightParams(method="dfd", blend="smooth"))
 
 
 def test_mirrored_truth_only_where_the_junction_faces_the_original_surface():
@@ -543,7 +543,7 @@ def test_mirrored_truth_only_where_the_junction_faces_the_original_surface():
     comp, pair, _, _ = mirror_case(asset("Knight"), limbs["arm.L"], limbs["arm.R"], until="fusion")
     ids = comp.stages["fusion_ids"]
     skin = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
-                         comp.skeleton.num_joints, method="nearest")
+                         comp.skeleton.num_joints, params=WeightParams(method="nearest"))
     figs = mirrored_errors(comp, skin, pair, max_frames=20)
     assert 0.9 * figs["junction_vertices"] < figs["measured_vertices"] < figs["junction_vertices"], figs
     assert figs["skinned_error_max"] < 0.02 and figs["junction_weight_error_max"] < 1.0, figs

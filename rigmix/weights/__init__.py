@@ -15,10 +15,11 @@ from .blend import (BLEND_FACTORS, FIELD_DISTILL, JUNCTION_SMOOTHING, ON_SURFACE
                     blend_weights, closest_point_weights, retarget_weights, to_influences)
 from .fill import FILL_METHODS, fill_weights
 from .mesh import sparsify
+from .params import WeightParams
 from .mirror import Plane, feature_field, mirror_joints, symmetry_plane
 
 __all__ = [
-    "blend_weights", "SkinWeights", "WEIGHT_METHODS", "BLEND_FACTORS", "ON_SURFACE", "JUNCTION_SMOOTHING",
+    "blend_weights", "WeightParams", "SkinWeights", "WEIGHT_METHODS", "BLEND_FACTORS", "ON_SURFACE", "JUNCTION_SMOOTHING",
     "FIELD_DISTILL", "retarget_weights", "closest_point_weights", "to_influences",
     "fill_weights", "FILL_METHODS", "sparsify", "feature_field", "mirror_joints", "symmetry_plane", "Plane",
 ]

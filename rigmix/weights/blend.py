@@ -59,6 +59,7 @@ from dfd.mesh import face_normals, vertex_normals
 from ..errors import InputError, NumericalError
 from ..geometry import bounding_box_diagonal, neighbour_roughness, weld
 from .mirror import feature_field as distill_feature_field
+from .params import WeightParams
 from .fill import fill_weights
 from .mesh import sparsify
 from .locality import geodesic_locality, welded_graph as _welded_graph
@@ -518,10 +519,8 @@ def to_influences(W, k=4):
     return idx.astype(np.int64), w
 
 
-def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max_influences=4,
-                  match_distance=0.05, match_angle=None, match_on_surface=None, min_confidence=0.5, locality=0.1,
-                  locality_power=1.0, feature_field=True, blend=None, smoothing=0, seam_spread=0.1,
-                  seam_rings=2, skeleton=None, **fill_options):
+def blend_weights(surface, inputs, maps, num_output_joints, *, params: WeightParams | None = None,
+                  skeleton=None, field=None):
     """W_R on the fused surface.
 
     Parameters
@@ -619,6 +618,15 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, method="dfd", max
     NumericalError
         Non-finite weights (never expected; checked as the stage's contract).
     """
+    params = WeightParams() if params is None else params
+    method, max_influences, blend = params.method, params.max_influences, params.blend
+    match_distance, match_angle, match_on_surface = params.match_distance, params.match_angle, params.match_on_surface
+    min_confidence, locality, locality_power = params.min_confidence, params.locality, params.locality_power
+    feature_field, smoothing, seam_spread, seam_rings = (params.feature_field, params.smoothing, params.seam_spread,
+                                                         params.seam_rings)
+    fill_options = params.fill_options()
+    if field is not None:
+        fill_options["field"] = field
     if method not in WEIGHT_METHODS:
         raise InputError(f"weights: unknown method {method!r}; use one of {', '.join(WEIGHT_METHODS)}")
     if blend is None:
