@@ -146,7 +146,7 @@ def mirror_config(path: Path, joint: str, donor_joint: str) -> Config:
 
 def _measure(comp, skin, errors) -> dict:
     figures = dict(errors)
-    c2 = replace(comp, stages={**comp.stages, "weights": skin})
+    c2 = replace(comp, weights=skin)
     c2 = quality_stage(assembly_stage(c2))
     figures["junction_stretch_ratio"] = c2.report["quality"]["junction_stretch_ratio"]
     figures["max_influences"] = skin.report["max_influences"]
@@ -154,16 +154,16 @@ def _measure(comp, skin, errors) -> dict:
 
 
 def _weights(comp, options):
-    ids = comp.stages["fusion_ids"]
+    ids = comp.fusion_ids
     t1 = time.perf_counter()
-    skin = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
+    skin = blend_weights(comp.surface, comp.fusion_inputs, [comp.maps[c] for c in ids],
                          comp.skeleton.num_joints, skeleton=comp.skeleton, params=WeightParams(**options))
     return skin, round(time.perf_counter() - t1, 3)
 
 
 def _case_info(comp, t_fuse) -> dict:
     return {"fusion_s": round(t_fuse, 2),
-            "junction_vertices": int(comp.stages["surface"].junction_vertices.sum()),
+            "junction_vertices": int(comp.surface.junction_vertices.sum()),
             "mesh": {k: comp.report["mesh"].get(k) for k in ("vertices", "junction_faces", "junction_boundary_edges",
                                                              "junction_min_angle_p05")},
             "methods": {}}
@@ -210,7 +210,7 @@ def hidden_weights(comp, options):
         return _weights(comp, {**options, **HIDDEN})
     t0 = time.perf_counter()
     skin, _ = _weights(comp, options)
-    surface = comp.stages["surface"]
+    surface = comp.surface
     junction = np.asarray(surface.junction_vertices, bool)
     W = fill_weights(surface.V, surface.F, skin.W, junction, method="nearest", max_influences=4)
     W, _ = weld_consistent(surface.V, surface.F, W, junction, 4)
@@ -288,11 +288,11 @@ def mirrored_errors(comp, skin, pair, *, fps=30.0, max_frames=None, truth_influe
     from rigmix.weights import sparsify
 
     plan = comp.plan
-    surface = comp.stages["surface"]
-    ids = list(comp.stages["fusion_ids"])
+    surface = comp.surface
+    ids = list(comp.fusion_ids)
     b = ids.index("body")
     original = comp.inputs["body"]
-    body_in = comp.stages["fusion_inputs"][b]
+    body_in = comp.fusion_inputs[b]
     J_out = plan.skeleton.num_joints
     # original joint -> output joint: the body's own, else (the replaced limb) the donor's paired joint
     t = np.asarray(plan.image["body"]).copy()

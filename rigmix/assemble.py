@@ -112,11 +112,11 @@ def assemble_character(composition) -> Character:
         (in input order) plus one junction material, props re-targeted, clips A_R.
     """
     plan = composition.plan
-    surface = composition.stages["surface"]
-    skin = composition.stages["weights"]
-    ids = list(composition.stages["fusion_ids"])
-    inputs = composition.stages["fusion_inputs"]
-    clips = tuple(composition.stages.get("clips", ()))
+    surface = composition.surface
+    skin = composition.weights
+    ids = list(composition.fusion_ids)
+    inputs = composition.fusion_inputs
+    clips = tuple(composition.clips)
     V, F = np.asarray(surface.V), np.asarray(surface.F)
     joints_all, weights_all = to_influences(skin.W, 4)
 

@@ -501,7 +501,7 @@ def _run_compose(args) -> int:
 
             fdir = tmp / "fields"
             fdir.mkdir()
-            fields_written = dump_fields(fdir, comp.stages["surface"].fields) or []
+            fields_written = dump_fields(fdir, comp.surface.fields) or []
             if not fields_written:
                 print(f"rigmix compose: --dump-fields {args.dump_fields}: no junction field was computed (every "
                       "junction was copied from faces the inputs share); nothing written", file=sys.stderr)

@@ -15,7 +15,7 @@ Reads like the paper's overview (PIPELINE.md):
 
 Each stage is one explicit call in :func:`compose`; stage functions take a
 :class:`Composition` and return ``dataclasses.replace(composition, ...)`` with their results
-(entries of ``stages`` and ``report``); they never mutate their input.
+(typed fields and entries of ``report``); they never mutate their input.
 """
 
 from __future__ import annotations
@@ -57,10 +57,18 @@ class Composition:
     inputs : dict of str -> Character
         The characters as loaded.
     config : Config
+    fusion_inputs : tuple of rigmix.fusion.FusionInput
+        The positioned inputs given to the fusion, one per (character, mesh) part.
+    fusion_ids : tuple of str
+        The character id of each fusion input.
+    surface : rigmix.fusion.FusedSurface or None
+        M_R, after the fusion stage.
+    weights : rigmix.weights.SkinWeights or None
+        W_R, after the weights stage.
+    clips : tuple of Clip or None
+        A_R, after the completion stage.
     character : Character or None
-        The composed character, once the fusion, weight and animation stages have run.
-    stages : dict
-        Results of later stages by name (e.g. ``"surface"``, ``"weights"``, ``"clips"``).
+        The composed character, after the assembly stage.
     report : dict
         JSON-ready figures: scales, fused pairs, timings per stage, ...
     """
@@ -70,8 +78,12 @@ class Composition:
     maps: dict
     inputs: dict
     config: Config
+    fusion_inputs: tuple = ()
+    fusion_ids: tuple = ()
+    surface: object | None = None
+    weights: object | None = None
+    clips: tuple | None = None
     character: Character | None = None
-    stages: dict = field(default_factory=dict)
     report: dict = field(default_factory=dict)
 
 
@@ -86,8 +98,8 @@ def _options(section) -> dict:
 def fusion_stage(composition: Composition, progress: Progress | None = None) -> Composition:
     """M_R: the fused rest surface (options from the config's ``[fusion]`` section).
 
-    Returns the composition with ``stages["fusion_inputs"]``, ``stages["fusion_ids"]``,
-    ``stages["surface"]`` (:class:`rigmix.fusion.FusedSurface`) and ``report["mesh"]``,
+    Returns the composition with ``fusion_inputs``, ``fusion_ids``,
+    ``surface`` (:class:`rigmix.fusion.FusedSurface`) and ``report["mesh"]``,
     ``report["fields"]``.
     """
     from .fusion import FusionParams, fuse_surfaces
@@ -101,28 +113,27 @@ def fusion_stage(composition: Composition, progress: Progress | None = None) -> 
                          f"known: {sorted(known)}")
     inputs, actions, ids = fusion_inputs_from_plan(composition.plan)
     surface = fuse_surfaces(inputs, actions, params=FusionParams(**opts))
-    stages = {**composition.stages, "fusion_inputs": tuple(inputs), "fusion_ids": tuple(ids), "surface": surface}
     report = {**composition.report, "mesh": surface.report["mesh"], "fields": surface.report["fields"]}
-    return replace(composition, stages=stages, report=report)
+    return replace(composition, fusion_inputs=tuple(inputs), fusion_ids=tuple(ids), surface=surface, report=report)
 
 
 def weights_stage(composition: Composition, progress: Progress | None = None) -> Composition:
     """W_R on the fused surface (options from the config's ``[weights]`` section).
 
-    Returns the composition with ``stages["weights"]`` (:class:`rigmix.weights.blend.SkinWeights`)
+    Returns the composition with ``weights`` (:class:`rigmix.weights.SkinWeights`)
     and ``report["weights"]``.
     """
     from .weights import WeightParams, blend_weights
 
     opts = _options(composition.config.weights)
-    ids = composition.stages["fusion_ids"]
+    ids = composition.fusion_ids
     try:
-        skin = blend_weights(composition.stages["surface"], composition.stages["fusion_inputs"],
+        skin = blend_weights(composition.surface, composition.fusion_inputs,
                              [composition.maps[cid] for cid in ids], composition.skeleton.num_joints,
                              skeleton=composition.skeleton, params=WeightParams(**opts))
     except TypeError as e:  # an unknown option name in the config
         raise InputError(f"config {composition.config.source}: [weights]: {e}") from None
-    return replace(composition, stages={**composition.stages, "weights": skin},
+    return replace(composition, weights=skin,
                    report={**composition.report, "weights": skin.report})
 
 

@@ -159,8 +159,8 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
     from .weights import to_influences
 
     plan = composition.plan
-    surface = composition.stages["surface"]
-    skin = composition.stages["weights"]
+    surface = composition.surface
+    skin = composition.weights
     ch = composition.character
     V = np.asarray(surface.V)
     out = {"junction_stretch_ratio": None, "output_p95": None, "source_p95": None, "band_radius": None,
@@ -260,11 +260,11 @@ def junction_weight_roughness(composition) -> dict:
         ``junction_weight_roughness_p99`` / ``_max`` (None without junction vertices) and
         ``source_weight_roughness_p99`` / ``_max``.
     """
-    surface = composition.stages["surface"]
-    W = composition.stages["weights"].W
+    surface = composition.surface
+    W = composition.weights.W
     junction = np.asarray(surface.junction_vertices, bool)
     r = weight_roughness(surface.V, surface.F, W, junction) if junction.any() else np.zeros(0)
-    src = [weight_roughness(x.V, x.F, x.W) for x in composition.stages["fusion_inputs"] if len(x.F)]
+    src = [weight_roughness(x.V, x.F, x.W) for x in composition.fusion_inputs if len(x.F)]
     src = np.concatenate(src) if src else np.zeros(0)
 
     def figures(x):
@@ -284,9 +284,9 @@ def self_composition_truth(composition, *, truth_influences=4):
     :func:`self_composition_errors`.
     """
     plan = composition.plan
-    surface = composition.stages["surface"]
-    ids = list(composition.stages["fusion_ids"])
-    inputs = composition.stages["fusion_inputs"]
+    surface = composition.surface
+    ids = list(composition.fusion_ids)
+    inputs = composition.fusion_inputs
     original = composition.inputs[ids[0]]
     J_out = plan.skeleton.num_joints
     # original joint -> output joint (the kept copy of either id)
@@ -355,9 +355,9 @@ def self_composition_errors(composition, skin, *, fps=30.0, max_frames=None, tru
         relative to the bounding-box diagonal; the max is the worst frame),
         ``frames``, ``junction_vertices``.
     """
-    surface = composition.stages["surface"]
+    surface = composition.surface
     plan = composition.plan
-    original = composition.inputs[list(composition.stages["fusion_ids"])[0]]
+    original = composition.inputs[list(composition.fusion_ids)[0]]
     src = np.array([plan.provenance[o][0][1] for o in range(plan.skeleton.num_joints)])
     G = self_composition_truth(composition, truth_influences=truth_influences)
     jrows = np.flatnonzero(surface.junction_vertices)  # measured: every row the weight stage computed

@@ -520,7 +520,7 @@ def test_completion_stage_on_the_builtin_centaur(builtin_centaur):
 
     comp = builtin_centaur
     out = completion_stage(comp)
-    clips = out.stages["clips"]
+    clips = out.clips
     assert [c.name for c in clips] == ["body:walk", "trot", "body:idle", "rider:walk", "rider:idle"]
     assert out.report["animation"]["clips"] == [c.name for c in clips]
     figs = _check_centaur(comp.plan.skeleton, comp.inputs, comp.maps, comp.plan.provenance, clips)
@@ -588,7 +588,7 @@ def test_replaced_limb_root_is_completed_when_the_rest_bones_disagree():
     assert limb_roots_to_complete(tailed.plan) == []  # the hips keep the human's children
 
     def arm_swing(c):
-        clip = next(k for k in c.stages["clips"] if k.name == "human:walk")
+        clip = next(k for k in c.clips if k.name == "human:walk")
         t = clip_times(clip, 30.0)
         _, R, _ = sample_clip(S, clip, t)
         j = S.index("UpperArm.L")

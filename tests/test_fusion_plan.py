@@ -14,18 +14,17 @@ EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 @pytest.mark.parametrize("name", ["centaur", "self_arm", "beast_arms", "tailed_humanoid"])
 def test_example_fuses_cleanly(name):
-    from rigmix.fusion.stage import fusion_stage
-    from rigmix.pipeline import compose
+    from rigmix.pipeline import compose, fusion_stage
 
     comp = compose(EXAMPLES / f"{name}.toml", until="mapping")
     comp = fusion_stage(comp)
-    surface = comp.stages["surface"]
-    m = comp.report["fusion"]["mesh"]
+    surface = comp.surface
+    m = comp.surface.report["mesh"]
     assert m["junction_faces"] > 0
     assert m["junction_boundary_edges"] == 0
     assert m["boundary_edges"] == 0
     assert m["new_non_manifold_edges"] == 0
-    f = comp.report["fusion"]["fields"]
+    f = comp.surface.report["fields"]
     if name == "self_arm":
         # the arm replaced by itself: the junction faces, which both inputs share, are copied
         assert m["copied_faces"] == m["junction_faces"] and m["junction_min_angle_p05"] is None
@@ -34,9 +33,9 @@ def test_example_fuses_cleanly(name):
         assert m["copied_faces"] == 0
         assert m["junction_min_angle_p05"] >= 20
         assert f["voxels"] > 0 and f["voxel_size"] > 0 and f["backend"] == "numpy-igl"
-    assert comp.report["fusion"]["timings"]["total"] > 0
+    assert comp.surface.report["timings"]["total"] > 0
     # every kept input face is copied exactly from its positioned input
-    ids = comp.stages["fusion_ids"]
+    ids = comp.fusion_ids
     for k, cid in enumerate(ids):
         ch = comp.plan.positioned[cid]
         from rigmix.fusion.inputs import fusion_input
@@ -44,13 +43,3 @@ def test_example_fuses_cleanly(name):
         x = fusion_input(ch, comp.plan.used[cid])
         sel = (surface.face_origin_input == k) & ~surface.junction_faces
         assert np.array_equal(surface.V[surface.F[sel]], x.V[x.F[surface.face_origin_face[sel]]])
-
-
-def test_unknown_fusion_option_is_an_input_error():
-    from rigmix.errors import InputError
-    from rigmix.fusion.stage import fusion_params
-
-    assert fusion_params(None).min_voxels_across == 32
-    assert fusion_params({"min_voxels_across": 16}).min_voxels_across == 16
-    with pytest.raises(InputError, match="voxels_accross"):
-        fusion_params({"voxels_accross": 3})

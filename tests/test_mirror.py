@@ -182,8 +182,8 @@ feature_field = false
     right = original.skeleton.subtree(jr)
     right[jr] = False
     assert sorted(from_donor_joints) == sorted(donor.skeleton.names[k] for k in np.flatnonzero(right))
-    surface = comp.stages["surface"]
-    ids = list(comp.stages["fusion_ids"])
+    surface = comp.surface
+    ids = list(comp.fusion_ids)
     from_donor = np.asarray(surface.origin_input) == ids.index("donor")
     assert from_donor.sum() > 50
     left = np.sign(original.skeleton.rest_worlds()[original.skeleton.index("UpperArm.L"), 0, 3] - plane.offset)

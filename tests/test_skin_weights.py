@@ -295,20 +295,20 @@ def test_to_influences_keeps_the_largest_four():
 
 
 def _check_invariants(comp):
-    skin = comp.stages["weights"]
+    skin = comp.weights
     W = skin.W
     assert np.all(np.isfinite(W)) and np.all(W >= 0)
     assert np.allclose(W.sum(axis=1), 1.0, atol=1e-12)
     assert np.count_nonzero(W > 0, axis=1).max() <= 4
-    assert skin.report["junction_vertices"] == int(comp.stages["surface"].junction_vertices.sum())
+    assert skin.report["junction_vertices"] == int(comp.surface.junction_vertices.sum())
     # every split copy of a position has the same weights: no seam opens under animation
-    _, index, _ = weld(comp.stages["surface"].V, comp.stages["surface"].F)
+    _, index, _ = weld(comp.surface.V, comp.surface.F)
     first = np.full(index.max() + 1, -1)
     first[index[::-1]] = np.arange(len(index))[::-1]
     assert np.abs(W - W[first[index]]).sum(axis=1).max() < 1e-12
     # preserved vertices copy their retargeted weights exactly (inputs with <= 4 influences)
-    surf = comp.stages["surface"]
-    for i, (cid, x) in enumerate(zip(comp.stages["fusion_ids"], comp.stages["fusion_inputs"])):
+    surf = comp.surface
+    for i, (cid, x) in enumerate(zip(comp.fusion_ids, comp.fusion_inputs)):
         bm = comp.maps[cid]
         Wr, _ = retarget_weights(x.W, bm.target, comp.skeleton.num_joints)
         rows = np.flatnonzero((surf.origin_input == i) & ~surf.junction_vertices)
@@ -327,12 +327,12 @@ def test_every_example_config_weight_invariants_and_stretch_ratio_for_every_meth
 
     comp = compose(cfg, until="completion")
     _check_invariants(comp)
-    ids = comp.stages["fusion_ids"]
+    ids = comp.fusion_ids
     ratios, roughness, source_roughness = {}, {}, None
     for method in WEIGHT_METHODS:
-        skin = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
+        skin = blend_weights(comp.surface, comp.fusion_inputs, [comp.maps[c] for c in ids],
                              comp.skeleton.num_joints, params=WeightParams(method=method))
-        c = replace(comp, stages={**comp.stages, "weights": skin})
+        c = replace(comp, weights=skin)
         _check_invariants(c)
         q = quality_stage(assembly_stage(c)).report["quality"]
         ratios[method], roughness[method] = q["junction_stretch_ratio"], q["junction_weight_roughness_max"]
@@ -373,14 +373,14 @@ def test_self_composition_against_the_original_weights():
              "Fox tail": compose(self_config(asset("Fox"), "b_Tail01_012", fusion=rebuilt), until="fusion"),
              "RiggedFigure arm": compose(self_config(asset("RiggedFigure"), "arm_joint_L_1", fusion=rebuilt),
                                          until="fusion")}
-    assert cesium.stages["surface"].report["mesh"]["copied_faces"] > 0  # the default copies the shared junction
+    assert cesium.surface.report["mesh"]["copied_faces"] > 0  # the default copies the shared junction
     for name in ("Fox tail", "RiggedFigure arm"):
-        assert comps[name].stages["surface"].report["mesh"]["copied_faces"] == 0
+        assert comps[name].surface.report["mesh"]["copied_faces"] == 0
     for name, comp in comps.items():
-        ids = comp.stages["fusion_ids"]
+        ids = comp.fusion_ids
         figs = {}
         for method in WEIGHT_METHODS:
-            skin = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"],
+            skin = blend_weights(comp.surface, comp.fusion_inputs,
                                  [comp.maps[c] for c in ids], comp.skeleton.num_joints, params=WeightParams(method=method))
             figs[method] = self_composition_errors(comp, skin)
         assert figs["dfd"]["frames"] > 0 and figs["dfd"]["junction_vertices"] > 0
@@ -459,8 +459,8 @@ def test_default_dfd_distills_the_feature_field_of_the_fused_surface(tmp_path):
 
     asset("Horse"), asset("Knight")
     comp = compose(ROOT / "tests" / "configs" / "centaur.toml", until="fusion")
-    ids = comp.stages["fusion_ids"]
-    args = (comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
+    ids = comp.fusion_ids
+    args = (comp.surface, comp.fusion_inputs, [comp.maps[c] for c in ids],
             comp.skeleton.num_joints)
     off = blend_weights(*args, params=WeightParams(method="dfd", feature_field=False, field_cache=tmp_path / "off"))
     assert not (tmp_path / "off").exists() and off.report["feature_field"] is False
@@ -473,7 +473,7 @@ def test_default_dfd_distills_the_feature_field_of_the_fused_surface(tmp_path):
     for key, value in FIELD_DISTILL.items():
         assert field.settings[key] == value
     # the field is the fused surface's: the welded junction and preserved vertices, unit features
-    f = field.evaluate(comp.stages["surface"].V[:100])
+    f = field.evaluate(comp.surface.V[:100])
     assert np.allclose(np.linalg.norm(f, axis=1), 1.0, atol=1e-5)
     for skin in (on, off):
         W = skin.W
@@ -513,21 +513,21 @@ def test_mirrored_limb_harmonic_blend_keeps_the_artists_weights():
 
     limbs = LIMBS["Velociraptor"]
     comp, pair, _, _ = mirror_case(asset("Velociraptor"), limbs["leg.L"], limbs["leg.R"], until="fusion")
-    ids = comp.stages["fusion_ids"]
+    ids = comp.fusion_ids
     figs, skins = {}, {}
     for label, opts in {"nearest": {"method": "nearest"}, "dfd": {"method": "dfd"},
                         "dfd_paper": {"method": "dfd", "blend": "paper", "feature_field": False}}.items():
-        skins[label] = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"],
+        skins[label] = blend_weights(comp.surface, comp.fusion_inputs,
                                      [comp.maps[c] for c in ids], comp.skeleton.num_joints, params=WeightParams(**opts))
         figs[label] = mirrored_errors(comp, skins[label], pair, max_frames=60)
-        _check_invariants(replace(comp, stages={**comp.stages, "weights": skins[label]}))
+        _check_invariants(replace(comp, weights=skins[label]))
     assert skins["dfd"].report["blend"] == "harmonic" and skins["nearest"].report["blend"] == "paper"
     err = {k: f["junction_weight_error_mean"] for k, f in figs.items()}
     assert figs["dfd"]["measured_vertices"] > 50
     assert err["dfd"] < 0.005 and err["nearest"] > 0.02 and err["dfd_paper"] > 0.02, err
     assert figs["dfd"]["skinned_error_max"] < 0.005 < figs["nearest"]["skinned_error_max"], figs
     with pytest.raises(InputError, match="unknown blend"):
-        blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
+        blend_weights(comp.surface, comp.fusion_inputs, [comp.maps[c] for c in ids],
                       comp.skeleton.num_joints, params=WeightParams(method="dfd", blend="smooth"))
 
 
@@ -541,8 +541,8 @@ def test_mirrored_truth_only_where_the_junction_faces_the_original_surface():
 
     limbs = LIMBS["Knight"]
     comp, pair, _, _ = mirror_case(asset("Knight"), limbs["arm.L"], limbs["arm.R"], until="fusion")
-    ids = comp.stages["fusion_ids"]
-    skin = blend_weights(comp.stages["surface"], comp.stages["fusion_inputs"], [comp.maps[c] for c in ids],
+    ids = comp.fusion_ids
+    skin = blend_weights(comp.surface, comp.fusion_inputs, [comp.maps[c] for c in ids],
                          comp.skeleton.num_joints, params=WeightParams(method="nearest"))
     figs = mirrored_errors(comp, skin, pair, max_frames=20)
     assert 0.9 * figs["junction_vertices"] < figs["measured_vertices"] < figs["junction_vertices"], figs
@@ -569,7 +569,7 @@ def test_hidden_junction_is_filled_best_by_dfd(name, joint, dfd_bound):
             continue
         skin, _ = hidden_weights(comp, options)
         assert skin.report["matched_vertices"] == 0 and not skin.matched.any()
-        _check_invariants(replace(comp, stages={**comp.stages, "weights": skin}))
+        _check_invariants(replace(comp, weights=skin))
         figs[label] = self_composition_errors(comp, skin, max_frames=30)
     assert figs["dfd"]["junction_vertices"] > 100
     err = {k: f["junction_weight_error_mean"] for k, f in figs.items()}
@@ -595,7 +595,7 @@ def test_hidden_junction_of_a_limb_posed_asymmetrically(joint):
     figs = {}
     for method in ("inpaint", "dfd"):
         skin, _ = hidden_weights(comp, {"method": method})
-        _check_invariants(replace(comp, stages={**comp.stages, "weights": skin}))
+        _check_invariants(replace(comp, weights=skin))
         figs[method] = self_composition_errors(comp, skin, max_frames=20)
     err = {k: f["junction_weight_error_mean"] for k, f in figs.items()}
     assert err["dfd"] < 0.4 * err["inpaint"], err
@@ -655,14 +655,14 @@ def test_hidden_junction_of_a_coarse_character_mirrors_across_its_body_plane():
 
     for joint in ("leg_joint_L_1", "leg_joint_R_1"):
         comp = compose(self_config(asset("RiggedFigure"), joint, fusion=REBUILT), until="fusion")
-        surface = comp.stages["surface"]
+        surface = comp.surface
         g = _welded(surface.V, surface.F)
         plane = symmetry_plane(g.V, g.F)
         assert plane is not None and abs(plane.normal[0]) > 1 - 1e-9, (joint, plane)
         figs = {}
         for method, options in (("inpaint", {}), ("dfd", {"feature_field": False})):
             skin, _ = hidden_weights(comp, {"method": method, **options})
-            _check_invariants(replace(comp, stages={**comp.stages, "weights": skin}))
+            _check_invariants(replace(comp, weights=skin))
             figs[method] = self_composition_errors(comp, skin, max_frames=20)
         err = {k: f["junction_weight_error_mean"] for k, f in figs.items()}
         assert err["dfd"] < 0.15 and err["dfd"] < 0.2 * err["inpaint"], (joint, err)
@@ -681,7 +681,7 @@ def test_hidden_junction_that_swallows_a_whole_part_keeps_its_joint():
     from rigmix.quality import self_composition_errors, self_composition_truth
 
     comp = compose(self_config(asset("RiggedFigure"), "neck_joint_1", fusion=REBUILT), until="fusion")
-    junction = np.asarray(comp.stages["surface"].junction_vertices, bool)
+    junction = np.asarray(comp.surface.junction_vertices, bool)
     head = comp.skeleton.index("neck_joint_2")
     truth = self_composition_truth(comp)[junction, head].sum()
     figs = {}
@@ -695,7 +695,7 @@ def test_hidden_junction_that_swallows_a_whole_part_keeps_its_joint():
     assert figs["dfd"]["skinned_error_max"] < figs["inpaint"]["skinned_error_max"], figs
 
     comp = compose(self_config(asset("Knight"), "UpperLeg.R", fusion=REBUILT), until="fusion")
-    junction = np.asarray(comp.stages["surface"].junction_vertices, bool)
+    junction = np.asarray(comp.surface.junction_vertices, bool)
     skin, _ = hidden_weights(comp, {"method": "dfd", "feature_field": False})
     assert not skin.W[junction, comp.skeleton.index("Bone")].any()
 

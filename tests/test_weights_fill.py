@@ -422,7 +422,7 @@ def test_symmetry_plane_of_a_character_posed_asymmetrically():
     from rigmix.pipeline import compose
 
     comp = compose(self_config(asset("Velociraptor"), "BackUpLeg.L", fusion=REBUILT), until="fusion")
-    plane = symmetry_plane(comp.stages["surface"].V)
+    plane = symmetry_plane(comp.surface.V)
     assert plane is not None and abs(plane.normal[0]) > 1 - 1e-9, plane
     sk = comp.skeleton
     names = list(sk.names)

@@ -547,7 +547,7 @@ def completion_stage(composition, progress=None):
     Returns
     -------
     Composition
-        With ``stages["clips"]`` (tuple of Clip on S_R) and ``report["animation"]``.
+        With ``clips`` (tuple of Clip on S_R) and ``report["animation"]``.
     """
     from dataclasses import replace
 
@@ -562,5 +562,5 @@ def completion_stage(composition, progress=None):
     report = {"clips": [c.name for c in clips], "fps": options.fps,
               "frames": [int(len(c.tracks[0].times)) if c.tracks else 0 for c in clips],
               "jump_penalty": options.jump_penalty, "metric": options.metric}
-    return replace(composition, stages={**composition.stages, "clips": clips},
+    return replace(composition, clips=tuple(clips),
                    report={**composition.report, "animation": report})
