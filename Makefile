@@ -44,9 +44,11 @@ env: $(STAMP) $(SYSDEPS) $(VDB_VENV)/.installed
 demo: env
 	$(BIN)/python -m rigmix.demo --out $(OUT)
 
-# The OpenVDB parity tests run first in the NumPy 1.x environment (required there: a missing
+# ruff first (line length, import order, pyflakes); then the OpenVDB parity tests run in the NumPy 1.x
+# environment (required there: a missing
 # pyopenvdb fails), then the whole suite in the main environment.
 test: env
+	$(BIN)/ruff check .
 	RIGMIX_REQUIRE_OPENVDB=1 $(VDB_VENV)/bin/python -m pytest -q -p no:cacheprovider tests/test_fusion_fields.py
 	$(BIN)/python -m pytest -q -n 2 --timeout=1800 --durations=15
 

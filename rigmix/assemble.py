@@ -101,9 +101,9 @@ def assemble_character(composition) -> Character:
     Parameters
     ----------
     composition : rigmix.pipeline.Composition
-        After the fusion, weight and completion stages (``stages["surface"]``,
-        ``stages["weights"]``, ``stages["fusion_inputs"]``, ``stages["fusion_ids"]``,
-        optionally ``stages["clips"]``).
+        After the fusion, weight and completion stages (``surface``,
+        ``weights``, ``fusion_inputs``, ``fusion_ids``,
+        optionally ``clips``).
 
     Returns
     -------

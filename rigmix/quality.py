@@ -251,8 +251,8 @@ def junction_weight_roughness(composition) -> dict:
     Parameters
     ----------
     composition : rigmix.pipeline.Composition
-        After the weights stage (``stages["surface"]``, ``stages["weights"]``,
-        ``stages["fusion_inputs"]``).
+        After the weights stage (``surface``, ``weights``,
+        ``fusion_inputs``).
 
     Returns
     -------

@@ -1,0 +1,117 @@
+"""The layout the README describes: one package per stage, no private names across modules,
+no dict of stage results, dfd standalone, no import cycle between rigmix's modules."""
+
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+TREES = ("rigmix", "dfd", "tests", "benchmarks")
+
+
+def _sources():
+    for tree in TREES:
+        yield from sorted((ROOT / tree).rglob("*.py"))
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def _absolute(path: Path, node: ast.ImportFrom) -> str:
+    """The absolute module an ``ImportFrom`` names, relative imports resolved."""
+    if not node.level:
+        return node.module or ""
+    package = _module_name(path).split(".")
+    if path.name != "__init__.py":
+        package = package[:-1]
+    base = package[: len(package) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+def test_no_module_imports_a_private_name_from_another():
+    offenders = []
+    for path in _sources():
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ImportFrom) and node.module != "__future__":
+                offenders += [f"{path.relative_to(ROOT)}:{node.lineno}: {a.name}" for a in node.names
+                              if _private(a.name)]
+    assert not offenders, "private names imported across modules:\n" + "\n".join(offenders)
+
+
+def test_no_dict_of_stage_results():
+    hits = [f"{p.relative_to(ROOT)}:{i + 1}" for p in _sources() if p.name != "test_layout.py"
+            for i, line in enumerate(p.read_text().splitlines()) if "stages[" in line or ".stages.get(" in line]
+    assert not hits, hits
+    assert not (ROOT / "rigmix" / "skin_weights.py").exists()
+    assert not (ROOT / "rigmix" / "fusion" / "stage.py").exists()
+
+
+def test_dfd_never_imports_rigmix():
+    for path in sorted((ROOT / "dfd").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else [])
+            assert not any(n == "rigmix" or n.startswith("rigmix.") for n in names), path
+
+
+def _module_imports(path: Path) -> set[str]:
+    """rigmix modules imported at module level (not inside functions: those run on use)."""
+    out = set()
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, ast.ImportFrom) and node.module != "__future__":
+            mod = _absolute(path, node)
+            out.add(mod)
+            out.update(f"{mod}.{a.name}" for a in node.names)
+        elif isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+    return out
+
+
+def test_no_import_cycle_between_rigmix_modules():
+    paths = {_module_name(p): p for p in sorted((ROOT / "rigmix").rglob("*.py"))}
+    graph = {m: sorted(n for n in _module_imports(p) if n in paths and n != m) for m, p in paths.items()}
+    # a package's __init__ re-exporting its own modules is not a cycle through them
+    state, stack = {}, []
+
+    def visit(m):
+        state[m] = 1
+        stack.append(m)
+        for n in graph[m]:
+            if m.startswith(n + ".") and paths[n].name == "__init__.py":
+                continue
+            if state.get(n) == 1:
+                pytest.fail("import cycle: " + " -> ".join(stack[stack.index(n):] + [n]))
+            if n not in state:
+                visit(n)
+        stack.pop()
+        state[m] = 2
+
+    for m in graph:
+        if m not in state:
+            visit(m)
+
+
+def test_readme_layout_matches_the_tree():
+    text = (ROOT / "README.md").read_text()
+    block = re.search(r"## Layout.*?```(.*?)```", text, re.S)
+    assert block, "README.md has a ## Layout code block"
+    listed = set(re.findall(r"^[ \t]*([\w./]+?)/?[ \t]{2,}", block.group(1), re.M))
+    top = {p.name if p.is_dir() else p.name for p in (ROOT / "rigmix").iterdir()
+           if (p.is_dir() and (p / "__init__.py").exists()) or (p.suffix == ".py" and p.name != "__init__.py")}
+    missing = sorted(t for t in top if t not in listed and t.removesuffix(".py") not in listed)
+    stale = sorted(x for x in listed if not (ROOT / "rigmix" / x).exists() and x not in
+                   {"rigmix", "dfd", "examples", "tests", "benchmarks"} and not (ROOT / x).exists())
+    assert not missing, f"in rigmix/ but not in the README's layout: {missing}"
+    assert not stale, f"in the README's layout but not in rigmix/: {stale}"
