@@ -82,7 +82,8 @@ def _compose_report(config_path):
     comp = compose(config_path)
     wall = time.perf_counter() - t0
     r = comp.report
-    return {"config": str(Path(config_path).relative_to(ROOT)) if str(config_path).startswith(str(ROOT)) else str(config_path),
+    in_root = str(config_path).startswith(str(ROOT))
+    return {"config": str(Path(config_path).relative_to(ROOT)) if in_root else str(config_path),
             "wall_s": round(wall, 3), "timings": r.get("timings", {}),
             "vertices": r.get("mesh", {}).get("vertices"), "faces": r.get("mesh", {}).get("faces"),
             "junction_faces": r.get("mesh", {}).get("junction_faces"),
@@ -171,13 +172,15 @@ def _markdown(configs, scaling):
                      f"{r.get('junction_self_intersections', '')} | {'' if sr is None else f'{sr:.2f}'} | {rough} |")
     lines += ["", "Fusion time against mesh resolution (CesiumMan subdivided, left arm replaced by itself, "
               "junction rebuilt from the fields):", "",
-              "| input faces | fusion s | total s | output faces | voxels | peak RSS MB |", "|---:|---:|---:|---:|---:|---:|"]
+              "| input faces | fusion s | total s | output faces | voxels | peak RSS MB |",
+              "|---:|---:|---:|---:|---:|---:|"]
     for r in scaling:
         if "error" in r:
             lines.append(f"| x{4 ** r['subdivisions']} | error: {r['error']} | | | | |")
             continue
         lines.append(f"| {r['input_faces']} | {r['timings'].get('fusion', float('nan')):.2f} | "
-                     f"{r['timings'].get('total', float('nan')):.2f} | {r['faces']} | {r['voxels']} | {r['peak_rss_mb']} |")
+                     f"{r['timings'].get('total', float('nan')):.2f} | {r['faces']} | {r['voxels']} | "
+                     f"{r['peak_rss_mb']} |")
     return "\n".join(lines) + "\n"
 
 

@@ -153,16 +153,22 @@ def main(threads=1):
         "",
         "| measure | wall s | CPU s | target s |",
         "|---|---:|---:|---:|",
-        f"| render 24 views x 224 px ({r['decimated_faces']} faces) | {r['render_24x224_s']:.3f} | {CPU['render']:.3f} | ~1 |",
+        f"| render 24 views x 224 px ({r['decimated_faces']} faces) | {r['render_24x224_s']:.3f} "
+        f"| {CPU['render']:.3f} | ~1 |",
         f"| distill ({r['mesh']}), total | {r['distill_total_s']:.1f} | {CPU['distill']:.1f} | < 60 |",
         f"| - decimate to 50k | {r['decimate_s']:.2f} | {CPU['decimate']:.2f} | |",
         f"| - encode (filter bank) | {r['encode_s']:.2f} | {CPU['encode']:.2f} | |",
-        f"| - train ({r['steps']} steps x {r['batch_size']} px; total minus the above) | {r['train_s']:.1f} | {CPU['train']:.1f} | |",
-        f"| bind {b['handles']} handles, {b['vertices']} vertices (distance form) | {b['bind_s']:.3f} | {CPU['bind']:.3f} | < 1 |",
+        f"| - train ({r['steps']} steps x {r['batch_size']} px; total minus the above) | {r['train_s']:.1f} "
+        f"| {CPU['train']:.1f} | |",
+        f"| bind {b['handles']} handles, {b['vertices']} vertices (distance form) | {b['bind_s']:.3f} "
+        f"| {CPU['bind']:.3f} | < 1 |",
         f"| bind, cosine form | {b['bind_cosine_s']:.3f} | {CPU['bind_cosine']:.3f} | |",
-        f"| field evaluation at {b['vertices']} points (once per mesh; 100k timed, x10) | {b['field_evaluate_1M_s']:.1f} | {CPU['evaluate']:.1f} | |",
-        f"| deform {b['vertices']} vertices, {b['handles']} handles (translations) | {b['deform_s']:.3f} | {CPU['deform']:.3f} | < 0.05 |",
-        f"| - floor: one read of the {b['vertices']} x {b['handles']} float32 weights (W.sum) | {b['read_weights_once_s']:.3f} | {CPU['read_weights']:.3f} | |",
+        f"| field evaluation at {b['vertices']} points (once per mesh; 100k timed, x10) "
+        f"| {b['field_evaluate_1M_s']:.1f} | {CPU['evaluate']:.1f} | |",
+        f"| deform {b['vertices']} vertices, {b['handles']} handles (translations) | {b['deform_s']:.3f} "
+        f"| {CPU['deform']:.3f} | < 0.05 |",
+        f"| - floor: one read of the {b['vertices']} x {b['handles']} float32 weights (W.sum) "
+        f"| {b['read_weights_once_s']:.3f} | {CPU['read_weights']:.3f} | |",
     ]
     (RESULTS / "dfd_bench.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

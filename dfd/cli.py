@@ -137,7 +137,8 @@ def _cmd_deform(args):
 
     if len(args.handle) != len(args.translate):
         raise DfdInputError(
-            f"dfd deform: {len(args.handle)} --handle but {len(args.translate)} --translate; give one translation per handle"
+            f"dfd deform: {len(args.handle)} --handle but {len(args.translate)} --translate; "
+            "give one translation per handle"
         )
     mesh, W = _weights(args, args.handle)
     Vd = deform(mesh.V, W, translations(args.translate))

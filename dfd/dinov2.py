@@ -35,7 +35,9 @@ __all__ = ["DinoVisionTransformer", "DinoV2Encoder", "load_dinov2", "DEFAULT_CHE
 log = logging.getLogger(__name__)
 
 ENV_CHECKPOINT = "DFD_DINOV2_CHECKPOINT"
-DEFAULT_CHECKPOINT = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "dfd" / "dinov2_vits14_pretrain.pth"
+DEFAULT_CHECKPOINT = (
+    Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "dfd" / "dinov2_vits14_pretrain.pth"
+)
 #: Heads of the released models by embedding width (ViT-S, B, L, g); others use width // 64.
 HEADS_BY_WIDTH = {384: 6, 768: 12, 1024: 16, 1536: 24}
 IMAGENET_MEAN = (0.485, 0.456, 0.406)

@@ -72,9 +72,8 @@ def decimate(V, F, face_budget, *, vertex_colors=None, uvs=None):
         return Vd, Fd, None, None
     _, face, closest = igl.point_mesh_squared_distance(Vd, V, F.astype(np.int64))
     corners = V[F[face]]  # (k, 3, 3)
-    bary = np.asarray(
-        igl.barycentric_coordinates(*(np.ascontiguousarray(a) for a in (closest, corners[:, 0], corners[:, 1], corners[:, 2])))
-    )
+    points = (closest, corners[:, 0], corners[:, 1], corners[:, 2])
+    bary = np.asarray(igl.barycentric_coordinates(*(np.ascontiguousarray(a) for a in points)))
     bary = np.clip(bary, 0.0, 1.0)
     bary /= np.maximum(bary.sum(axis=1, keepdims=True), 1e-12)
 
@@ -226,7 +225,8 @@ def distill(
 
     Vd, Fd, colors_d, uvs_d = decimate(V, F, face_budget, vertex_colors=vertex_colors, uvs=uvs)
     views = render_views(
-        Vd, Fd, vertex_colors=colors_d, uvs=uvs_d, texture=texture, n_views=n_views, resolution=resolution, layout=layout
+        Vd, Fd, vertex_colors=colors_d, uvs=uvs_d, texture=texture,
+        n_views=n_views, resolution=resolution, layout=layout,
     )
     features = encode_views(enc, views)
     points, targets = training_samples(Vd, Fd, views, features)

@@ -14,12 +14,17 @@ per pixel. Encoders that can use more than colour (the rendered normals and dept
 
 from __future__ import annotations
 
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 from scipy import ndimage
 
 from dfd.errors import DfdInputError
+
+if TYPE_CHECKING:
+    # Seen by linters and type checkers only; at run time the module ``__getattr__`` below
+    # imports it on first access, because dfd.dinov2 needs torch.
+    from dfd.dinov2 import DinoV2Encoder
 
 __all__ = ["Encoder", "FilterBankEncoder", "DinoV2Encoder", "get_encoder", "encode_views", "ENCODERS"]
 

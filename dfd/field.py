@@ -49,7 +49,9 @@ class FeatureField(nn.Module):
         Distillation settings (JSON-like), stored and compared by the cache.
     """
 
-    def __init__(self, feature_dim, *, hidden=256, n_hidden=4, n_frequencies=0, normalization=None, mesh_hash="", settings=None):
+    def __init__(
+        self, feature_dim, *, hidden=256, n_hidden=4, n_frequencies=0, normalization=None, mesh_hash="", settings=None
+    ):
         super().__init__()
         if feature_dim < 1:
             raise DfdInputError(f"field: feature_dim must be positive, got {feature_dim}")

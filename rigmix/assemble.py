@@ -160,7 +160,8 @@ def assemble_character(composition) -> Character:
                     nrm[sel] = n
                 if has_c and c is not None:
                     col[sel] = c
-            mname = ch.materials[mat].name if 0 <= mat < len(ch.materials) and ch.materials[mat].name else f"material{mat}"
+            named = 0 <= mat < len(ch.materials) and ch.materials[mat].name
+            mname = ch.materials[mat].name if named else f"material{mat}"
             meshes.append(Mesh(name=f"{cid}.{mname}", positions=V[verts], faces=Fl, normals=nrm, uvs=tuple(uvs),
                                colors=col, joints=joints_all[verts], weights=weights_all[verts],
                                material=mat_base[cid] + int(mat) if mat >= 0 else -1))

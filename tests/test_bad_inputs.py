@@ -208,9 +208,10 @@ ERRORS = {
     "json_chunk_length_short": (lambda: _set_u32(_base(), 12, struct.unpack_from("<I", _base(), 12)[0] - 8),
                                 "truncated|corrupt"),
     "bin_chunk_length_huge": (lambda: _set_u32(_base(), _chunk_header_offsets(_base())[1], 1 << 31), "truncated"),
-    "bin_chunk_length_short": (lambda: _set_u32(_base(), _chunk_header_offsets(_base())[1],
-                                                struct.unpack_from("<I", _base(), _chunk_header_offsets(_base())[1])[0] - 16),
-                               "truncated|declares byteLength"),
+    "bin_chunk_length_short": (
+        lambda: _set_u32(_base(), _chunk_header_offsets(_base())[1],
+                         struct.unpack_from("<I", _base(), _chunk_header_offsets(_base())[1])[0] - 16),
+        "truncated|declares byteLength"),
     "json_type_bit_flip": (lambda: _flip(_base(), 16, 1), "first chunk is not a JSON chunk"),
     "json_nested_deeply": (lambda: glb_bytes(b'{"asset": {"version": "2.0"}, "extras": ' + b"[" * 100_000
                                              + b"]" * 100_000 + b"}"), "nested too deeply"),
@@ -476,7 +477,8 @@ BAD_CONFIGS = {
     "path_not_a_string": ('[characters.a]\npath = 3\n', "characters.a.path"),
     "actions_not_a_list": ('actions = "attach"\n[characters.a]\npath = "builtin:humanoid"\n', "actions"),
     "scale_a_string": ('[characters.a]\npath = "builtin:humanoid"\nscale = "big"\n', "characters.a.scale"),
-    "rotation_wrong_length": ('[characters.a]\npath = "builtin:humanoid"\n[characters.a.rotations]\nHips = [1, 2, 3, 4, 5]\n',
+    "rotation_wrong_length": ('[characters.a]\npath = "builtin:humanoid"\n'
+                              '[characters.a.rotations]\nHips = [1, 2, 3, 4, 5]\n',
                               "characters.a.rotations.Hips"),
     "zero_quaternion": ('[characters.a]\npath = "builtin:humanoid"\n[characters.a.rotations]\nHips = [0, 0, 0, 0]\n',
                         "zero length"),

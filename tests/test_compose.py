@@ -3,9 +3,9 @@
 Each config is composed once, in a child process (``python -m rigmix.cli compose``,
 address space capped at ``MEMORY_CAP`` bytes: a native crash or a runaway allocation in one
 config fails that config, not the session), and one test per config makes every check on that
-run (under ``pytest -n 2`` a config is never composed twice). Issue 4's fusion figures are asserted per config; a config on which
-the fusion does not deliver one is listed in ``FUSION_SHORTFALLS`` with the figure, so that a
-regression and a known shortfall read differently.
+run (under ``pytest -n 2`` a config is never composed twice). Issue 4's fusion figures are
+asserted per config; a config on which the fusion does not deliver one is listed in
+``FUSION_SHORTFALLS`` with the figure, so that a regression and a known shortfall read differently.
 """
 
 from __future__ import annotations

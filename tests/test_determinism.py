@@ -1,7 +1,8 @@
 """Determinism: the same inputs and config give byte-identical outputs.
 
-Writers twice on the same character (GLB, glTF, USD), two reads of the same file, and ``rigmix compose`` run twice in separate processes with different hash seeds (set and
-dict orders of strings differ between them) giving the same GLB and the same report.
+Writers twice on the same character (GLB, glTF, USD), two reads of the same file, and
+``rigmix compose`` run twice in separate processes with different hash seeds (set and dict
+orders of strings differ between them) giving the same GLB and the same report.
 """
 
 from __future__ import annotations

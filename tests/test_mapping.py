@@ -237,7 +237,7 @@ def test_cli_map_table_and_json(capsys):
     assert main(["map", str(CONFIGS / "limb_swap.toml")]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].split() == ["character", "input", "joint", "output", "joint", "confidence"]
-    assert any(l.split()[:3] == ["cesium", "Skeleton_arm_joint_L__2_", "arm_joint_L_3"] for l in lines)
+    assert any(line.split()[:3] == ["cesium", "Skeleton_arm_joint_L__2_", "arm_joint_L_3"] for line in lines)
 
 
 def test_example_configs_compose_on_builtin_characters():

@@ -75,7 +75,8 @@ def chain_character(anchor=True):
     for s in range(3):
         a, b = ends[s], ends[s + 1]
         axis = (b - a) / np.linalg.norm(b - a)
-        u = np.cross(axis, [0.3, 0.1, 0.9]); u /= np.linalg.norm(u)
+        u = np.cross(axis, [0.3, 0.1, 0.9])
+        u /= np.linalg.norm(u)
         v = np.cross(axis, u)
         for i in range(rings):
             f = (i + 0.5) / rings

@@ -19,7 +19,8 @@ from .params import WeightParams
 from .mirror import Plane, feature_field, mirror_joints, symmetry_plane
 
 __all__ = [
-    "blend_weights", "WeightParams", "SkinWeights", "WEIGHT_METHODS", "BLEND_FACTORS", "ON_SURFACE", "JUNCTION_SMOOTHING",
+    "blend_weights", "WeightParams", "SkinWeights", "WEIGHT_METHODS", "BLEND_FACTORS", "ON_SURFACE",
+    "JUNCTION_SMOOTHING",
     "FIELD_DISTILL", "retarget_weights", "closest_point_weights", "to_influences",
     "fill_weights", "FILL_METHODS", "sparsify", "feature_field", "mirror_joints", "symmetry_plane", "Plane",
 ]
