@@ -433,8 +433,8 @@ def test_huge_declared_sizes_are_not_allocated(case, tmp_path):
 @pytest.mark.slow
 @pytest.mark.timeout(600)  # a quadratic pass over 100k joints would take hours, not seconds
 def test_100k_joint_chain_through_the_cli(tmp_path):
-    """A chain 100k joints deep: read and printed as a tree by the CLI with bounded memory (the
-    tree's indentation used to grow with the depth: ~10 GB of text)."""
+    """A chain 100k joints deep: read and printed as a tree by the CLI with bounded memory (an
+    indentation that grew with the depth would print ~10 GB of text)."""
     gl, data = tiny_skinned(100_000, shape="chain")
     path, digest, listing = _write(tmp_path, "chain", glb_bytes(gl, data))
     rc, peak, err = cli_peak_rss_mib("inspect", path)
@@ -446,8 +446,8 @@ def test_100k_joint_chain_through_the_cli(tmp_path):
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_100k_joints_with_one_name(tmp_path, caplog):
-    """A star of 100k joints all named 'Bone': renamed Bone.1... in linear time (the renaming
-    used to restart at .1 for each duplicate: quadratic, hours for this file)."""
+    """A star of 100k joints all named 'Bone': renamed Bone.1... in linear time (a renaming that
+    restarted at .1 for each duplicate would be quadratic: hours for this file)."""
     caplog.set_level(logging.ERROR, logger="rigmix")  # 99,999 rename warnings: counted below, not logged
     gl, data = tiny_skinned(100_000, shape="star", same_names=True)
     path, digest, listing = _write(tmp_path, "star", glb_bytes(gl, data))

@@ -40,8 +40,8 @@ REPORT_KEYS = {
     "quality": ["junction_stretch_ratio", "junction_weight_roughness_p99", "junction_weight_roughness_max",
                 "source_weight_roughness_p99", "source_weight_roughness_max"],
 }
-#: Pairs of faces crossing each other at the junction, as measured (2026-12-01; before the bridge
-#: recuts and the untangling: centaur 46, fox_arm 3); every other config has none.
+#: Pairs of faces crossing each other at the junction, as measured (2026-12-01); every other
+#: config has none.
 SELF_INTERSECTIONS = {"centaur": 9, "limb_swap": 3, "three_characters": 1}
 #: (config, figure) pairs the fusion does not meet yet, reported to the fusion issue; empty when all pass.
 FUSION_SHORTFALLS: set = set()

@@ -111,8 +111,9 @@ def test_secondary_roots_map_by_side():
 
 
 def test_mirrored_horse_ik_roots_keep_their_side():
-    # the mirrored Horse's IK roots (separate trees) used to tie and swap sides: the donor's
-    # foot weights then drove the other leg's IK joint
+    # the mirrored Horse's IK roots are separate trees, whose left and right roots tie unless the
+    # features link them to the main root; each must keep its side, or the donor's foot weights
+    # drive the other leg's IK joint
     from rigmix.config import Config
     from rigmix.pipeline import compose
 
