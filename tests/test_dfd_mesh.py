@@ -26,7 +26,7 @@ def test_weld_keeps_first_appearance_order_and_face_count():
 
 def test_welded_graph_lengths_and_adjacency_agree():
     V, F = _split_quad()
-    Vw, index, G = welded_graph(V, F)
+    _, index, G = welded_graph(V, F)
     _, index_a, A = welded_graph(V, F, lengths=False)
     np.testing.assert_array_equal(index, index_a)
     assert (G != G.T).nnz == 0 and (A != A.T).nnz == 0
