@@ -17,8 +17,9 @@ output: to use a part twice, list the file under two ids.
 The fused joint takes the target's name, rest transform and parent. Output joints are ordered
 parents first; among the valid orders the one kept follows the body's own joint order, with a
 grafted subtree placed where the joint it is fused with sits (a self-composition therefore
-reproduces the input order exactly). Name collisions: a body's joints keep their names, grafted
-joints that collide get ``.001``, ``.002``... (as Blender does), in output order.
+reproduces the input order exactly). Name collisions (:func:`rigmix.rig.unique_names`): a body's
+joints keep their names, grafted joints that collide get ``.001``, ``.002``... (as Blender
+does), in output order.
 """
 
 from __future__ import annotations
