@@ -1,4 +1,5 @@
-"""Small mesh helpers used by every dfd stage: checks, normalization, hashing, welding.
+"""Mesh operators used by every dfd stage and by rigmix: checks, normalization, hashing,
+welding and the welded edge graph, smoothing, normals and areas.
 
 Rendering and the feature field work in a normalized frame (bounding-box centre at the origin,
 largest half-extent 1, PIPELINE.md section 6); everything public takes and returns the mesh's
@@ -17,13 +18,15 @@ from dfd.errors import DfdInputError
 __all__ = [
     "Normalization",
     "check_mesh",
-    "normalization",
-    "mesh_hash",
-    "weld",
-    "face_normals",
-    "vertex_normals",
     "face_areas",
+    "face_normals",
+    "mesh_hash",
+    "normalization",
+    "smooth",
     "surface_samples",
+    "vertex_normals",
+    "weld",
+    "welded_graph",
 ]
 
 
@@ -110,31 +113,126 @@ def mesh_hash(V, F) -> str:
     return h.hexdigest()
 
 
-def weld(V, F):
-    """Merge vertices at exactly the same position (glTF meshes are split at every seam).
+def weld(V, F=None, *, tol=0.0):
+    """Merge vertices at the same position (glTF meshes are split at every UV, normal and
+    material seam, and flat-shaded assets at every face).
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+        Split vertex positions.
+    F : (m, 3) int array, optional
+        Triangles over ``V``; returned re-indexed onto the welded vertices, with the faces that
+        collapse (two equal corners after welding) kept, so face order and count never change.
+    tol : float
+        Positions closer than about ``tol`` (same cell of a ``tol`` grid) are merged; ``0`` merges
+        exactly equal positions only.
+
+    Returns
+    -------
+    Vw : (k, 3) float64
+        Welded positions (the first split vertex of each group, in order of first appearance).
+    index : (n,) int64
+        ``Vw[index] == V`` (up to ``tol``): the welded vertex of each split vertex.
+    Fw : (m, 3) int64
+        ``index[F]``; only when ``F`` is given.
+    """
+    V = np.asarray(V, dtype=np.float64)
+    if len(V) == 0:
+        index = np.zeros(0, dtype=np.int64)
+        Vw = V.reshape(0, 3)
+    else:
+        key = V if tol <= 0 else np.round(V / tol)
+        _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        # renumber groups in order of first appearance, so welding is stable and predictable
+        order = np.argsort(first, kind="stable")
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        index = rank[inverse].astype(np.int64)
+        Vw = V[np.sort(first)]
+    if F is None:
+        return Vw, index
+    return Vw, index, index[np.asarray(F, dtype=np.int64)]
+
+
+def welded_graph(V, F, *, lengths=True):
+    """The mesh welded by position (:func:`weld`) and its edge graph.
+
+    Every edge of every welded face is an edge of the graph, including the edges of faces that
+    collapse to a segment; an edge collapsed to a point is not (no self-loops).
 
     Parameters
     ----------
     V : (n, 3) float array
     F : (m, 3) int array
+    lengths : bool
+        ``True``: entry ``(a, b)`` is the length of welded edge ``ab`` plus ``1e-12`` (so a
+        zero-length edge stays an edge; the edges are deduplicated first, each once).
+        ``False``: entries are 1 (the 0/1 adjacency, built without sorting the edges: at a
+        million faces the sort is most of the cost).
 
     Returns
     -------
     Vw : (k, 3) float64
-        Welded positions, in order of first appearance.
+        Welded positions.
     index : (n,) int64
-        Welded vertex of each input vertex: ``Vw[index] == V``.
-    Fw : (m, 3) int64
-        ``index[F]``.
+        Welded vertex of each input vertex.
+    G : (k, k) scipy.sparse.csr_matrix, float64
+        Symmetric, canonical (sorted indices, no duplicates).
     """
-    V = np.asarray(V, dtype=np.float64)
-    _, first, inverse = np.unique(V, axis=0, return_index=True, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    order = np.argsort(first, kind="stable")
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    index = rank[inverse].astype(np.int64)
-    return V[np.sort(first)], index, index[np.asarray(F, dtype=np.int64)]
+    import scipy.sparse as sp  # imported where used: dfd.mesh stays light to import
+
+    Vw, index, Fw = weld(np.asarray(V, np.float64), np.asarray(F, np.int64).reshape(-1, 3))
+    k = len(Vw)
+    E = np.concatenate([Fw[:, [0, 1]], Fw[:, [1, 2]], Fw[:, [2, 0]]])
+    E = E[E[:, 0] != E[:, 1]]
+    if not lengths:
+        A = sp.coo_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(k, k)).tocsr()
+        return Vw, index, ((A + A.T) > 0).astype(np.float64).tocsr()
+    E = np.unique(np.sort(E, axis=1), axis=0)  # each edge once: duplicates would sum their lengths
+    d = np.linalg.norm(Vw[E[:, 0]] - Vw[E[:, 1]], axis=1) + 1e-12
+    G = sp.csr_matrix((np.r_[d, d], (np.r_[E[:, 0], E[:, 1]], np.r_[E[:, 1], E[:, 0]])), shape=(k, k))
+    return Vw, index, G
+
+
+def smooth(A, X, free, *, iterations=10, alpha=0.5):
+    """Laplacian smoothing of the ``free`` rows, the others fixed:
+    ``iterations`` of ``x <- (1 - alpha) x + alpha mean(neighbours)``.
+
+    ``alpha`` is the fraction of the way to the neighbours' mean taken per iteration: 0 leaves
+    ``X`` unchanged, 1 replaces each free row by its neighbours' mean. Every smoothing of rigmix
+    and dfd states its ``alpha`` in this sense.
+
+    Parameters
+    ----------
+    A : (k, k) scipy.sparse matrix, float64
+        Edge weights (a 0/1 adjacency for the uniform Laplacian); the mean is
+        ``(A @ X) / max(degree, 1)`` with ``degree = A.sum(axis=1)``.
+    X : (k,) or (k, c) float array
+        Values per vertex.
+    free : (k,) bool array
+        Rows that move; a row without neighbours never does.
+    iterations : int
+    alpha : float
+
+    Returns
+    -------
+    (k,) or (k, c) float64
+        A new array; rows not free equal ``X``'s.
+    """
+    X = np.array(X, dtype=np.float64)
+    deg = np.asarray(A.sum(axis=1)).ravel()
+    rows = np.flatnonzero(np.asarray(free, bool) & (deg > 0))
+    if len(rows) == 0 or iterations <= 0:
+        return X
+    Ar = A[rows]
+    scale = np.maximum(deg, 1)[rows]
+    if X.ndim == 2:
+        scale = scale[:, None]
+    for _ in range(iterations):
+        X[rows] = (1 - alpha) * X[rows] + alpha * ((Ar @ X) / scale)
+    return X
 
 
 def face_normals(V, F):

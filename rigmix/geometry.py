@@ -2,56 +2,17 @@
 
 glTF meshes are split at every UV, normal and material seam, and flat-shaded assets at every
 face. Every topological operation (Laplacians, components, boundary loops, geodesics) runs on
-the mesh welded by position, with the map back to the split vertices.
+the mesh welded by position, with the map back to the split vertices: :func:`weld` is
+:func:`dfd.mesh.weld`, named here for the rigmix modules.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["weld", "bounding_box_diagonal", "neighbour_roughness"]
+from dfd.mesh import weld
 
-
-def weld(V, F=None, *, tol=0.0):
-    """Merge vertices at the same position.
-
-    Parameters
-    ----------
-    V : (n, 3) float array
-        Split vertex positions.
-    F : (m, 3) int array, optional
-        Triangles over ``V``; returned re-indexed onto the welded vertices, with the faces that
-        collapse (two equal corners after welding) kept, so face order and count never change.
-    tol : float
-        Positions closer than about ``tol`` (same cell of a ``tol`` grid) are merged; ``0`` merges
-        exactly equal positions only.
-
-    Returns
-    -------
-    Vw : (k, 3) float64
-        Welded positions (the first split vertex of each group, in order of first appearance).
-    index : (n,) int64
-        ``Vw[index] == V`` (up to ``tol``): the welded vertex of each split vertex.
-    Fw : (m, 3) int64
-        Only when ``F`` is given.
-    """
-    V = np.asarray(V, dtype=np.float64)
-    if len(V) == 0:
-        index = np.zeros(0, dtype=np.int64)
-        Vw = V.reshape(0, 3)
-    else:
-        key = V if tol <= 0 else np.round(V / tol)
-        _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
-        inverse = inverse.reshape(-1)
-        # renumber groups in order of first appearance, so welding is stable and predictable
-        order = np.argsort(first, kind="stable")
-        rank = np.empty_like(order)
-        rank[order] = np.arange(len(order))
-        index = rank[inverse].astype(np.int64)
-        Vw = V[np.sort(first)]
-    if F is None:
-        return Vw, index
-    return Vw, index, index[np.asarray(F, dtype=np.int64)]
+__all__ = ["bounding_box_diagonal", "neighbour_roughness", "weld"]
 
 
 def bounding_box_diagonal(V) -> float:

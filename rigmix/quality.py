@@ -32,7 +32,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from dfd.mesh import face_areas
+from dfd.mesh import face_areas, welded_graph
 
 from .animation.sampling import clip_times, sample_clip
 from .skinning import linear_blend_skinning, rest_skinning_matrices, skinning_matrices
@@ -225,18 +225,14 @@ def weight_roughness(V, F, W, rows=None):
     """
     import scipy.sparse as sp
 
-    from .geometry import neighbour_roughness, weld
+    from .geometry import neighbour_roughness
 
     W = np.asarray(W, np.float64)
-    Vw, index, Fw = weld(np.asarray(V, np.float64), np.asarray(F, np.int64).reshape(-1, 3))
+    # the 0/1 adjacency: no lengths, and no sort of the edges, most of the cost at a million faces
+    Vw, index, A = welded_graph(V, F, lengths=False)
     k = len(Vw)
     copies = np.bincount(index, minlength=k)
     Ww = sp.csr_matrix((1.0 / copies[index], (index, np.arange(len(index)))), shape=(k, len(index))) @ W
-    # the welded edges, each face's three both ways (not welded_graph: no lengths, and no sort
-    # of the edges, which is most of its cost at a million faces)
-    a, b = Fw.T.ravel(), Fw[:, [1, 2, 0]].T.ravel()
-    A = sp.csr_matrix((np.ones(2 * len(a)), (np.r_[a, b], np.r_[b, a])), shape=(k, k))
-    A.setdiag(0)
     r, measured = neighbour_roughness(A, Ww)
     if rows is not None:
         selected = np.zeros(k, bool)

@@ -57,6 +57,7 @@ import numpy as np
 from .sampling import clip_times, sample_clip
 from ..character import Character, Clip, Skeleton, Track
 from ..errors import InputError
+from ..rig import unique_names
 from .keyframes import (Candidates, continuity_scores, forward_kinematics, global_rotations,
                         hop_weights, keyframe_scores, map_pose, rotation_features)
 from ..transforms import quat_normalize
@@ -240,19 +241,13 @@ def _owners(skeleton_out, maps, ids, provenance):
 
 
 def _unique_names(keys):
-    """Output clip names: the source names, prefixed ``<character id>:`` where they clash."""
+    """Output clip names: the source names, prefixed ``<character id>:`` where they clash, then
+    made unique with ``_2``, ``_3``... (:func:`rigmix.rig.unique_names`)."""
     count = {}
     for _, name in keys:
         count[name] = count.get(name, 0) + 1
-    out, used = [], set()
-    for cid, name in keys:
-        base = name if count[name] == 1 else f"{cid}:{name}"
-        cand, n = base, 2
-        while cand in used:
-            cand, n = f"{base}_{n}", n + 1
-        used.add(cand)
-        out.append(cand)
-    return out
+    return unique_names([name if count[name] == 1 else f"{cid}:{name}" for cid, name in keys],
+                        suffix="_{}", start=2)
 
 
 def _selected(inputs, options, selection):

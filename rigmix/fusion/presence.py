@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import weld
+from dfd.mesh import smooth, weld
+
 from .meshutil import face_adjacency, nondegenerate, vertex_adjacency, vertex_components
 
 __all__ = [
@@ -47,7 +48,7 @@ class WeldedMesh:
 
 
 def weld_mesh(V, F) -> WeldedMesh:
-    """Weld a split mesh by exact position (see :func:`rigmix.geometry.weld`)."""
+    """Weld a split mesh by exact position (see :func:`dfd.mesh.weld`)."""
     Vw, index, Fw = weld(V, F)
     return WeldedMesh(Vw, Fw, index)
 
@@ -83,7 +84,8 @@ def smooth_presence(p, F, *, snap=0.02, iterations=10, alpha=0.8):
     snap : float
         Values below ``snap`` become 0, above ``1 - snap`` become 1; those stay fixed.
     iterations, alpha : int, float
-        ``p <- (1 - alpha) p + alpha mean(neighbours)`` on the free vertices.
+        ``p <- (1 - alpha) p + alpha mean(neighbours)`` on the free vertices
+        (:func:`dfd.mesh.smooth`).
 
     Returns
     -------
@@ -95,12 +97,7 @@ def smooth_presence(p, F, *, snap=0.02, iterations=10, alpha=0.8):
     free = (p > 0.0) & (p < 1.0)
     if not free.any() or iterations <= 0:
         return p
-    A = vertex_adjacency(F, len(p)).astype(np.float64)
-    deg = np.asarray(A.sum(axis=1)).ravel()
-    free &= deg > 0
-    for _ in range(iterations):
-        mean = (A @ p) / np.maximum(deg, 1)
-        p[free] = (1.0 - alpha) * p[free] + alpha * mean[free]
+    p = smooth(vertex_adjacency(F, len(p)).astype(np.float64), p, free, iterations=iterations, alpha=alpha)
     return np.clip(p, 0.0, 1.0)
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from ..errors import InputError
 
-__all__ = ["load_character", "READERS"]
+__all__ = ["READERS", "format_handler", "load_character"]
 
 #: File suffix -> ``"module:function"`` reading it into a Character (imported on first use).
 READERS = {
@@ -41,10 +41,39 @@ def load_character(path):
         cannot read.
     """
     path = Path(path)
-    reader = READERS.get(path.suffix.lower())
-    if reader is None:
-        supported = ", ".join(sorted(READERS))
-        raise InputError(f"load_character: {path.name}: unsupported format {path.suffix or '(no suffix)'!r}; "
+    return format_handler(READERS, path, stage="load_character", problem="unsupported format")(path)
+
+
+def format_handler(table, path, *, stage, problem, load=True):
+    """The function a suffix table names for ``path`` (the reader or writer of its format).
+
+    Parameters
+    ----------
+    table : dict of str -> str
+        Lower-case suffix -> ``"module:function"`` (:data:`READERS`,
+        :data:`rigmix.io.convert.WRITERS`).
+    path : Path
+    stage, problem : str
+        Named in the error: ``"<stage>: <file name>: <problem> '<suffix>'; supported: ..."``.
+    load : bool
+        Import the module and return the function; ``False`` only checks the suffix.
+
+    Returns
+    -------
+    callable or None
+        ``None`` with ``load=False``.
+
+    Raises
+    ------
+    InputError
+        A suffix the table does not list (the message lists the ones it does).
+    """
+    entry = table.get(path.suffix.lower())
+    if entry is None:
+        supported = ", ".join(sorted(table))
+        raise InputError(f"{stage}: {path.name}: {problem} {path.suffix or '(no suffix)'!r}; "
                          f"supported: {supported}")
-    module, func = reader.split(":")
-    return getattr(import_module(module), func)(path)
+    if not load:
+        return None
+    module, func = entry.split(":")
+    return getattr(import_module(module), func)

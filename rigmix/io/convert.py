@@ -9,12 +9,12 @@ Reading goes through :func:`rigmix.io.load_character` (the reader is chosen by s
 from __future__ import annotations
 
 import logging
-from importlib import import_module
 from pathlib import Path
 
 from ..errors import InputError
+from . import format_handler
 
-__all__ = ["WRITERS", "save_character", "convert"]
+__all__ = ["WRITERS", "convert", "save_character"]
 
 logger = logging.getLogger(__name__)
 
@@ -48,13 +48,7 @@ def save_character(character, path):
         An unsupported suffix (the message lists the supported ones) or a write failure.
     """
     path = Path(path)
-    writer = WRITERS.get(path.suffix.lower())
-    if writer is None:
-        supported = ", ".join(sorted(WRITERS))
-        raise InputError(f"save_character: {path.name}: cannot write format {path.suffix or '(no suffix)'!r}; "
-                         f"supported: {supported}")
-    module, func = writer.split(":")
-    getattr(import_module(module), func)(character, path)
+    format_handler(WRITERS, path, stage="save_character", problem="cannot write format")(character, path)
     return path
 
 
@@ -77,10 +71,8 @@ def convert(source, target):
     from . import load_character
 
     source, target = Path(source), Path(target)
-    if target.suffix.lower() not in WRITERS:  # fail before the (possibly slow) read
-        supported = ", ".join(sorted(WRITERS))
-        raise InputError(f"convert: {target.name}: cannot write format {target.suffix or '(no suffix)'!r}; "
-                         f"supported: {supported}")
+    # fail before the (possibly slow) read
+    format_handler(WRITERS, target, stage="convert", problem="cannot write format", load=False)
     if source.resolve() == target.resolve():
         raise InputError(f"convert: {source} is both the input and the output; choose another output path")
     character = load_character(source)

@@ -18,13 +18,13 @@ The weight repairs are in :mod:`rigmix.io.repair`.
 
 from __future__ import annotations
 
-import heapq
 import logging
 
 import numpy as np
 
 from ..character import Anchor, Character, Clip, Mesh, Prop, Skeleton, Track
 from ..errors import RigmixError, UnsupportedError
+from ..rig import topological_order, unique_names
 from ..transforms import matrix_to_trs, quat_normalize, trs_to_matrix
 from .accessors import Document, load_document
 from .gltf_materials import read_materials
@@ -249,20 +249,10 @@ def _choose_skin(doc: Document, graph: _Graph) -> list[_Skin]:
 
 
 def _unique(names: list[str]) -> tuple[list[str], list[tuple[str, str]]]:
-    """Make names unique: later duplicates get ``.1``, ``.2``... (never a name already in the
-    list); returns the new names and the ``(old, new)`` renames."""
-    taken, used, out, renamed = set(names), set(), [], []
-    next_k: dict[str, int] = {}  # suffixes below it are taken for good: linear in len(names)
-    for n in names:
-        new, k = n, next_k.get(n, 1)
-        while new in used or (new != n and new in taken):
-            new, k = f"{n}.{k}", k + 1
-        next_k[n] = k
-        used.add(new)
-        out.append(new)
-        if new != n:
-            renamed.append((n, new))
-    return out, renamed
+    """Make names unique: later duplicates get ``.1``, ``.2``... (:func:`rigmix.rig.unique_names`);
+    returns the new names and the ``(old, new)`` renames."""
+    out = unique_names(names, suffix=".{}")
+    return out, [(n, new) for n, new in zip(names, out) if new != n]
 
 
 def _joint_members(graph: _Graph, skin_nodes, log) -> set[int]:
@@ -300,22 +290,7 @@ def _topological_order(graph: _Graph, members: set[int], skin_nodes, joint_paren
         p = joint_parent(n)
         if p >= 0:
             key[p] = min(key[p], key[n])
-    kids: dict[int, list[int]] = {}
-    heap = []
-    for n in members:
-        p = joint_parent(n)
-        if p < 0:
-            heap.append((key[n], n))
-        else:
-            kids.setdefault(p, []).append(n)
-    heapq.heapify(heap)
-    order = []
-    while heap:
-        _, n = heapq.heappop(heap)
-        order.append(n)
-        for c in kids.get(n, []):
-            heapq.heappush(heap, (key[c], c))
-    return order
+    return topological_order(members, joint_parent, key.__getitem__)
 
 
 def _anchors(graph: _Graph, root_nodes: list[int]) -> tuple[tuple[Anchor, ...], dict[int, int]]:

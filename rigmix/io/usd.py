@@ -68,11 +68,12 @@ import numpy as np
 
 from ..animation.sampling import clip_times, sample_clip
 from ..errors import InputError
+from ..rig import unique_names
 from ..safety import atomic_output
 from ..transforms import matrix_to_trs, trs_to_matrix
 from .usd_shade import define_materials, texture_files, write_texture_files
 
-__all__ = ["write_usd", "joint_paths", "USD_SUFFIXES"]
+__all__ = ["USD_SUFFIXES", "joint_paths", "write_usd"]
 
 logger = logging.getLogger(__name__)
 
@@ -89,18 +90,11 @@ def _pxr():
 
 
 def _unique_identifiers(names, taken=()):
-    """Valid, unique USD prim names for ``names`` (``Tf.MakeValidIdentifier`` + ``_2``, ``_3``...)."""
+    """Valid, unique USD prim names for ``names``: ``Tf.MakeValidIdentifier``, then
+    :func:`rigmix.rig.unique_names` with ``_2``, ``_3``... (an identifier cannot hold a dot)."""
     _, _, Tf, _, _, _, _ = _pxr()
-    used = set(taken)
-    out = []
-    for name in names:
-        base = Tf.MakeValidIdentifier(str(name) or "unnamed")
-        ident, k = base, 2
-        while ident in used:
-            ident, k = f"{base}_{k}", k + 1
-        used.add(ident)
-        out.append(ident)
-    return out
+    return unique_names([Tf.MakeValidIdentifier(str(name) or "unnamed") for name in names],
+                        suffix="_{}", start=2, taken=taken)
 
 
 def joint_paths(skeleton):

@@ -17,13 +17,13 @@ output: to use a part twice, list the file under two ids.
 The fused joint takes the target's name, rest transform and parent. Output joints are ordered
 parents first; among the valid orders the one kept follows the body's own joint order, with a
 grafted subtree placed where the joint it is fused with sits (a self-composition therefore
-reproduces the input order exactly). Name collisions: a body's joints keep their names, grafted
-joints that collide get ``.001``, ``.002``... (as Blender does), in output order.
+reproduces the input order exactly). Name collisions (:func:`rigmix.rig.unique_names`): a body's
+joints keep their names, grafted joints that collide get ``.001``, ``.002``... (as Blender
+does), in output order.
 """
 
 from __future__ import annotations
 
-import heapq
 import logging
 from dataclasses import dataclass, field, replace
 
@@ -32,10 +32,11 @@ import numpy as np
 from ..character import Anchor, Skeleton
 from ..config import Config, closest_names
 from ..errors import InputError
-from .positioning import position_inputs
+from ..rig import topological_order, unique_names
 from ..transforms import matrix_to_trs
+from .positioning import position_inputs
 
-__all__ = ["ResolvedAction", "FusedPair", "Plan", "resolve_actions", "resolve_rotations", "plan_operations"]
+__all__ = ["FusedPair", "Plan", "ResolvedAction", "plan_operations", "resolve_actions", "resolve_rotations"]
 
 logger = logging.getLogger(__name__)
 
@@ -231,12 +232,43 @@ class _Structure:
 
 
 def _structure(inputs, actions, config: Config) -> _Structure:
+    """The output skeleton's structure: the input joints used, fused into nodes, in output order.
+
+    The steps, in order: which characters are bodies and which subtrees each action gives
+    (:func:`_bodies_and_parts`); the targets checked to be in the output
+    (:func:`_check_targets`); the removals applied (:func:`_apply_removals`); the joints used,
+    each once (:func:`_used_joints`); fused joints merged into nodes (:func:`_nodes`), without a
+    cycle (:func:`_check_cycles`); the nodes ordered parents first (:func:`_order`).
+    """
     ids = list(config.characters)
-    rank = {cid: i for i, cid in enumerate(ids)}
     sk = {cid: inputs[cid].skeleton for cid in ids}
     grafts = [a for a in actions if a.grafts and not a.identity]
-    given = {a.index: sk[a.source].subtree(a.source_joint) for a in grafts}
     gives = {cid: [a for a in grafts if a.source == cid] for cid in ids}
+    body, base, parts = _bodies_and_parts(ids, sk, actions, grafts, gives)
+    _check_targets(actions, sk, gives, base, parts, config)
+    base, parts = _apply_removals(actions, sk, gives, base, parts)
+    used, part = _used_joints(ids, sk, actions, gives, base, parts, config)
+    members, node_id, parent = _nodes(ids, sk, grafts, used, config)
+    _check_cycles(parent, members, sk, config)
+    order, level = _order(ids, actions, members, node_id, parent, part)
+    return _Structure(used, part, tuple(members), parent, order, body, level)
+
+
+def _bodies_and_parts(ids, sk, actions, grafts, gives):
+    """Bodies and the parts each action gives, before removals.
+
+    A character is a body when it gives no subtree, or when an action targets one of its joints
+    outside the subtrees it gives.
+
+    Returns
+    -------
+    body : dict of str -> bool
+    base : dict of str -> (J,) bool
+        Per character, its joints in the output as a body (all of a body's, none otherwise).
+    parts : dict of int -> (J,) bool
+        Per grafting action (by index), the subtree of its source that it gives.
+    """
+    given = {a.index: sk[a.source].subtree(a.source_joint) for a in grafts}
 
     def inside_given(cid, j):
         return any(given[a.index][j] for a in gives[cid])
@@ -248,8 +280,13 @@ def _structure(inputs, actions, config: Config) -> _Structure:
         body[cid] = not gives[cid] or targeted_outside
     base = {cid: np.full(sk[cid].num_joints, body[cid]) for cid in ids}
     parts = {a.index: given[a.index].copy() for a in grafts}
+    return body, base, parts
 
-    # a target joint must exist in the output before the removals are applied
+
+def _check_targets(actions, sk, gives, base, parts, config):
+    """A target joint must exist in the output before the removals are applied: in its
+    character's body or in a subtree that character gives (``InputError`` otherwise)."""
+
     def available(cid):
         m = base[cid].copy()
         for a in gives[cid]:
@@ -265,6 +302,13 @@ def _structure(inputs, actions, config: Config) -> _Structure:
                 f"{sk[a.target].names[a.target_joint]!r} of {a.target!r} is not in the output: "
                 f"{a.target!r} only gives the subtree(s) at "
                 f"{', '.join(repr(sk[a.target].names[g.source_joint]) for g in gives[a.target])}")
+
+
+def _apply_removals(actions, sk, gives, base, parts):
+    """``base`` and ``parts`` without the joints that ``replace`` (below the target) and
+    ``remove`` (the target's subtree) drop; new dicts of new arrays."""
+    base = {cid: m.copy() for cid, m in base.items()}
+    parts = {k: m.copy() for k, m in parts.items()}
     for a in actions:
         if a.op == "replace" and not a.identity:
             rm = sk[a.target].subtree(a.target_joint)
@@ -277,7 +321,23 @@ def _structure(inputs, actions, config: Config) -> _Structure:
         for g in gives[a.target]:
             if g.index != a.index:
                 parts[g.index] &= ~rm
+    return base, parts
 
+
+def _used_joints(ids, sk, actions, gives, base, parts, config):
+    """The joints of each character in the output, each at most once.
+
+    Returns
+    -------
+    used : dict of str -> (J,) bool
+    part : dict of str -> (J,) int
+        ``-1`` in the body, ``k`` given by action ``k``, ``-2`` unused.
+
+    Raises
+    ------
+    InputError
+        A joint would appear twice, or an action's joint is removed by another action.
+    """
     used, part = {}, {}
     for cid in ids:
         count = base[cid].astype(int)
@@ -304,8 +364,27 @@ def _structure(inputs, actions, config: Config) -> _Structure:
                 raise InputError(
                     f"config {config.source}: actions[{a.index}].{key}: joint {sk[cid].names[j]!r} of "
                     f"{cid!r} is removed by another action")
+    return used, part
 
-    # nodes: used joints, fused pairs merged (union-find)
+
+def _nodes(ids, sk, grafts, used, config):
+    """Output nodes: the used joints, each fused pair merged into one (union-find).
+
+    Returns
+    -------
+    members : list of tuple of (str, int)
+        Per node, its ``(cid, joint)``: the one that keeps its parent first, then the fused
+        ones in character order.
+    node_id : dict of (str, int) -> int
+    parent : (N,) int64
+        Parent node, ``-1`` for a root.
+
+    Raises
+    ------
+    InputError
+        Joints fused that each keep their parent, or fused only onto each other.
+    """
+    rank = {cid: i for i, cid in enumerate(ids)}
     keys = [(cid, int(j)) for cid in ids for j in np.flatnonzero(used[cid])]
     node_of = {m: i for i, m in enumerate(keys)}
     uf = list(range(len(keys)))
@@ -340,14 +419,19 @@ def _structure(inputs, actions, config: Config) -> _Structure:
         for m in ordered:
             node_id[m] = len(members)
         members.append(tuple(ordered))
-    N = len(members)
-    parent = np.full(N, -1, dtype=np.int64)
+    parent = np.full(len(members), -1, dtype=np.int64)
     for n, ms in enumerate(members):
         cid, j = ms[0]
         p = sk[cid].parents[j]
         if p >= 0 and used[cid][p]:
             parent[n] = node_id[(cid, int(p))]
-    # cycles: every walk up must end at a root
+    return members, node_id, parent
+
+
+def _check_cycles(parent, members, sk, config):
+    """Every walk up the nodes' parents must end at a root (``InputError`` naming the cycle:
+    a subtree grafted below itself)."""
+    N = len(parent)
     state = np.zeros(N, dtype=np.int8)  # 0 new, 1 on the current walk, 2 done
     for n in range(N):
         path = []
@@ -370,7 +454,23 @@ def _structure(inputs, actions, config: Config) -> _Structure:
         for y in path:
             state[y] = 2
 
-    # order: parents first; preference keys keep a body's own order, grafts where they are fused
+
+def _order(ids, actions, members, node_id, parent, part):
+    """Output order of the nodes: parents first; preference keys keep a body's own order, and
+    place grafts where they are fused.
+
+    A body joint's key is ``(character rank, joint index, 0)``; a grafted joint takes the key of
+    the joint its subtree's root is fused with, offset by its index from that root, and one
+    level more (:func:`rigmix.rig.topological_order` picks the smallest ready key).
+
+    Returns
+    -------
+    order : (N,) int64
+        Output index -> node.
+    level : (N,) int64
+        Per node: 0 in a body, 1 grafted, 2 grafted onto a graft...
+    """
+    rank = {cid: i for i, cid in enumerate(ids)}
     key_cache: dict[int, tuple] = {}
 
     def key(n):
@@ -387,41 +487,16 @@ def _structure(inputs, actions, config: Config) -> _Structure:
         key_cache[n] = out
         return out
 
-    children: dict[int, list] = {}
-    for n in range(N):
-        children.setdefault(int(parent[n]), []).append(n)
-    heap = [(key(n), n) for n in children.get(-1, [])]
-    heapq.heapify(heap)
-    order = []
-    while heap:
-        _, n = heapq.heappop(heap)
-        order.append(n)
-        for c in children.get(n, []):
-            heapq.heappush(heap, (key(c), c))
+    N = len(members)
+    order = topological_order(range(N), lambda n: int(parent[n]), key)
     assert len(order) == N, "every node is reachable from a root once cycles are excluded"
     level = np.array([key(n)[2] for n in range(N)], dtype=np.int64)
-    return _Structure(used, part, tuple(members), parent, np.asarray(order, dtype=np.int64), body, level)
+    return np.asarray(order, dtype=np.int64), level
 
 
 # --------------------------------------------------------------------------------------------
 # The output skeleton
 # --------------------------------------------------------------------------------------------
-
-
-def _unique_names(names, priority):
-    """Unique names: in ``priority`` order the first keeps its name, later ones get ``.001``..."""
-    taken = set(names)
-    out, renamed, seen = list(names), {}, set()
-    for o in sorted(range(len(names)), key=lambda o: (priority[o], o)):
-        nm = names[o]
-        if nm in seen:
-            k = 1
-            while f"{nm}.{k:03d}" in taken or f"{nm}.{k:03d}" in seen:
-                k += 1
-            out[o] = f"{nm}.{k:03d}"
-            renamed[out[o]] = nm
-        seen.add(out[o])
-    return out, renamed
 
 
 def _build_skeleton(structure, positioned, config):
@@ -460,7 +535,10 @@ def _build_skeleton(structure, positioned, config):
         P = np.where(parents[comp, None, None] >= 0, worlds[np.maximum(parents[comp], 0)], np.eye(4))
         t, r, s = matrix_to_trs(np.linalg.inv(P) @ worlds[comp])
         T[comp], R[comp], S[comp] = t, r, s
-    unique, renamed = _unique_names(names, [structure.level[n] for n in order])
+    level = [structure.level[n] for n in order]
+    unique = unique_names(names, suffix=".{:03d}", priority=level)
+    # in the order the names were made unique: a body's joints first (level 0), then grafts
+    renamed = {unique[o]: names[o] for o in sorted(range(N), key=lambda o: (level[o], o)) if unique[o] != names[o]}
     skeleton = Skeleton(
         names=tuple(unique), parents=parents, translations=T, rotations=R, scales=S,
         inverse_binds=np.linalg.inv(worlds), anchors=tuple(anchors), root_anchor=root_anchor,

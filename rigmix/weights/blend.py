@@ -54,7 +54,8 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 
-from dfd.mesh import face_normals, vertex_normals
+from dfd.mesh import face_normals, smooth, vertex_normals
+from dfd.mesh import welded_graph as _welded_graph
 
 from ..errors import InputError, NumericalError
 from ..geometry import bounding_box_diagonal, neighbour_roughness, weld
@@ -62,7 +63,7 @@ from .mirror import feature_field as distill_feature_field
 from .params import WeightParams
 from .fill import fill_weights
 from .mesh import sparsify
-from .locality import geodesic_locality, welded_graph as _welded_graph
+from .locality import geodesic_locality
 
 __all__ = ["SkinWeights", "WEIGHT_METHODS", "BLEND_FACTORS", "ON_SURFACE", "JUNCTION_SMOOTHING", "FIELD_DISTILL",
            "retarget_weights", "closest_point_weights", "harmonic_blend_factors", "continue_far_parts",
@@ -480,6 +481,7 @@ def smooth_rows(V, F, W, rows, *, iterations=10, alpha=0.5):
         Rows to smooth; split vertices of one position move together.
     iterations : int
     alpha : float
+        Fraction of the way to the neighbours' mean per iteration (:func:`dfd.mesh.smooth`).
 
     Returns
     -------
@@ -492,18 +494,13 @@ def smooth_rows(V, F, W, rows, *, iterations=10, alpha=0.5):
         return W
     Vw, index, G = _welded_graph(V, F)
     k = len(Vw)
-    A = (G > 0).astype(np.float64)
-    deg = np.asarray(A.sum(axis=1)).ravel()
     Ww = np.zeros((k, W.shape[1]))
     cnt = np.bincount(index, minlength=k).astype(np.float64)
     np.add.at(Ww, index, W)
     Ww /= np.maximum(cnt, 1)[:, None]
     free = np.zeros(k, bool)
     free[index[rows]] = True
-    free &= deg > 0
-    for _ in range(iterations):
-        mean = (A @ Ww) / np.maximum(deg, 1)[:, None]
-        Ww[free] = (1 - alpha) * Ww[free] + alpha * mean[free]
+    Ww = smooth((G > 0).astype(np.float64), Ww, free, iterations=iterations, alpha=alpha)
     out = Ww[index[rows]]
     W[rows] = out / np.maximum(out.sum(axis=1, keepdims=True), 1e-12)
     return W

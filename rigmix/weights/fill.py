@@ -87,7 +87,8 @@ def fill_weights(V, F, W, unknown, *, method="inpaint", max_influences=4, **opti
     **options
         Method options (an option a method does not have is an ``InputError``).
         ``nearest``: ``mode`` ("vertex", default, or "surface").
-        ``inpaint``: ``iterations`` (10), ``alpha`` (0.8) of the post-smoothing.
+        ``inpaint``: ``iterations`` (10), ``keep`` (0.8) of the post-smoothing,
+        ``w <- keep w + (1 - keep) mean(neighbours)``.
         ``dfd``: ``field`` (a DFD feature field with ``evaluate(points) -> (q, C)`` or a
         callable; ``None`` distills one with ``distill_options`` into ``field_cache``; ``False``
         uses geometry only), ``joint_positions`` ((J, 3) bind-pose joint positions in the
@@ -96,7 +97,7 @@ def fill_weights(V, F, W, unknown, *, method="inpaint", max_influences=4, **opti
         (:class:`Plane`, detected when omitted), ``mirror_tol`` (0.25 of the local edge
         length), ``strength`` (10, the data term's weight), ``joint_parents`` ((J,) int, with
         ``joint_positions``: enables the bone prior for hidden regions without a mirror),
-        ``bone_prior`` (0.1, its largest confidence), ``iterations`` / ``alpha`` (0 / 0.8:
+        ``bone_prior`` (0.1, its largest confidence), ``iterations`` / ``keep`` (0 / 0.8:
         the inpainting's post-smoothing, on the rows no prior decides; 0: none), ``locality``
         (0: off; a graph radius in units of ``V``, raised to twice the band's reach: each
         filled joint fades with the distance to a vertex known, or trusted by the prior, to

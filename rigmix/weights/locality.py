@@ -11,39 +11,11 @@ filled vertices whose prior gives it that much.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
-from ..geometry import weld
+from dfd.mesh import welded_graph
 
-__all__ = ["welded_graph", "geodesic_locality", "locality_radius"]
-
-
-def welded_graph(V, F):
-    """The mesh welded by position and its edge-length graph.
-
-    Parameters
-    ----------
-    V : (n, 3) float array
-    F : (m, 3) int array
-
-    Returns
-    -------
-    Vw : (k, 3) float64
-        Welded positions.
-    index : (n,) int64
-        Welded vertex of each input vertex.
-    G : (k, k) scipy.sparse.csr_matrix
-        Symmetric; entry ``(a, b)`` is the length of welded edge ``ab`` (same units as ``V``).
-    """
-    Vw, index, F_w = weld(np.asarray(V, np.float64), np.asarray(F, np.int64).reshape(-1, 3))
-    E = np.concatenate([F_w[:, [0, 1]], F_w[:, [1, 2]], F_w[:, [2, 0]]])
-    E = E[E[:, 0] != E[:, 1]]
-    E = np.unique(np.sort(E, axis=1), axis=0)  # each edge once: duplicates would sum their lengths
-    lengths = np.linalg.norm(Vw[E[:, 0]] - Vw[E[:, 1]], axis=1) + 1e-12
-    G = sp.csr_matrix((np.r_[lengths, lengths], (np.r_[E[:, 0], E[:, 1]], np.r_[E[:, 1], E[:, 0]])),
-                      shape=(len(Vw), len(Vw)))
-    return Vw, index, G
+__all__ = ["geodesic_locality", "locality_radius"]
 
 
 def locality_radius(V, F, unknown, radius):

@@ -18,9 +18,9 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
-from dfd.mesh import face_areas
+from dfd.mesh import face_areas, welded_graph
 
-from ..geometry import bounding_box_diagonal, weld
+from ..geometry import bounding_box_diagonal
 
 log = logging.getLogger(__name__)
 
@@ -77,13 +77,10 @@ def _welded(V, F, *, uniform=1e-3) -> _Welded:
     key = _key(V, F, np.float64(uniform))
     if key in _CACHE:
         return _CACHE[key]
-    Vw, index, Fw = weld(V, F)
-    k = len(Vw)
     # adjacency over every welded edge, including edges of faces that collapse to a segment
-    E = np.concatenate([Fw[:, [0, 1]], Fw[:, [1, 2]], Fw[:, [2, 0]]])
-    E = E[E[:, 0] != E[:, 1]]
-    A = sp.coo_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(k, k)).tocsr()
-    A = ((A + A.T) > 0).astype(np.float64).tocsr()
+    Vw, index, A = welded_graph(V, F, lengths=False)
+    Fw = index[np.asarray(F, dtype=np.int64).reshape(-1, 3)]
+    k = len(Vw)
     _, component = connected_components(A, directed=False)
     Fc = _clean_faces(Vw, Fw)
     if len(Fc):
@@ -183,8 +180,12 @@ def _bilaplacian(g: _Welded):
     return (-g.L + g.L @ sp.diags(1.0 / g.M) @ g.L).tocsr()
 
 
-def _smooth(g: _Welded, W, unk, *, iterations=10, alpha=0.8):
-    """``iterations`` of ``w <- alpha w + (1 - alpha) mean(neighbours)`` on the unknown rows."""
+def _smooth(g: _Welded, W, unk, *, iterations=10, keep=0.8):
+    """``iterations`` of ``w <- keep w + (1 - keep) mean(neighbours)`` on the unknown rows.
+
+    :func:`dfd.mesh.smooth` with ``alpha = 1 - keep``, written with its own arithmetic (the
+    mean as a product with ``1 / degree``), which the weight fills' results are bit-for-bit.
+    """
     deg = np.asarray(g.A.sum(axis=1)).ravel()
     rows = np.flatnonzero(unk & (deg > 0))
     if len(rows) == 0:
@@ -193,7 +194,7 @@ def _smooth(g: _Welded, W, unk, *, iterations=10, alpha=0.8):
     inv = 1.0 / deg[rows, None]
     W = W.copy()
     for _ in range(iterations):
-        W[rows] = alpha * W[rows] + (1.0 - alpha) * (Ar @ W) * inv
+        W[rows] = keep * W[rows] + (1.0 - keep) * (Ar @ W) * inv
     return W
 
 

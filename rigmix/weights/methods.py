@@ -65,11 +65,11 @@ def _fill_harmonic(g: _Welded, W, unk):
     return _orphans(g, out, unk, solve)
 
 
-def _fill_inpaint(g: _Welded, W, unk, *, iterations=10, alpha=0.8):
+def _fill_inpaint(g: _Welded, W, unk, *, iterations=10, keep=0.8):
     solve = _solvable(g, unk)
     out = _solve_fixed(_bilaplacian(g), W, unk, solve)
     out = _orphans(g, out, unk, solve)
-    return _smooth(g, out, unk, iterations=iterations, alpha=alpha)
+    return _smooth(g, out, unk, iterations=iterations, keep=keep)
 
 
 # --------------------------------------------------------------------------------------------

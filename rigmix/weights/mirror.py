@@ -472,7 +472,7 @@ TRUSTED = 0.5
 
 def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
               joint_names=None, joint_positions=None, mirror_tol=0.25, strength=10.0,
-              iterations=0, alpha=0.8, field_cache=None, distill_options=None,
+              iterations=0, keep=0.8, field_cache=None, distill_options=None,
               joint_parents=None, bone_prior=0.1, locality=0.0, locality_power=1.0,
               deforming_joints=None):
     """The project's fill: the inpainting energy pulled toward a prior from similar known parts.
@@ -502,7 +502,7 @@ def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
     """
     out, P, c = _fill_dfd_prior(g, W, unk, field=field, plane=plane, joint_mirror=joint_mirror,
                                 joint_names=joint_names, joint_positions=joint_positions, mirror_tol=mirror_tol,
-                                strength=strength, iterations=iterations, alpha=alpha, field_cache=field_cache,
+                                strength=strength, iterations=iterations, keep=keep, field_cache=field_cache,
                                 distill_options=distill_options, joint_parents=joint_parents,
                                 bone_prior=bone_prior)
     if locality and locality > 0:
@@ -513,7 +513,7 @@ def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
 
 
 def _fill_dfd_prior(g: _Welded, W, unk, *, field, plane, joint_mirror, joint_names, joint_positions,
-                    mirror_tol, strength, iterations, alpha, field_cache, distill_options, joint_parents,
+                    mirror_tol, strength, iterations, keep, field_cache, distill_options, joint_parents,
                     bone_prior):
     """:func:`_fill_dfd` before the locality: ``(filled W, prior P or None, confidence c or None)``."""
     J = W.shape[1]
@@ -525,7 +525,7 @@ def _fill_dfd_prior(g: _Welded, W, unk, *, field, plane, joint_mirror, joint_nam
             _PLANES[key] = symmetry_plane(g.V, g.F)
         plane = _PLANES[key]
     if plane is None:  # no mirror prior, nothing for a field to judge: no distillation either
-        return _fill_inpaint(g, W, unk, iterations=iterations, alpha=alpha), None, None
+        return _fill_inpaint(g, W, unk, iterations=iterations, keep=keep), None, None
     if field is False:  # ablation: geometry only
         field = None
     elif field is None:
@@ -552,7 +552,7 @@ def _fill_dfd_prior(g: _Welded, W, unk, *, field, plane, joint_mirror, joint_nam
     # post-smoothing; a trusted row keeps the painting it borrowed (smoothed, the Horse's
     # mirrored legs went from 0.005 to 0.07 mean junction weight error, hidden protocol)
     smooth = unk & (c < TRUSTED)
-    return (_smooth(g, out, smooth, iterations=iterations, alpha=alpha) if iterations else out), P, c
+    return (_smooth(g, out, smooth, iterations=iterations, keep=keep) if iterations else out), P, c
 
 
 def _segment_distances(X, a, b):
