@@ -248,45 +248,54 @@ def compose(config, *, progress: Progress | None = None, until: str | None = Non
         config = load_config(Path(config))
     if until is not None and until not in STAGE_NAMES[2:]:  # a Composition starts with the mapping
         raise ValueError(f"compose: unknown stage {until!r}; stages: {', '.join(STAGE_NAMES[2:])}")
-    last = STAGE_NAMES.index(until) if until is not None else len(STAGE_NAMES) - 1
-    total = last + 1
-    timings = {}
-    t_all = time.perf_counter()
+    clock = _StageClock(progress, STAGE_NAMES.index(until) if until is not None else len(STAGE_NAMES) - 1)
 
-    def done(stage, t0):
-        timings[stage] = round(time.perf_counter() - t0, 4)
-        if progress is not None:
-            progress(stage, STAGE_NAMES.index(stage) + 1, total)
-
-    t0 = time.perf_counter()
-    inputs = load_characters(config)
-    done("load", t0)
-
-    t0 = time.perf_counter()
-    plan = plan_operations(inputs, config)  # S_R, provenance, positioning
-    done("operations", t0)
-
-    t0 = time.perf_counter()
-    maps = map_bones(plan, score=config.mapping.score,
+    inputs = clock.run("load", load_characters, config)
+    plan = clock.run("operations", plan_operations, inputs, config)  # S_R, provenance, positioning
+    maps = clock.run("mapping", map_bones, plan, score=config.mapping.score,
                      injectivity_bonus=config.mapping.injectivity_bonus)  # B_i with confidence
-    done("mapping", t0)
-
     report = {"name": config.name, "config": config.source, "operations": plan.report,
-              "scales": {cid: float(s) for cid, s in plan.scales.items()}, "timings": timings}
+              "scales": {cid: float(s) for cid, s in plan.scales.items()},
+              "timings": {}}  # filled in on return
     comp = Composition(plan.skeleton, plan, maps, inputs, config, report=report)
+    comp = clock.stage("fusion", fusion_stage, comp)            # M_R
+    comp = clock.stage("weights", weights_stage, comp)          # W_R
+    comp = clock.stage("completion", completion_stage, comp)    # A_R
+    comp = clock.stage("assembly", assembly_stage, comp)        # the output character
+    comp = clock.stage("quality", quality_stage, comp)          # junction stretch under animation
+    return replace(comp, report={**comp.report, "timings": clock.timings()})
 
-    for name, stage in (("fusion", fusion_stage),            # M_R
-                        ("weights", weights_stage),          # W_R
-                        ("completion", completion_stage),    # A_R
-                        ("assembly", assembly_stage),        # the output character
-                        ("quality", quality_stage)):         # junction stretch under animation
-        if STAGE_NAMES.index(name) > last:
-            break
+
+class _StageClock:
+    """Times the stages of one :func:`compose` call, reports them to ``progress`` and skips
+    the stages after the last one asked for (``last``, an index of :data:`STAGE_NAMES`)."""
+
+    def __init__(self, progress: Progress | None, last: int):
+        self._progress = progress
+        self._last = last
+        self._seconds = {}
+        self._start = time.perf_counter()
+
+    def run(self, name: str, fn: Callable, *args, **kwargs):
+        """``fn(*args, **kwargs)``, timed as stage ``name``."""
         t0 = time.perf_counter()
-        comp = stage(comp, progress)
-        done(name, t0)
-    timings["total"] = round(time.perf_counter() - t_all, 4)
-    return replace(comp, report={**comp.report, "timings": timings})
+        out = fn(*args, **kwargs)
+        self._seconds[name] = round(time.perf_counter() - t0, 4)
+        if self._progress is not None:
+            self._progress(name, STAGE_NAMES.index(name) + 1, self._last + 1)
+        return out
+
+    def stage(self, name: str, fn: Callable[[Composition, Progress | None], Composition],
+              composition: Composition) -> Composition:
+        """``fn(composition, progress)`` timed as stage ``name``; ``composition`` itself when
+        ``name`` comes after the last stage asked for."""
+        if STAGE_NAMES.index(name) > self._last:
+            return composition
+        return self.run(name, fn, composition, self._progress)
+
+    def timings(self) -> dict:
+        """Seconds per stage run, in order, and ``total`` since the clock started."""
+        return {**self._seconds, "total": round(time.perf_counter() - self._start, 4)}
 
 
 def mapping_table(composition: Composition) -> list[dict]:
