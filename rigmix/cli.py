@@ -465,15 +465,14 @@ def _run_compose(args) -> int:
         if p is not None and not p.parent.is_dir():
             raise InputError(f"compose: the folder of {p} does not exist")
     config = load_config(args.config)
-    update = {}
+    weights, fusion = {}, {}
     if args.weights:
-        update["weights"] = {**(config.weights or {}), "method": args.weights}
+        weights["method"] = args.weights
     if args.no_feature_field:
-        update["weights"] = {**update.get("weights", config.weights or {}), "feature_field": False}
+        weights["feature_field"] = False
     if args.dump_fields:
-        update["fusion"] = {**(config.fusion or {}), "keep_fields": True}
-    if update:
-        config = config.model_copy(update=update)
+        fusion["keep_fields"] = True
+    config = config.with_options(weights=weights, fusion=fusion)
     with tqdm(total=len(STAGE_NAMES), desc="compose", unit="stage", disable=args.no_progress, file=sys.stderr,
               leave=False) as bar:
         def progress(stage, done, total):

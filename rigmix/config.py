@@ -27,6 +27,18 @@ error naming the key), or a :class:`Config` built in code. ``rigmix schema`` pri
     target_joint = "Neck1"
     mode = "blend"                        # replace only: blend | union
 
+    [fusion]                              # rigmix.fusion.FusionParams
+    voxel_factor = 0.8
+    [weights]                             # rigmix.weights.WeightParams
+    method = "dfd"
+    [animation]                           # rigmix.animation.CompletionOptions
+    jump_penalty = 0.2
+
+The ``[fusion]``, ``[weights]`` and ``[animation]`` sections are built from the parameter
+dataclasses of their stages (:class:`FusionOptions`, :class:`WeightOptions`,
+:class:`AnimationOptions`): the same fields and defaults, with types and ranges checked at load;
+``to_params()`` gives the stage its dataclass.
+
 Paths: relative paths are resolved against the config file's folder (or
 :meth:`Config.with_base_dir`); ``${NAME}`` is replaced by the environment variable ``NAME``,
 and ``${RIGMIX_ASSETS}`` defaults to ``../shared/data/characters`` beside the repository.
@@ -35,17 +47,26 @@ and ``${RIGMIX_ASSETS}`` defaults to ``../shared/data/characters`` beside the re
 
 from __future__ import annotations
 
+import collections.abc
+import dataclasses
 import difflib
+import inspect
 import json
 import os
 import re
 import tomllib
+import types
+import typing
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, ClassVar, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, StrictBool, ValidationError, model_validator
+from pydantic import (BaseModel, ConfigDict, Field, PrivateAttr, Strict, StrictBool, ValidationError, create_model,
+                      model_validator)
 
+from .animation.completion import CompletionOptions
 from .errors import InputError
+from .fusion import FusionParams
+from .weights.params import WeightParams
 
 __all__ = [
     "JointRotation",
@@ -57,6 +78,13 @@ __all__ = [
     "Action",
     "MappingOptions",
     "PositioningOptions",
+    "FusionOptions",
+    "WeightOptions",
+    "AnimationOptions",
+    "FUSION_RANGES",
+    "WEIGHT_RANGES",
+    "ANIMATION_RANGES",
+    "FUSION_TYPES",
     "Config",
     "load_config",
     "parse_config",
@@ -223,6 +251,186 @@ class PositioningOptions(BaseModel):
         True, description="Move each source character so that its fused joints land on their targets.")
 
 
+# -- the stage sections: pydantic models built from the stages' parameter dataclasses ----------
+# Each dataclass field needs an entry: the bounds of its number(s) (pydantic ``Field``
+# constraints, applied to the number of an optional or to each item of a tuple), ``{}`` for none.
+# The field's type, default and description come from the dataclass.
+
+#: Bounds of the ``[fusion]`` options (:class:`rigmix.fusion.FusionParams`).
+FUSION_RANGES: dict[str, dict] = {
+    "snap": {"ge": 0, "le": 1},
+    "smooth_iterations": {"ge": 0},
+    "smooth_alpha": {"ge": 0, "le": 1},
+    "preserve_threshold": {"gt": 0, "le": 1},
+    "morphology_rounds": {"ge": 0},
+    "secondary_variance": {"ge": 0},
+    "voxel_factor": {"gt": 0},
+    "min_voxels_across": {"ge": 1},
+    "max_voxel_diagonal": {"ge": 0},
+    "margin_voxels": {"ge": 0},
+    "band_voxels": {"gt": 0},
+    "max_voxels": {"ge": 1},
+    "cut_voxels": {"ge": 0},
+    "attach_conflict_voxels": {"ge": 0},
+    "remesh_iterations": {"ge": 0},
+    "target_edge_factor": {"gt": 0},
+    "taubin_iterations": {"ge": 0},
+    "project_voxels": {"ge": 0},
+    "fidelity_voxels": {"ge": 0},
+    "fidelity_diagonal": {"ge": 0},
+    "feature_rounds": {"ge": 0},
+    "fidelity_relax": {"gt": 0},
+    "relax_max_angle_loss": {"ge": 0},
+    "keep_input_corners": {},
+    "min_angle_p05": {"ge": 0, "le": 60},
+    "min_seam_wedge": {"ge": 0, "le": 360},
+    "min_island_faces": {"ge": 0},
+    "snap_input_vertices": {},
+    "collapse_poor": {},
+    "copy_coincident": {},
+    "bridge_recuts": {"ge": 0},
+    "untangle_move": {"ge": 0},
+    "backend": {},
+    "keep_fields": {},
+}
+
+#: Types of the ``[fusion]`` options that :class:`rigmix.fusion.FusionParams` leaves loose.
+FUSION_TYPES = {
+    "fidelity_relax": tuple[float, ...],
+    "backend": Literal["auto", "numpy", "numpy-igl", "openvdb"],  # rigmix.fusion.get_backend
+}
+
+#: Bounds of the ``[weights]`` options (:class:`rigmix.weights.WeightParams`).
+WEIGHT_RANGES: dict[str, dict] = {
+    "method": {},
+    "max_influences": {"ge": 1},
+    "match_distance": {"ge": 0},
+    "match_angle": {"ge": 0, "le": 180},
+    "match_on_surface": {"ge": 0},
+    "min_confidence": {"ge": 0, "le": 1},
+    "locality": {"ge": 0},
+    "locality_power": {"gt": 0},
+    "feature_field": {},
+    "blend": {},
+    "smoothing": {"ge": 0},
+    "seam_spread": {"ge": 0},
+    "seam_rings": {"ge": 0},
+    "iterations": {"ge": 0},
+    "mirror_tol": {"ge": 0},
+    "strength": {"ge": 0},
+    "bone_prior": {"ge": 0, "le": 1},
+    "field_cache": {},
+    "distill_options": {},
+}
+
+#: Bounds of the ``[animation]`` options (:class:`rigmix.animation.CompletionOptions`).
+ANIMATION_RANGES: dict[str, dict] = {
+    "clips": {},
+    "sources": {},
+    "fps": {"gt": 0},
+    "rotation_weight": {"ge": 0},
+    "translation_weight": {"ge": 0},
+    "continuity": {"ge": 0},
+    "hops_full": {"ge": 0},
+    "hops_max": {"ge": 0},
+    "metric": {},
+    "jump_penalty": {"ge": 0},
+    "smoothing": {"ge": 0},
+    "blend_frames": {"ge": 0},
+    "confidence_blend": {},
+    "score_dtype": {},
+    "fixed_frames": {},
+    "rest_mismatch": {"ge": 0, "le": 180},
+}
+
+_SCALARS = (bool, int, float, str)
+
+
+def _bounded(tp, bounds: dict):
+    """``tp`` with strict scalars (no ``"1"`` for 1, no 1.5 or true for an int) and ``bounds``
+    on its number: a scalar, the scalar of an optional, or the items of ``tuple[X, ...]``."""
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if tp in _SCALARS:
+        return Annotated[tp, Strict(), Field(**bounds)] if bounds else Annotated[tp, Strict()]
+    if origin in (Union, types.UnionType):
+        return Union[tuple(a if a is type(None) else _bounded(a, bounds) for a in args)]
+    if origin is tuple and len(args) == 2 and args[1] is Ellipsis:
+        return tuple[_bounded(args[0], bounds), ...]
+    if bounds:
+        raise TypeError(f"bounds {bounds} given for a {tp} option")
+    return tp
+
+
+def _attribute_docs(cls) -> dict[str, str]:
+    """The description of each field in the ``Attributes`` section of ``cls``'s docstring.
+
+    An entry is ``name[, name...] : text`` followed by indented lines. When every entry has
+    indented lines (numpydoc), ``text`` is the type and the indented lines the description;
+    otherwise the entry's text and its lines together are the description.
+    """
+    doc = inspect.getdoc(cls) or ""
+    _, _, section = doc.partition("Attributes\n----------\n")
+    entries = []  # (names, head, body lines)
+    for line in section.splitlines():
+        head = re.fullmatch(r"(\w+(?:, \w+)*) : (.*)", line)
+        if head:
+            entries.append((head.group(1).split(", "), head.group(2).strip(), []))
+        elif line.startswith(" ") and entries:
+            entries[-1][2].append(line.strip())
+        elif line.strip():
+            break  # the next section
+    numpydoc = all(body for _, _, body in entries)
+    out = {}
+    for names, head, body in entries:
+        text = " ".join(body if numpydoc else [head, *body])
+        out.update(dict.fromkeys(names, text))
+    return out
+
+
+class _ParamsSection(BaseModel):
+    """A config section with the fields of a stage's parameter dataclass (``PARAMS``)."""
+
+    model_config = _STRICT
+    PARAMS: ClassVar[type]
+
+    def to_params(self):
+        """The section as the stage's parameter dataclass (``PARAMS``)."""
+        return self.PARAMS(**{name: getattr(self, name) for name in type(self).model_fields})
+
+    @model_validator(mode="after")
+    def _params_accept(self):
+        try:  # the dataclass's own checks across fields (e.g. hops_max >= hops_full)
+            self.to_params()
+        except InputError as e:
+            raise ValueError(str(e)) from None
+        return self
+
+
+def _section_model(name: str, params: type, bounds: dict[str, dict], types_: dict | None = None):
+    """A :class:`_ParamsSection` named ``name`` with the fields of the dataclass ``params``:
+    its types (or ``types_[field]``) made strict and bounded by ``bounds[field]``, its defaults,
+    and the descriptions of its docstring."""
+    hints = typing.get_type_hints(params)
+    docs = _attribute_docs(params)
+    fields = {}
+    for f in dataclasses.fields(params):
+        tp = _bounded((types_ or {}).get(f.name, hints[f.name]), bounds.get(f.name, {}))
+        if f.default is dataclasses.MISSING:
+            info = Field(default_factory=f.default_factory, description=docs.get(f.name))
+        else:
+            info = Field(f.default, description=docs.get(f.name))
+        fields[f.name] = (tp, info)
+    doc = f"The options of :class:`{params.__module__}.{params.__qualname__}`, checked at load."
+    model = create_model(name, __base__=_ParamsSection, __doc__=doc, __module__=__name__, **fields)
+    model.PARAMS = params
+    return model
+
+
+FusionOptions = _section_model("FusionOptions", FusionParams, FUSION_RANGES, FUSION_TYPES)
+WeightOptions = _section_model("WeightOptions", WeightParams, WEIGHT_RANGES)
+AnimationOptions = _section_model("AnimationOptions", CompletionOptions, ANIMATION_RANGES)
+
+
 class Config(BaseModel):
     """A composition: input characters and the actions on their skeletons.
 
@@ -239,10 +447,14 @@ class Config(BaseModel):
     actions: list[Action] = Field(default_factory=list, description="Actions, applied together.")
     mapping: MappingOptions = Field(default_factory=MappingOptions)
     positioning: PositioningOptions = Field(default_factory=PositioningOptions)
-    # Options of the later stages, validated (unknown keys rejected) by the stage that reads them.
-    fusion: dict[str, Any] | None = Field(None, description="Surface fusion options (rigmix.fusion).")
-    weights: dict[str, Any] | None = Field(None, description="Skin weight options (rigmix.weights).")
-    animation: dict[str, Any] | None = Field(None, description="Animation completion options (rigmix.animation.completion).")
+    fusion: FusionOptions = Field(default_factory=FusionOptions,
+                                  description="Surface fusion options (rigmix.fusion.FusionParams).")
+    weights: WeightOptions = Field(default_factory=WeightOptions,
+                                   description="Skin weight options (rigmix.weights.WeightParams).")
+    animation: AnimationOptions = Field(
+        default_factory=AnimationOptions,
+        description="Animation completion options (rigmix.animation.CompletionOptions); `fixed_frames` "
+                    "is a list of tables with the fields of rigmix.animation.completion.FixedFrame.")
 
     _base_dir: Path | None = PrivateAttr(default=None)
     _source: str = PrivateAttr(default="")
@@ -258,6 +470,26 @@ class Config(BaseModel):
                         f"actions[{i}].{key}: unknown character {cid!r}; "
                         f"known: {', '.join(ids)}{_closest_hint(cid, ids)}")
         return self
+
+    def with_options(self, **sections: dict) -> "Config":
+        """A copy with options of the stage sections overridden, checked like the file's.
+
+        ``config.with_options(weights={"method": "nearest"})`` keeps the other ``[weights]``
+        options; the copy keeps the base folder and the source.
+
+        Raises
+        ------
+        InputError
+            Naming the section and key of an unknown option or an invalid value.
+        """
+        update = {}
+        for name, options in sections.items():
+            current = getattr(self, name)
+            try:
+                update[name] = type(current).model_validate({**current.model_dump(), **options})
+            except ValidationError as e:
+                raise InputError(f"config {self.source}: {_error_text(e, prefix=(name,))}") from None
+        return self.model_copy(update=update)
 
     # -- where the config came from -------------------------------------------------------
     def with_base_dir(self, base_dir, source: str = "") -> "Config":
@@ -353,12 +585,59 @@ def _loc(loc) -> str:
     return out
 
 
-def _error_text(err: ValidationError) -> str:
+def _unwrap(tp):
+    """``tp`` without ``Annotated`` and ``None`` in a union."""
+    while True:
+        if typing.get_origin(tp) is Annotated:
+            tp = typing.get_args(tp)[0]
+        elif typing.get_origin(tp) in (Union, types.UnionType):
+            args = [a for a in typing.get_args(tp) if a is not type(None)]
+            if len(args) != 1:
+                return tp
+            tp = args[0]
+        else:
+            return tp
+
+
+def _keys_of(tp) -> list[str]:
+    """The keys a model or dataclass type takes (none for another type)."""
+    if isinstance(tp, type) and issubclass(tp, BaseModel):
+        return list(tp.model_fields)
+    if dataclasses.is_dataclass(tp):
+        return [f.name for f in dataclasses.fields(tp)]
+    return []
+
+
+def _known_keys(loc) -> list[str]:
+    """The keys known where a validation error located at ``loc`` found an unknown one."""
+    tp = Config
+    for part in loc[:-1]:
+        tp = _unwrap(tp)
+        origin, args = typing.get_origin(tp), typing.get_args(tp)
+        if origin in (Union, types.UnionType):  # a discriminated union: ``part`` is the tag
+            tp = next((a for a in args if part in typing.get_args(_unwrap(getattr(
+                getattr(a, "model_fields", {}).get("op"), "annotation", None)))), None)
+        elif origin in (dict, collections.abc.Mapping) and args:
+            tp = args[-1]  # ``part`` is a key of the mapping
+        elif origin in (list, tuple) and args:
+            tp = args[0]  # ``part`` is an index
+        elif isinstance(tp, type) and issubclass(tp, BaseModel) and part in tp.model_fields:
+            tp = tp.model_fields[part].annotation
+        elif dataclasses.is_dataclass(tp) and part in {f.name for f in dataclasses.fields(tp)}:
+            tp = typing.get_type_hints(tp)[part]
+        else:
+            return []
+    return _keys_of(_unwrap(tp))
+
+
+def _error_text(err: ValidationError, prefix: tuple = ()) -> str:
+    """One line naming each offending key (``prefix`` + pydantic's location) and the problem."""
     parts = []
     for e in err.errors():
-        loc = _loc(e["loc"])
-        if e["type"] == "extra_forbidden":
-            parts.append(f"{loc}: unknown key")
+        loc = _loc(prefix + tuple(e["loc"]))
+        if e["type"] in ("extra_forbidden", "unexpected_keyword_argument"):
+            key = prefix + tuple(e["loc"])
+            parts.append(f"{loc}: unknown key{_closest_hint(str(key[-1]), _known_keys(key))}")
         else:
             msg = " ".join(e["msg"].removeprefix("Value error, ").splitlines())
             parts.append(f"{loc}: {msg}" if loc else msg)

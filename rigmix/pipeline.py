@@ -13,9 +13,10 @@ Reads like the paper's overview (PIPELINE.md):
 8. quality figures (:func:`rigmix.quality.junction_stretch_ratio`,
    :func:`rigmix.quality.junction_weight_roughness`).
 
-Each stage is one explicit call in :func:`compose`; stage functions take a
-:class:`Composition` and return ``dataclasses.replace(composition, ...)`` with their results
-(typed fields and entries of ``report``); they never mutate their input.
+Each stage is one explicit call in :func:`compose`. The stage adapters (``*_stage``) all live
+here: each takes a :class:`Composition`, reads its options from the config's typed section
+(checked at load, :mod:`rigmix.config`), and returns ``dataclasses.replace(composition, ...)``
+with its results (typed fields and entries of ``report``); none mutates its input.
 """
 
 from __future__ import annotations
@@ -25,16 +26,20 @@ import time
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
-from .character import Character, Skeleton
+from .character import Character, Clip, Skeleton
 from .config import BUILTIN_PREFIX, Config, check_files, load_config
 from .errors import InputError
 from .mapping import map_bones
 from .operations import Plan, plan_operations
 
+if TYPE_CHECKING:  # the annotations of Composition; the stages import their packages on use
+    from .fusion import FusedSurface, FusionInput
+    from .weights import SkinWeights
+
 __all__ = ["Composition", "Progress", "STAGE_NAMES", "load_characters", "compose", "mapping_table",
-           "fusion_stage", "weights_stage", "assembly_stage", "quality_stage"]
+           "fusion_stage", "weights_stage", "completion_stage", "assembly_stage", "quality_stage"]
 
 logger = logging.getLogger(__name__)
 
@@ -78,11 +83,11 @@ class Composition:
     maps: dict
     inputs: dict
     config: Config
-    fusion_inputs: tuple = ()
-    fusion_ids: tuple = ()
-    surface: object | None = None
-    weights: object | None = None
-    clips: tuple | None = None
+    fusion_inputs: tuple[FusionInput, ...] = ()
+    fusion_ids: tuple[str, ...] = ()
+    surface: FusedSurface | None = None
+    weights: SkinWeights | None = None
+    clips: tuple[Clip, ...] | None = None
     character: Character | None = None
     report: dict = field(default_factory=dict)
 
@@ -91,50 +96,58 @@ class Composition:
 STAGE_NAMES = ("load", "operations", "mapping", "fusion", "weights", "completion", "assembly", "quality")
 
 
-def _options(section) -> dict:
-    return dict(section or {})
-
-
 def fusion_stage(composition: Composition, progress: Progress | None = None) -> Composition:
-    """M_R: the fused rest surface (options from the config's ``[fusion]`` section).
+    """M_R: the fused rest surface (options: the config's ``[fusion]`` section).
 
     Returns the composition with ``fusion_inputs``, ``fusion_ids``,
     ``surface`` (:class:`rigmix.fusion.FusedSurface`) and ``report["mesh"]``,
     ``report["fields"]``.
     """
-    from .fusion import FusionParams, fuse_surfaces
+    from .fusion import fuse_surfaces
     from .fusion.inputs import fusion_inputs_from_plan
 
-    opts = _options(composition.config.fusion)
-    known = set(FusionParams.__dataclass_fields__)
-    bad = sorted(set(opts) - known)
-    if bad:
-        raise InputError(f"config {composition.config.source}: [fusion] has unknown option(s) {bad}; "
-                         f"known: {sorted(known)}")
     inputs, actions, ids = fusion_inputs_from_plan(composition.plan)
-    surface = fuse_surfaces(inputs, actions, params=FusionParams(**opts))
+    surface = fuse_surfaces(inputs, actions, params=composition.config.fusion.to_params())
     report = {**composition.report, "mesh": surface.report["mesh"], "fields": surface.report["fields"]}
     return replace(composition, fusion_inputs=tuple(inputs), fusion_ids=tuple(ids), surface=surface, report=report)
 
 
 def weights_stage(composition: Composition, progress: Progress | None = None) -> Composition:
-    """W_R on the fused surface (options from the config's ``[weights]`` section).
+    """W_R on the fused surface (options: the config's ``[weights]`` section).
 
     Returns the composition with ``weights`` (:class:`rigmix.weights.SkinWeights`)
     and ``report["weights"]``.
     """
-    from .weights import WeightParams, blend_weights
+    from .weights import blend_weights
 
-    opts = _options(composition.config.weights)
-    ids = composition.fusion_ids
-    try:
-        skin = blend_weights(composition.surface, composition.fusion_inputs,
-                             [composition.maps[cid] for cid in ids], composition.skeleton.num_joints,
-                             skeleton=composition.skeleton, params=WeightParams(**opts))
-    except TypeError as e:  # an unknown option name in the config
-        raise InputError(f"config {composition.config.source}: [weights]: {e}") from None
+    maps = [composition.maps[cid] for cid in composition.fusion_ids]
+    skin = blend_weights(composition.surface, composition.fusion_inputs, maps, composition.skeleton.num_joints,
+                         skeleton=composition.skeleton, params=composition.config.weights.to_params())
     return replace(composition, weights=skin,
                    report={**composition.report, "weights": skin.report})
+
+
+def completion_stage(composition: Composition, progress: Progress | None = None) -> Composition:
+    """A_R: the clips of S_R (options: the config's ``[animation]`` section).
+
+    Completes the clips of the inputs as loaded (rest-relative deltas carry them onto S_R,
+    whatever scale and rest pose the positioning chose), with the plan's provenance less the
+    replaced limb roots whose rest bones disagree
+    (:func:`rigmix.animation.completion.completion_provenance`).
+
+    Returns the composition with ``clips`` (tuple of Clip on S_R) and ``report["animation"]``.
+    """
+    from .animation.completion import complete_clips, completion_provenance
+
+    options = composition.config.animation.to_params()
+    plan = composition.plan
+    clips = complete_clips(plan.skeleton, composition.inputs, composition.maps,
+                           options=options, provenance=completion_provenance(plan, options.rest_mismatch))
+    report = {"clips": [c.name for c in clips], "fps": options.fps,
+              "frames": [int(len(c.tracks[0].times)) if c.tracks else 0 for c in clips],
+              "jump_penalty": options.jump_penalty, "metric": options.metric}
+    return replace(composition, clips=tuple(clips),
+                   report={**composition.report, "animation": report})
 
 
 def assembly_stage(composition: Composition, progress: Progress | None = None) -> Composition:
@@ -235,47 +248,54 @@ def compose(config, *, progress: Progress | None = None, until: str | None = Non
         config = load_config(Path(config))
     if until is not None and until not in STAGE_NAMES[2:]:  # a Composition starts with the mapping
         raise ValueError(f"compose: unknown stage {until!r}; stages: {', '.join(STAGE_NAMES[2:])}")
-    last = STAGE_NAMES.index(until) if until is not None else len(STAGE_NAMES) - 1
-    total = last + 1
-    timings = {}
-    t_all = time.perf_counter()
+    clock = _StageClock(progress, STAGE_NAMES.index(until) if until is not None else len(STAGE_NAMES) - 1)
 
-    def done(stage, t0):
-        timings[stage] = round(time.perf_counter() - t0, 4)
-        if progress is not None:
-            progress(stage, STAGE_NAMES.index(stage) + 1, total)
-
-    t0 = time.perf_counter()
-    inputs = load_characters(config)
-    done("load", t0)
-
-    t0 = time.perf_counter()
-    plan = plan_operations(inputs, config)  # S_R, provenance, positioning
-    done("operations", t0)
-
-    t0 = time.perf_counter()
-    maps = map_bones(plan, score=config.mapping.score,
+    inputs = clock.run("load", load_characters, config)
+    plan = clock.run("operations", plan_operations, inputs, config)  # S_R, provenance, positioning
+    maps = clock.run("mapping", map_bones, plan, score=config.mapping.score,
                      injectivity_bonus=config.mapping.injectivity_bonus)  # B_i with confidence
-    done("mapping", t0)
-
     report = {"name": config.name, "config": config.source, "operations": plan.report,
-              "scales": {cid: float(s) for cid, s in plan.scales.items()}, "timings": timings}
+              "scales": {cid: float(s) for cid, s in plan.scales.items()},
+              "timings": {}}  # filled in on return
     comp = Composition(plan.skeleton, plan, maps, inputs, config, report=report)
+    comp = clock.stage("fusion", fusion_stage, comp)            # M_R
+    comp = clock.stage("weights", weights_stage, comp)          # W_R
+    comp = clock.stage("completion", completion_stage, comp)    # A_R
+    comp = clock.stage("assembly", assembly_stage, comp)        # the output character
+    comp = clock.stage("quality", quality_stage, comp)          # junction stretch under animation
+    return replace(comp, report={**comp.report, "timings": clock.timings()})
 
-    from .animation.completion import completion_stage
 
-    for name, stage in (("fusion", fusion_stage),            # M_R
-                        ("weights", weights_stage),          # W_R
-                        ("completion", completion_stage),    # A_R
-                        ("assembly", assembly_stage),        # the output character
-                        ("quality", quality_stage)):         # junction stretch under animation
-        if STAGE_NAMES.index(name) > last:
-            break
+class _StageClock:
+    """Times the stages of one :func:`compose` call, reports them to ``progress`` and skips
+    the stages after the last one asked for (``last``, an index of :data:`STAGE_NAMES`)."""
+
+    def __init__(self, progress: Progress | None, last: int):
+        self._progress = progress
+        self._last = last
+        self._seconds = {}
+        self._start = time.perf_counter()
+
+    def run(self, name: str, fn: Callable, *args, **kwargs):
+        """``fn(*args, **kwargs)``, timed as stage ``name``."""
         t0 = time.perf_counter()
-        comp = stage(comp, progress)
-        done(name, t0)
-    timings["total"] = round(time.perf_counter() - t_all, 4)
-    return replace(comp, report={**comp.report, "timings": timings})
+        out = fn(*args, **kwargs)
+        self._seconds[name] = round(time.perf_counter() - t0, 4)
+        if self._progress is not None:
+            self._progress(name, STAGE_NAMES.index(name) + 1, self._last + 1)
+        return out
+
+    def stage(self, name: str, fn: Callable[[Composition, Progress | None], Composition],
+              composition: Composition) -> Composition:
+        """``fn(composition, progress)`` timed as stage ``name``; ``composition`` itself when
+        ``name`` comes after the last stage asked for."""
+        if STAGE_NAMES.index(name) > self._last:
+            return composition
+        return self.run(name, fn, composition, self._progress)
+
+    def timings(self) -> dict:
+        """Seconds per stage run, in order, and ``total`` since the clock started."""
+        return {**self._seconds, "total": round(time.perf_counter() - self._start, 4)}
 
 
 def mapping_table(composition: Composition) -> list[dict]:

@@ -516,7 +516,8 @@ def test_completion_stage_on_the_builtin_centaur(builtin_centaur):
     """The stage as the pipeline runs it, on examples/centaur.toml (built-in characters)."""
     import dataclasses
 
-    from rigmix.animation.completion import completion_stage, options_from_config
+    from rigmix.config import AnimationOptions
+    from rigmix.pipeline import completion_stage
 
     comp = builtin_centaur
     out = completion_stage(comp)
@@ -527,16 +528,13 @@ def test_completion_stage_on_the_builtin_centaur(builtin_centaur):
     for x, f in figs.items():
         assert f["mean_ratio"] is None or f["mean_ratio"] <= 2.0, (x, f)
     # options from a config section
-    opts = options_from_config({"jump_penalty": 0.1, "fixed_frames": [
+    opts = AnimationOptions.model_validate({"jump_penalty": 0.1, "fixed_frames": [
         {"character": "body", "clip": "walk", "frame": 0, "source": "rider", "source_clip": "idle",
-         "source_frame": 0}]})
+         "source_frame": 0}]}).to_params()
     assert opts.jump_penalty == 0.1 and isinstance(opts.fixed_frames[0], FixedFrame)
-    with pytest.raises(InputError, match="unknown animation option"):
-        options_from_config({"jump": 1})
-    bad = dataclasses.replace(comp, config=comp.config.model_copy(update={"animation": {"jump": 1}}))
-    with pytest.raises(InputError, match=r"\[animation\].*unknown animation option"):
-        completion_stage(bad)
-    assert dataclasses.asdict(options_from_config(None)) == dataclasses.asdict(CompletionOptions())
+    with pytest.raises(InputError, match=r"animation\.jump: unknown key"):  # at load, before any stage
+        comp.config.with_options(animation={"jump": 1})
+    assert dataclasses.asdict(AnimationOptions().to_params()) == dataclasses.asdict(CompletionOptions())
 
 
 def test_a_static_input_leaves_the_clips_own_mapped_pose(fox, caplog):
@@ -575,7 +573,8 @@ def test_replaced_limb_root_is_completed_when_the_rest_bones_disagree():
     import dataclasses
 
     import rigmix
-    from rigmix.animation.completion import completion_stage, limb_roots_to_complete
+    from rigmix.animation.completion import limb_roots_to_complete
+    from rigmix.pipeline import completion_stage
 
     examples = Path(__file__).parent.parent / "examples"
     comp = rigmix.compose(examples / "beast_arms.toml", until="mapping")
@@ -596,7 +595,7 @@ def test_replaced_limb_root_is_completed_when_the_rest_bones_disagree():
         return np.degrees(quat_angle(rest, R[:, j]))  # off the rest rotation, per frame
 
     new = arm_swing(completion_stage(comp))
-    old_cfg = comp.config.model_copy(update={"animation": {"rest_mismatch": 180.0}})
+    old_cfg = comp.config.with_options(animation={"rest_mismatch": 180.0})
     old = arm_swing(completion_stage(dataclasses.replace(comp, config=old_cfg)))
     assert old.min() > 60.0, old.min()  # the human's lowered T-pose arm on the hanging leg
     assert new.max() < 45.0, new.max()  # the quadruped's own walk swing

@@ -225,3 +225,131 @@ def test_error_naming_an_odd_key_stays_on_one_line():
         parse_config({"characters": {"\n": None}}, source="odd.toml")
     message = str(info.value)
     assert "odd.toml" in message and "\n" not in message and '"\\n"' in message
+
+
+# --------------------------------------------------------------------------------------------
+# The stage sections: [fusion], [weights], [animation]
+# --------------------------------------------------------------------------------------------
+
+SECTIONS = [("fusion", "FusionParams", "FUSION_RANGES"), ("weights", "WeightParams", "WEIGHT_RANGES"),
+            ("animation", "CompletionOptions", "ANIMATION_RANGES")]
+
+
+def _params_class(name):
+    import rigmix.animation
+    import rigmix.fusion
+    import rigmix.weights
+
+    return {"FusionParams": rigmix.fusion.FusionParams, "WeightParams": rigmix.weights.WeightParams,
+            "CompletionOptions": rigmix.animation.CompletionOptions}[name]
+
+
+@pytest.mark.parametrize("section, params, ranges", SECTIONS)
+def test_every_stage_option_has_a_range_entry(section, params, ranges):
+    import dataclasses
+
+    import rigmix.config
+
+    names = [f.name for f in dataclasses.fields(_params_class(params))]
+    assert sorted(getattr(rigmix.config, ranges)) == sorted(names)
+
+
+@pytest.mark.parametrize("section, params, ranges", SECTIONS)
+def test_absent_section_gives_the_dataclass_defaults(section, params, ranges):
+    cfg = parse_config({"characters": {"a": {"path": "x"}}})
+    assert getattr(cfg, section).to_params() == _params_class(params)()
+
+
+@pytest.mark.parametrize("text, words", [
+    ("[weights]\nsmothing = 30\n", ["weights.smothing: unknown key", "closest: smoothing"]),
+    ("[fusion]\nvoxel_factr = 1.0\n", ["fusion.voxel_factr: unknown key", "closest: voxel_factor"]),
+    ("[animation]\njump_penalt = 0.1\n", ["animation.jump_penalt: unknown key", "closest: jump_penalty"]),
+    ('[animation]\nfixed_frames = [{character = "a", clip = "c", frame = 0, source = "a", source_clip = "c", '
+     'source_fram = 0}]\n', ["animation.fixed_frames[0].source_fram: unknown key", "closest: source_frame"]),
+    ('[weights]\nsmoothing = "30"\n', ["weights.smoothing", "valid integer"]),
+    ("[weights]\nmax_influences = 2.5\n", ["weights.max_influences", "valid integer"]),
+    ("[fusion]\nkeep_input_corners = 1\n", ["fusion.keep_input_corners", "valid boolean"]),
+    ("[fusion]\nsmooth_iterations = true\n", ["fusion.smooth_iterations", "valid integer"]),
+    ('[animation]\nfps = "30"\n', ["animation.fps", "valid number"]),
+    ('[animation]\nclips = { a = "walk" }\n', ["animation.clips.a"]),
+    ("[weights]\nmin_confidence = 1.5\n", ["weights.min_confidence", "less than or equal to 1"]),
+    ("[weights]\nmax_influences = 0\n", ["weights.max_influences", "greater than or equal to 1"]),
+    ("[fusion]\nvoxel_factor = 0\n", ["fusion.voxel_factor", "greater than 0"]),
+    ("[fusion]\nsmooth_iterations = -1\n", ["fusion.smooth_iterations", "greater than or equal to 0"]),
+    ("[fusion]\nfidelity_relax = [4.0, -1]\n", ["fusion.fidelity_relax[1]", "greater than 0"]),
+    ('[fusion]\nbackend = "vdb"\n', ["fusion.backend", "'openvdb'"]),
+    ("[fusion]\nmargin_voxels = nan\n", ["fusion.margin_voxels", "finite number"]),
+    ("[animation]\nfps = 0\n", ["animation.fps", "greater than 0"]),
+    ("[animation]\nrest_mismatch = 181\n", ["animation.rest_mismatch", "less than or equal to 180"]),
+    ("[animation]\nhops_full = 4\nhops_max = 3\n", ["animation", "hops_max must be >= hops_full"]),
+])
+def test_invalid_stage_options_fail_at_load(tmp_path, text, words):
+    (tmp_path / "a.glb").write_bytes(b"")
+    p = write(tmp_path, '[characters.a]\npath = "a.glb"\n' + text, "bad.toml")
+    with pytest.raises(InputError) as e:
+        load_config(p)
+    msg = str(e.value)
+    assert "bad.toml" in msg and "\n" not in msg
+    for w in words:
+        assert w in msg
+
+
+def test_stage_options_reach_the_dataclasses(tmp_path):
+    from rigmix.animation.completion import FixedFrame
+
+    (tmp_path / "a.glb").write_bytes(b"")
+    p = write(tmp_path, """[characters.a]
+path = "a.glb"
+[fusion]
+voxel_factor = 1
+fidelity_relax = [2, 4.5]
+[weights]
+method = "inpaint"
+smoothing = 30
+[animation]
+continuity = [0.3]
+clips = { a = ["walk"] }
+fixed_frames = [{character = "a", clip = "walk", frame = 0, source = "a", source_clip = "walk", source_frame = 2}]
+""")
+    cfg = load_config(p)
+    fusion, weights, animation = cfg.fusion.to_params(), cfg.weights.to_params(), cfg.animation.to_params()
+    assert fusion.voxel_factor == 1.0 and fusion.fidelity_relax == (2.0, 4.5)
+    assert weights.method == "inpaint" and weights.smoothing == 30 and weights.max_influences == 4
+    assert animation.continuity == (0.3,) and animation.clips == {"a": ["walk"]}
+    assert animation.fixed_frames == (FixedFrame("a", "walk", 0, "a", "walk", 2),)
+
+
+def test_with_options_overrides_and_checks(tmp_path):
+    (tmp_path / "a.glb").write_bytes(b"")
+    cfg = load_config(write(tmp_path, '[characters.a]\npath = "a.glb"\n[weights]\nsmoothing = 3\n'))
+    out = cfg.with_options(weights={"method": "nearest"}, fusion={"keep_fields": True})
+    assert out.weights.method == "nearest" and out.weights.smoothing == 3 and out.fusion.keep_fields
+    assert out.source == cfg.source and out.base_dir == cfg.base_dir
+    assert cfg.weights.method == "dfd"  # the original is unchanged
+    with pytest.raises(InputError, match=r"c\.toml: weights\.smothing: unknown key \(closest: smoothing"):
+        cfg.with_options(weights={"smothing": 1})
+
+
+def test_schema_documents_every_stage_option():
+    import dataclasses
+
+    s = config_schema()
+    for section, params, _ in SECTIONS:
+        ref = s["properties"][section]["$ref"].rsplit("/", 1)[1]
+        props = s["$defs"][ref]["properties"]
+        names = [f.name for f in dataclasses.fields(_params_class(params))]
+        assert sorted(props) == sorted(names), section
+        missing = [n for n in names if not props[n].get("description")]
+        assert not missing, (section, missing)
+
+
+def test_cli_unknown_stage_option_exits_2(tmp_path, capsys):
+    from rigmix.cli import main
+
+    for section, key, closest in [("weights", "smothing", "smoothing"), ("fusion", "voxel_factr", "voxel_factor"),
+                                  ("animation", "jump_penalt", "jump_penalty")]:
+        p = write(tmp_path, f'[characters.a]\npath = "builtin:humanoid"\n[{section}]\n{key} = 30\n', "typo.toml")
+        assert main(["compose", str(p), "-o", str(tmp_path / "out.glb"), "--no-progress"]) == 2
+        err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("rigmix: error:")]
+        assert len(err) == 1 and f"{section}.{key}: unknown key" in err[0] and f"closest: {closest}" in err[0]
+        assert not (tmp_path / "out.glb").exists()

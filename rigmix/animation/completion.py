@@ -47,7 +47,6 @@ Choices where the method leaves room (all options of :class:`CompletionOptions`)
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from dataclasses import dataclass, field
 from typing import Literal, Mapping, Sequence
@@ -68,8 +67,6 @@ __all__ = [
     "FixedFrame",
     "CompletionOptions",
     "complete_clips",
-    "options_from_config",
-    "completion_stage",
     # the kernels, re-exported
     "map_pose",
     "global_rotations",
@@ -448,29 +445,6 @@ def _to_clip(name, times, T, R, S):
     return Clip(name, tuple(tracks))
 
 
-def options_from_config(section) -> CompletionOptions:
-    """:class:`CompletionOptions` from a config section (pydantic model, mapping or None).
-
-    Unknown keys are an :class:`InputError` naming them and the known ones; fixed frames may
-    be given as mappings with the fields of :class:`FixedFrame`.
-    """
-    if section is None:
-        return CompletionOptions()
-    if isinstance(section, CompletionOptions):
-        return section
-    data = section.model_dump() if hasattr(section, "model_dump") else dict(section)
-    known = {f.name for f in dataclasses.fields(CompletionOptions)}
-    unknown = sorted(set(data) - known)
-    if unknown:
-        raise InputError(f"completion: unknown animation option(s) {unknown}; known: {sorted(known)}")
-    if "fixed_frames" in data:
-        data["fixed_frames"] = tuple(ff if isinstance(ff, FixedFrame) else FixedFrame(**dict(ff))
-                                     for ff in data["fixed_frames"] or ())
-    if "continuity" in data and data["continuity"] is not None:
-        data["continuity"] = tuple(data["continuity"])
-    return CompletionOptions(**{k: v for k, v in data.items() if v is not None or k in ("clips", "sources")})
-
-
 def _bone_direction(skeleton: Skeleton, j: int):
     """Unit rest direction from joint ``j`` to the mean of its children (world), or None."""
     kids = np.flatnonzero(np.asarray(skeleton.parents) == j)
@@ -522,40 +496,9 @@ def limb_roots_to_complete(plan, max_angle=60.0):
 
 
 def completion_provenance(plan, rest_mismatch=60.0):
-    """The plan's provenance, less the targets of :func:`limb_roots_to_complete` (what the
-    completion stage passes to :func:`complete_clips`)."""
+    """The plan's provenance, less the targets of :func:`limb_roots_to_complete` (what
+    :func:`rigmix.pipeline.completion_stage` passes to :func:`complete_clips`)."""
     provenance = [list(p) for p in plan.provenance]
     for o, target in limb_roots_to_complete(plan, rest_mismatch):
         provenance[o] = [(cid, j) for cid, j in provenance[o] if cid != target]
     return provenance
-
-
-def completion_stage(composition, progress=None):
-    """The animation stage of :func:`rigmix.pipeline.compose`: A_R from the plan and the maps.
-
-    Reads the options from the config's ``[animation]`` section (keys: the fields of
-    :class:`CompletionOptions`; ``fixed_frames`` as a list of tables with the fields of
-    :class:`FixedFrame`);
-    completes the clips of the inputs as loaded (rest-relative deltas carry them onto S_R,
-    whatever scale and rest pose the positioning chose).
-
-    Returns
-    -------
-    Composition
-        With ``clips`` (tuple of Clip on S_R) and ``report["animation"]``.
-    """
-    from dataclasses import replace
-
-    try:
-        options = options_from_config(getattr(composition.config, "animation", None))
-    except (InputError, TypeError, ValueError) as e:  # unknown keys, bad fixed frames, bad values
-        source = getattr(composition.config, "source", "") or "(in code)"
-        raise InputError(f"config {source}: [animation]: {e}") from None
-    plan = composition.plan
-    clips = complete_clips(plan.skeleton, composition.inputs, composition.maps,
-                           options=options, provenance=completion_provenance(plan, options.rest_mismatch))
-    report = {"clips": [c.name for c in clips], "fps": options.fps,
-              "frames": [int(len(c.tracks[0].times)) if c.tracks else 0 for c in clips],
-              "jump_penalty": options.jump_penalty, "metric": options.metric}
-    return replace(composition, clips=tuple(clips),
-                   report={**composition.report, "animation": report})

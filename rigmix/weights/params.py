@@ -1,8 +1,12 @@
-"""The options of the weights stage: the config's ``[weights]`` section."""
+"""The options of the weights stage: the config's ``[weights]`` section.
+
+:class:`rigmix.config.WeightOptions` is built from :class:`WeightParams` (its fields, defaults and
+the descriptions below) and bounds its values at load.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, Literal
 
 __all__ = ["WeightParams", "FILL_OPTION_NAMES"]
@@ -87,7 +91,3 @@ class WeightParams:
     def fill_options(self) -> dict:
         """The fill options that are set, by name (for :func:`rigmix.weights.fill_weights`)."""
         return {n: getattr(self, n) for n in FILL_OPTION_NAMES if getattr(self, n) is not None}
-
-    @classmethod
-    def names(cls) -> tuple[str, ...]:
-        return tuple(f.name for f in fields(cls))
