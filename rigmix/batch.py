@@ -22,8 +22,9 @@ finished job appends one JSON line to ``DIR/manifest.jsonl``::
 
 Outputs are named relative to ``DIR``. The batch is resumable: a config whose latest manifest
 entry is ``ok``, whose file has not changed since (same SHA-256) and whose outputs all exist is
-skipped; failed jobs are run again. Outputs are written atomically (temporary file, then
-rename), so an interrupted or failed job leaves no partial file.
+skipped; failed jobs are run again. A job's outputs are written by
+:func:`rigmix.export.write_outputs`, all or none, so an interrupted or failed job leaves no
+partial file.
 """
 
 from __future__ import annotations
@@ -39,7 +40,8 @@ from pathlib import Path
 from typing import Callable, Iterable
 
 from .errors import InputError, RigmixError, UnsupportedError
-from .safety import atomic_write_text, file_digest
+from .export import json_default, write_outputs
+from .safety import file_digest
 
 __all__ = ["MANIFEST", "LOCAL_DASK", "run_one", "run_batch", "read_manifest", "plan_batch"]
 
@@ -85,7 +87,6 @@ def run_one(config_path, out_dir) -> dict:
         with ``error`` the one-line message (a :class:`RigmixError`'s text, or ``internal
         error (...)`` for anything else, whose traceback is logged at debug level).
     """
-    from .io.gltf import write_gltf
     from .pipeline import compose
 
     config_path, out_dir = Path(config_path).resolve(), Path(out_dir)
@@ -93,7 +94,6 @@ def run_one(config_path, out_dir) -> dict:
     outputs = _outputs(stem)
     entry = {"config": str(config_path), "config_sha256": None, "stem": stem, "status": "failed",
              "outputs": outputs, "timings": {}, "error": None, "finished": None}
-    written = []
     t_start = time.perf_counter()
     try:
         try:
@@ -109,13 +109,8 @@ def run_one(config_path, out_dir) -> dict:
                 f"batch: {config_path.name}: compose produced no character (the fusion, weight and "
                 "animation stages are not part of this build's pipeline); nothing to write")
         t0 = time.perf_counter()
-        glb = out_dir / outputs["glb"]
-        write_gltf(composition.character, glb)
-        written.append(glb)
-        report = out_dir / outputs["report"]
-        atomic_write_text(report, json.dumps(composition.report, indent=2, sort_keys=True, default=_json_default)
-                          + "\n")
-        written.append(report)
+        write_outputs(composition, glb=out_dir / outputs["glb"], report=out_dir / outputs["report"],
+                      sort_keys=True)
         entry["timings"]["write"] = round(time.perf_counter() - t0, 4)
         entry["status"] = "ok"
     except RigmixError as exc:
@@ -123,21 +118,9 @@ def run_one(config_path, out_dir) -> dict:
     except Exception as exc:  # a bug in a stage: recorded, the batch goes on
         logger.debug("batch: %s failed:\n%s", config_path, traceback.format_exc())
         entry["error"] = _one_line(f"internal error ({type(exc).__name__}: {exc})")
-    if entry["status"] != "ok":
-        for p in written:  # all of a job's outputs, or none
-            p.unlink(missing_ok=True)
     entry["timings"]["total"] = round(time.perf_counter() - t_start, 4)
     entry["finished"] = _now()
     return entry
-
-
-def _json_default(obj):
-    """numpy scalars and arrays, paths and sets in reports."""
-    if hasattr(obj, "tolist"):
-        return obj.tolist()
-    if isinstance(obj, (Path, set, frozenset, tuple)):
-        return str(obj) if isinstance(obj, Path) else list(obj)
-    raise TypeError(f"not JSON serializable: {type(obj).__name__}")
 
 
 def read_manifest(out_dir) -> dict:
@@ -226,7 +209,7 @@ class _Manifest:
         self.path = out_dir / MANIFEST
 
     def append(self, entry: dict) -> None:
-        line = json.dumps(entry, sort_keys=True, default=_json_default)
+        line = json.dumps(entry, sort_keys=True, default=json_default)
         with open(self.path, "a", encoding="utf-8") as fh:
             fh.write(line + "\n")
             fh.flush()

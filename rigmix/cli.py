@@ -25,22 +25,8 @@ exception is reported the same way as an internal error, exit status 1. ``--debu
 instead (full traceback). Library code never prints: it logs through
 ``logging.getLogger(__name__)``; warnings go to stderr, ``-v`` adds info, ``-vv`` debug.
 
-``rigmix inspect --json`` keys
-------------------------------
-``file``, ``name``, ``skinned`` (bool: a skeleton and at least one skinned mesh),
-``counts`` (``joints``, ``roots``, ``anchors``, ``meshes``, ``props``, ``vertices`` and
-``faces`` over meshes and props, ``clips``, ``materials``, ``textures``, ``warnings``),
-``joints`` (list of ``index``, ``name``, ``parent`` (name or null), ``depth``, ``anchor`` (name
-of the anchor a root hangs from, or null), ``translation``, ``rotation`` (xyzw), ``scale``),
-``anchors`` (``name``, ``parent``, ``translation``), ``meshes`` (``name``, ``vertices``,
-``faces``, ``material`` (index), ``material_name``, ``skinned``, ``influences`` (largest number
-of non-zero weights on one vertex, 0 if unskinned), ``slots`` (joint slots per vertex),
-``normals``, ``uv_sets``, ``colors``), ``props`` (``name``, ``joint`` (name or null),
-``vertices``, ``faces``, ``material``), ``materials`` (``index``, ``name``, ``base_color``,
-``metallic``, ``roughness``, ``texture``: null or ``name``, ``mime_type``, ``bytes``),
-``clips`` (``name``, ``start``, ``end``, ``duration`` in seconds, ``channels``, ``paths``
-(path -> channel count), ``interpolations`` (sorted)), ``warnings`` (the defects repaired on
-load, one string each).
+The keys of ``rigmix inspect --json`` are those of :func:`rigmix.describe.describe`; the
+outputs of ``compose`` and ``batch`` are written by :func:`rigmix.export.write_outputs`.
 """
 
 from __future__ import annotations
@@ -54,222 +40,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
-
 from . import __version__
 from .errors import RigmixError
 
-__all__ = ["main", "build_parser", "describe", "format_description", "Command", "COMMANDS"]
+__all__ = ["main", "build_parser", "Command", "COMMANDS"]
 
 logger = logging.getLogger(__name__)
-
-
-# --------------------------------------------------------------------------------------------
-# describe: Character -> plain dict (shared by the text and JSON printers)
-# --------------------------------------------------------------------------------------------
-
-
-def _floats(a, digits=6):
-    return [round(float(x), digits) for x in np.asarray(a).ravel()]
-
-
-def describe(character, path=None) -> dict:
-    """A JSON-ready summary of a character (see the module docstring for the keys).
-
-    Parameters
-    ----------
-    character : rigmix.character.Character
-    path : str or Path, optional
-        The file it came from (default ``character.source``).
-
-    Returns
-    -------
-    dict
-        Plain Python values only (str, int, float, bool, list, dict, None).
-    """
-    sk = character.skeleton
-    J = sk.num_joints
-    depth = np.zeros(J, dtype=int)
-    for j in range(J):  # topological order
-        depth[j] = 0 if sk.parents[j] < 0 else depth[sk.parents[j]] + 1
-    anchors = [
-        {
-            "name": a.name,
-            "parent": sk.anchors[a.parent].name if a.parent >= 0 else None,
-            "translation": _floats(a.matrix[:3, 3]),
-        }
-        for a in sk.anchors
-    ]
-    joints = [
-        {
-            "index": j,
-            "name": sk.names[j],
-            "parent": sk.names[sk.parents[j]] if sk.parents[j] >= 0 else None,
-            "depth": int(depth[j]),
-            "anchor": sk.anchors[sk.root_anchor[j]].name if sk.root_anchor[j] >= 0 else None,
-            "translation": _floats(sk.translations[j]),
-            "rotation": _floats(sk.rotations[j]),
-            "scale": _floats(sk.scales[j]),
-        }
-        for j in range(J)
-    ]
-
-    def material_name(i):
-        return character.materials[i].name if 0 <= i < len(character.materials) else None
-
-    meshes = []
-    for m in character.meshes:
-        influences = int((m.weights > 0).sum(axis=1).max()) if m.skinned and len(m.weights) else 0
-        meshes.append({
-            "name": m.name,
-            "vertices": len(m.positions),
-            "faces": len(m.faces),
-            "material": int(m.material),
-            "material_name": material_name(m.material),
-            "skinned": m.skinned,
-            "influences": influences,
-            "slots": int(m.joints.shape[1]) if m.skinned else 0,
-            "normals": m.normals is not None,
-            "uv_sets": len(m.uvs),
-            "colors": m.colors is not None,
-        })
-    props = [
-        {
-            "name": p.mesh.name,
-            "joint": sk.names[p.joint] if 0 <= p.joint < J else None,
-            "vertices": len(p.mesh.positions),
-            "faces": len(p.mesh.faces),
-            "material": int(p.mesh.material),
-        }
-        for p in character.props
-    ]
-    materials = []
-    for i, mat in enumerate(character.materials):
-        tex = mat.base_color_texture
-        materials.append({
-            "index": i,
-            "name": mat.name,
-            "base_color": _floats(mat.base_color, 4),
-            "metallic": round(float(mat.metallic), 4),
-            "roughness": round(float(mat.roughness), 4),
-            "texture": None if tex is None else
-            {"name": tex.name, "mime_type": tex.mime_type, "bytes": len(tex.data)},
-        })
-    clips = []
-    for c in character.clips:
-        paths: dict[str, int] = {}
-        for t in c.tracks:
-            paths[t.path] = paths.get(t.path, 0) + 1
-        clips.append({
-            "name": c.name,
-            "start": round(c.start, 6),
-            "end": round(c.end, 6),
-            "duration": round(c.duration, 6),
-            "channels": len(c.tracks),
-            "paths": paths,
-            "interpolations": sorted({t.interpolation for t in c.tracks}),
-        })
-    all_meshes = list(character.meshes) + [p.mesh for p in character.props]
-    counts = {
-        "joints": J,
-        "roots": int(len(sk.roots)),
-        "anchors": len(sk.anchors),
-        "meshes": len(character.meshes),
-        "props": len(character.props),
-        "vertices": int(sum(len(m.positions) for m in all_meshes)),
-        "faces": int(sum(len(m.faces) for m in all_meshes)),
-        "clips": len(character.clips),
-        "materials": len(character.materials),
-        "textures": sum(m.base_color_texture is not None for m in character.materials),
-        "warnings": len(character.warnings),
-    }
-    return {
-        "file": str(path if path is not None else character.source),
-        "name": character.name,
-        "skinned": bool(character.skinned),
-        "counts": counts,
-        "joints": joints,
-        "anchors": anchors,
-        "meshes": meshes,
-        "props": props,
-        "materials": materials,
-        "clips": clips,
-        "warnings": list(character.warnings),
-    }
-
-
-def _vec(v):
-    return "(" + ", ".join(f"{x:.4g}" for x in v) + ")"
-
-
-def _depth_first(joints: list) -> list:
-    """The joint entries in depth-first order (children under their parent), roots in order."""
-    children: dict = {}
-    for j in joints:
-        children.setdefault(j["parent"], []).append(j)
-    out, stack = [], list(reversed(children.get(None, [])))
-    while stack:
-        j = stack.pop()
-        out.append(j)
-        stack.extend(reversed(children.get(j["name"], [])))
-    return out
-
-
-def format_description(d: dict) -> str:
-    """The text report of ``rigmix inspect`` from :func:`describe`'s dict."""
-    c = d["counts"]
-    lines = [f"{d['file'] or d['name']}: character {d['name']!r}"]
-    if d["skinned"]:
-        lines.append(f"skin: yes ({c['joints']} joints, {sum(m['skinned'] for m in d['meshes'])} skinned mesh(es))")
-    else:
-        lines.append("skin: none (no skin: a static model; it can be viewed but not composed)")
-    lines.append("counts: " + ", ".join(f"{k} {v}" for k, v in c.items()))
-
-    lines.append(f"anchors ({len(d['anchors'])}):" if d["anchors"] else "anchors: none")
-    for a in d["anchors"]:
-        under = f" under {a['parent']!r}" if a["parent"] else ""
-        lines.append(f"  {a['name']}{under}  t={_vec(a['translation'])}")
-
-    lines.append(f"joints ({len(d['joints'])}):" if d["joints"] else "joints: none")
-    for j in _depth_first(d["joints"]):
-        extra = ""
-        if j["parent"] is None:
-            extra = f"  [root, under anchor {j['anchor']!r}]" if j["anchor"] else "  [root]"
-        # indentation capped: a chain 100k joints deep would otherwise print ~10 GB of spaces
-        indent = "  " * j["depth"] if j["depth"] <= 40 else f"{'  ' * 40}[{j['depth']}] "
-        lines.append(f"  {indent}{j['name']}  t={_vec(j['translation'])}{extra}")
-
-    lines.append(f"meshes ({len(d['meshes'])}):" if d["meshes"] else "meshes: none (no skinned mesh)")
-    for m in d["meshes"]:
-        mat = ("default material" if m["material"] < 0 else
-               f"material {m['material']}" + (f" {m['material_name']!r}" if m["material_name"] else ""))
-        skin = f"skinned, {m['influences']} influences max" if m["skinned"] else "not skinned"
-        attrs = [a for a, on in (("normals", m["normals"]), ("colors", m["colors"])) if on]
-        if m["uv_sets"]:
-            attrs.append(f"{m['uv_sets']} uv set(s)")
-        lines.append(f"  {m['name']}: {m['vertices']} vertices, {m['faces']} faces, {mat}, {skin}"
-                     + (f"; {', '.join(attrs)}" if attrs else ""))
-
-    lines.append(f"props ({len(d['props'])}):" if d["props"] else "props: none")
-    for p in d["props"]:
-        where = f"on joint {p['joint']!r}" if p["joint"] else "static (world)"
-        lines.append(f"  {p['name']}: {p['vertices']} vertices, {p['faces']} faces, material {p['material']}, {where}")
-
-    lines.append(f"materials ({len(d['materials'])}):" if d["materials"] else "materials: none")
-    for m in d["materials"]:
-        tex = m["texture"]
-        tex_s = f", texture {tex['name']!r} {tex['mime_type']} {tex['bytes']} bytes" if tex else ""
-        lines.append(f"  {m['index']} {m['name']!r}: base colour {_vec(m['base_color'])}{tex_s}")
-
-    lines.append(f"clips ({len(d['clips'])}):" if d["clips"] else "clips: none")
-    for cl in d["clips"]:
-        paths = ", ".join(f"{k} {v}" for k, v in cl["paths"].items())
-        lines.append(f"  {cl['name']!r}: {cl['duration']:.4g} s, {cl['channels']} channels ({paths}), "
-                     f"{'/'.join(cl['interpolations'])}")
-
-    lines.append(f"repaired defects ({len(d['warnings'])}):" if d["warnings"] else "repaired defects: none")
-    lines += [f"  {w}" for w in d["warnings"]]
-    return "\n".join(lines)
 
 
 # --------------------------------------------------------------------------------------------
@@ -293,6 +69,7 @@ def _add_inspect(parser):
 
 
 def _run_inspect(args) -> int:
+    from .describe import describe, format_description
     from .io import load_character
 
     path = args.file
@@ -429,7 +206,6 @@ def _run_preview(args) -> int:
     return 0
 
 
-#: The sub-commands, in the order ``rigmix --help`` lists them. Append here.
 def _add_compose(parser):
     parser.add_argument("config", type=Path, help="a composition config (.toml)")
     parser.add_argument("-o", "--output", type=Path, required=True, help="the composed character (.glb or .gltf)")
@@ -447,15 +223,13 @@ def _add_compose(parser):
 
 
 def _run_compose(args) -> int:
-    import tempfile
-
     from tqdm import tqdm
 
     from .config import load_config
+    from .describe import format_composition
     from .errors import InputError
-    from .io.gltf import write_gltf
+    from .export import write_outputs
     from .pipeline import STAGE_NAMES, compose
-    from .safety import atomic_output, atomic_write_text
 
     if args.output.suffix.lower() not in (".glb", ".gltf"):
         raise InputError(f"compose: output {args.output} must end in .glb or .gltf")
@@ -482,65 +256,13 @@ def _run_compose(args) -> int:
                 bar.update(done - bar.n)
 
         comp = compose(config, progress=progress)
-    # every output is written to a temporary file first; nothing is renamed until all succeeded
-    with tempfile.TemporaryDirectory(dir=args.output.parent, prefix=".rigmix-compose-") as tmp:
-        tmp = Path(tmp)
-        staged = tmp / ("character" + args.output.suffix.lower())
-        write_gltf(comp.character, staged)
-        usd_dir = None
-        if args.usd is not None:
-            from .io.usd import write_usd
-
-            usd_dir = tmp / "usd"
-            usd_dir.mkdir()
-            write_usd(comp.character, usd_dir / args.usd.name)
-        fields_written = []
-        if args.dump_fields:
-            from .fusion import dump_fields
-
-            fdir = tmp / "fields"
-            fdir.mkdir()
-            fields_written = dump_fields(fdir, comp.surface.fields) or []
-            if not fields_written:
-                print(f"rigmix compose: --dump-fields {args.dump_fields}: no junction field was computed (every "
-                      "junction was copied from faces the inputs share); nothing written", file=sys.stderr)
-        report = dict(comp.report)
-        report["output"] = str(args.output)
-        text = json.dumps(report, indent=2, default=_json_default)
-        # commit: the character, then the USD (and its textures), the fields, the report
-        with atomic_output(args.output) as out:
-            out.write_bytes(staged.read_bytes())
-        if usd_dir is not None:
-            for f in sorted(usd_dir.rglob("*")):
-                if f.is_file():
-                    dest = args.usd.parent / f.relative_to(usd_dir)
-                    dest.parent.mkdir(parents=True, exist_ok=True)
-                    with atomic_output(dest, suffix=dest.suffix) as out:
-                        out.write_bytes(f.read_bytes())
-        if args.dump_fields:
-            args.dump_fields.mkdir(parents=True, exist_ok=True)
-            for f in sorted((tmp / "fields").iterdir()):
-                with atomic_output(args.dump_fields / f.name, suffix=f.suffix) as out:
-                    out.write_bytes(f.read_bytes())
-        if args.report is not None:
-            atomic_write_text(args.report, text + "\n")
-    w, m, q = comp.report.get("weights", {}), comp.report.get("mesh", {}), comp.report.get("quality", {})
-    print(f"{args.output}: {comp.skeleton.num_joints} joints, {m.get('vertices')} vertices, {m.get('faces')} faces, "
-          f"{len(comp.character.clips)} clips; weights {w.get('method')}; junction stretch ratio "
-          f"{q.get('junction_stretch_ratio')}; {comp.report['timings']['total']:.1f} s")
+    result = write_outputs(comp, glb=args.output, usd=args.usd, report=args.report, fields_dir=args.dump_fields,
+                           report_extra={"output": str(args.output)})
+    if args.dump_fields and not result.fields:
+        print(f"rigmix compose: --dump-fields {args.dump_fields}: no junction field was computed (every "
+              "junction was copied from faces the inputs share); nothing written", file=sys.stderr)
+    print(format_composition(comp, args.output))
     return 0
-
-
-def _json_default(o):
-    import numpy as np
-
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serializable: {type(o).__name__}")
 
 
 def _add_batch(parser):
@@ -582,6 +304,7 @@ def _run_batch(args) -> int:
     return 1 if failed else 0
 
 
+#: The sub-commands, in the order ``rigmix --help`` lists them. Append here.
 COMMANDS: list[Command] = [
     Command("inspect", "print a character's joints, meshes, clips, counts and repaired defects",
             _add_inspect, _run_inspect),

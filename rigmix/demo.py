@@ -4,8 +4,9 @@
 
 1. builds the procedural example characters (:mod:`rigmix.examples`),
 2. writes each as GLB to ``DIR`` (:func:`rigmix.io.gltf.write_gltf`),
-3. reads each file back and prints its ``rigmix inspect`` summary,
-4. composes the built-in centaur (:func:`compose_examples`: GLB, USD and JSON report),
+3. reads each file back and prints its ``rigmix inspect`` summary (:mod:`rigmix.describe`),
+4. composes the built-in centaur and writes its GLB, USD and JSON report as ``rigmix compose``
+   does (:func:`compose_examples`, through :func:`rigmix.export.write_outputs`),
 5. lists what was written.
 """
 
@@ -42,10 +43,11 @@ def write_examples(out: Path) -> list[Path]:
 
 def compose_examples(inputs: list[Path], out: Path) -> list[Path]:
     """Compose the built-in centaur (``examples/centaur.toml``: the humanoid's torso, arms and
-    head on the quadruped's body) with ``rigmix compose``.
+    head on the quadruped's body) and write it as ``rigmix compose`` does.
 
-    Writes ``centaur.glb``, ``centaur.usda`` and ``centaur.report.json`` to ``out``. The config
-    names the built-in characters, so ``inputs`` (the files written before) are not read again.
+    Writes ``centaur.glb``, ``centaur.usda`` and ``centaur.report.json`` to ``out`` (all or
+    none) and prints ``rigmix compose``'s summary line. The config names the built-in
+    characters, so ``inputs`` (the files written before) are not read again.
 
     Returns
     -------
@@ -57,22 +59,22 @@ def compose_examples(inputs: list[Path], out: Path) -> list[Path]:
     rigmix.errors.RigmixError
         The composition failed (nothing is written then).
     """
-    from .cli import main as cli_main
-    from .errors import RigmixError
+    from .describe import format_composition
+    from .export import write_outputs
+    from .pipeline import compose
 
     config = Path(__file__).resolve().parent.parent / "examples" / "centaur.toml"
     glb, usd, report = out / "centaur.glb", out / "centaur.usda", out / "centaur.report.json"
-    status = cli_main(["compose", str(config), "-o", str(glb), "--usd", str(usd), "--report", str(report),
-                       "--no-progress"])
-    if status != 0:
-        raise RigmixError(f"demo: rigmix compose {config} failed (exit {status})")
+    composition = compose(config)
+    write_outputs(composition, glb=glb, usd=usd, report=report, report_extra={"output": str(glb)})
+    print(format_composition(composition, glb))
     print(f"demo: composition report {report}")
     return [glb, usd]
 
 
 def main(argv=None) -> int:
     """Run the demo; returns the exit status."""
-    from .cli import describe, format_description
+    from .describe import describe, format_description
     from .errors import RigmixError
     from .io import load_character
 
@@ -88,7 +90,6 @@ def main(argv=None) -> int:
         for path in written:
             print(format_description(describe(load_character(path), path)))
             print()
-        # ---- composition (later issues): centaur of the two examples, etc. -------------------
         composed = compose_examples(written, args.out)
         for path in composed:
             print(format_description(describe(load_character(path), path)))

@@ -13,7 +13,8 @@ import pytest
 
 from conftest import ROOT, asset
 from rigmix import examples
-from rigmix.cli import build_parser, describe, format_description, main
+from rigmix.cli import build_parser, main
+from rigmix.describe import describe, format_description
 from rigmix.errors import InputError, UnsupportedError
 
 

@@ -16,7 +16,7 @@ import pytest
 from conftest import require
 from rigmix.errors import InputError
 from rigmix.cli import main
-from rigmix.preview.viewer import _RELATIVE_IMPORT, find_three, preview, serve, write_viewer
+from rigmix.preview.viewer import find_three, preview, relative_imports, serve, write_viewer
 
 ROOT = Path(__file__).resolve().parent.parent
 CHROMIUM = os.environ.get("CHROMIUM", "/usr/bin/chromium")
@@ -96,7 +96,7 @@ def test_write_viewer_is_self_contained(composed_glb, tmp_path):
     assert {p.name for p in js} >= {"three.module.js", "three.core.js", "GLTFLoader.js", "OrbitControls.js",
                                    "viewer.js"}
     for p in js:
-        for dep in _RELATIVE_IMPORT.findall(p.read_text()):
+        for dep in relative_imports(p.read_text()):
             assert (p.parent / dep).resolve().is_file(), (p, dep)
     # nothing refers to the network
     assert "http://" not in (out / "viewer.js").read_text() and "https://" not in page

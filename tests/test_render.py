@@ -138,7 +138,7 @@ def test_gl_samples_the_texture():
 
 def test_skeleton_overlay(fox_walk):
     """Bones drawn over the frames: the overlay colour appears only with bones=True, at the joints."""
-    from rigmix.preview.render import BONE_COLOR, JOINT_COLOR, _project
+    from rigmix.preview.render import BONE_COLOR, JOINT_COLOR, project_points
 
     scene = replace(fox_walk, times=fox_walk.times[:2], positions=[p[:2] for p in fox_walk.positions],
                     joints=fox_walk.joints[:2])
@@ -151,7 +151,7 @@ def test_skeleton_overlay(fox_walk):
     assert not has(plain, BONE_COLOR).any() and has(boned, BONE_COLOR).sum() > 20
     assert scene.joints.shape == (2, 24, 3) and list(scene.parents[:2]) == [-1, 0]
     view, proj = camera_matrices(*scene.bounds(), width=SIZE, height=SIZE)
-    xy = np.floor(_project(scene.joints[0], view, proj, SIZE, SIZE)).astype(int)  # (J, 2)
+    xy = np.floor(project_points(scene.joints[0], view, proj, SIZE, SIZE)).astype(int)  # (J, 2)
     inside = (xy >= 0).all(axis=1) & (xy < SIZE).all(axis=1)
     assert inside.all()
     hits = has(boned[0], JOINT_COLOR)[xy[:, 1], xy[:, 0]]

@@ -38,6 +38,7 @@ __all__ = [
     "PosedScene",
     "pose_scene",
     "camera_matrices",
+    "project_points",
     "render_frames",
     "contact_sheet",
     "write_gif",
@@ -113,7 +114,8 @@ def pose_scene(character, clip=None, times=None, *, fps=30.0):
         try:
             clip = character.clip(clip)
         except KeyError:
-            raise InputError(f"render: {where} has no clip {clip!r}; clips: {[c.name for c in character.clips]}") from None
+            names = [c.name for c in character.clips]
+            raise InputError(f"render: {where} has no clip {clip!r}; clips: {names}") from None
     if times is None:
         times = clip_times(clip, fps) if clip is not None else np.zeros(1)
     times = np.asarray(times, dtype=np.float64).reshape(-1)
@@ -255,8 +257,23 @@ def render_frames(scene, *, width=480, height=480, azimuth=30.0, elevation=15.0,
     return _draw_bones(frames, scene, view, proj) if bones else frames
 
 
-def _project(P, view, proj, width, height):
-    """Pixel coordinates ``(..., 2)`` (x right, y down) of world points ``(..., 3)``."""
+def project_points(P, view, proj, width, height):
+    """Pixel coordinates of world points through the camera of :func:`camera_matrices`.
+
+    Parameters
+    ----------
+    P : (..., 3) float array
+        Points in world space (metres).
+    view, proj : (4, 4) float arrays
+        World -> camera and camera -> clip space matrices (column vectors).
+    width, height : int
+        Image size in pixels.
+
+    Returns
+    -------
+    (..., 2) float array
+        ``x`` right and ``y`` down in pixels, ``(0, 0)`` the top-left corner of the image.
+    """
     clip = P @ (proj @ view)[:, :3].T + (proj @ view)[:, 3]
     ndc = clip[..., :2] / clip[..., 3:]
     return np.stack([(ndc[..., 0] + 1) / 2 * width, (1 - ndc[..., 1]) / 2 * height], axis=-1)
@@ -273,7 +290,7 @@ def _draw_bones(frames, scene, view, proj):
     F, H, W, _ = frames.shape
     if scene.joints.shape[1] == 0:
         return frames
-    xy = _project(scene.joints, view, proj, W, H)  # (F, J, 2)
+    xy = project_points(scene.joints, view, proj, W, H)  # (F, J, 2)
     radius = max(1.0, min(W, H) / 160)
     out = np.empty_like(frames)
     for f in range(F):

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from ..errors import InputError
 
-__all__ = ["find_three", "write_viewer", "serve", "preview"]
+__all__ = ["find_three", "relative_imports", "write_viewer", "serve", "preview"]
 
 logger = logging.getLogger(__name__)
 
@@ -33,6 +33,12 @@ HERE = Path(__file__).resolve().parent
 #: three.js addons the viewer imports (their own relative imports are followed).
 ADDONS = ("loaders/GLTFLoader.js", "controls/OrbitControls.js")
 _RELATIVE_IMPORT = re.compile(r"""(?:import|export)\s[^;]*?from\s*['"](\.{1,2}/[^'"]+)['"]""", re.S)
+
+
+def relative_imports(source: str) -> list[str]:
+    """The relative module paths (``./x.js``, ``../y/z.js``) that an ES module's source imports
+    or re-exports from, in order of appearance; bare names (``"three"``) and URLs are left out."""
+    return _RELATIVE_IMPORT.findall(source)
 
 
 def find_three(start=None) -> Path:
@@ -72,7 +78,7 @@ def _copy_module_closure(src_root: Path, rel: str, dst_root: Path, seen: set) ->
     dst = dst_root / rel
     dst.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(src, dst)
-    for dep in _RELATIVE_IMPORT.findall(src.read_text(encoding="utf-8")):
+    for dep in relative_imports(src.read_text(encoding="utf-8")):
         _copy_module_closure(src_root, os.path.join(os.path.dirname(rel), dep), dst_root, seen)
 
 
