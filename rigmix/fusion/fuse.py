@@ -107,12 +107,13 @@ class FusionParams:
     voxel_factor : voxel = voxel_factor x smallest average edge length (0.8) before refinement.
     min_voxels_across : the voxel is refined until this many span the junction (its second
         largest extent).
-    max_voxel_diagonal : if positive, and until it is at most this fraction of the smallest
-        input's bounding-box diagonal (0: off). Marching cubes rounds creases off by up to about
-        half a voxel, and low-poly characters get 1.1 to 1.3% of the diagonal per voxel from
-        the two rules above (RiggedFigure, Fox). 0.004 brings the isosurface within 0.35% on
-        every limb self-composition, but it is off by default: the thinner bridge strips it
-        makes cost junction angle quality (p05 26.9 -> 18.7 degrees on the two-ellipsoid test).
+    max_voxel_diagonal : if positive, the voxel is also refined until it is at most this
+        fraction of the smallest input's bounding-box diagonal (0: off). Marching cubes rounds
+        creases off by up to about half a voxel, and low-poly characters get 1.1 to 1.3% of the
+        diagonal per voxel from the two rules above (RiggedFigure, Fox). 0.004 brings the
+        isosurface within 0.35% on every limb self-composition, but it is off by default: the
+        thinner bridge strips it makes cost junction angle quality (on the two-ellipsoid test,
+        p05 18.7 degrees with 0.004 against 26.9 without).
     margin_voxels : the grid reaches this many voxels beyond the junction faces (10).
     band_voxels : exact distances within this many voxels of a surface, clamped beyond.
     max_voxels : cap on samples per grid (the voxel grows to respect it).
@@ -120,9 +121,9 @@ class FusionParams:
     attach_conflict_voxels : for attach, faces this close to the other's present part are blended.
     remesh_iterations, target_edge_factor : junction remeshing; target = factor x the smaller
         of the mean preserved boundary edge and the mean edge of the input faces the junction
-        replaces. The prototype's 0.8 chords off the creases of low-poly game meshes (measured:
-        up to 0.86% of the bounding-box diagonal on CesiumMan self-compositions); 0.5 keeps
-        them under 0.5%.
+        replaces. A factor of 0.8 (the prototype's) chords off the creases of low-poly game
+        meshes by up to 0.86% of the bounding-box diagonal on CesiumMan self-compositions; 0.5
+        keeps them under 0.5%.
     taubin_iterations : smoothing of the remeshed junction interior.
     project_voxels : junction vertices are then pulled at most this many voxels towards the
         presence-weighted closest input points (0 disables).
@@ -144,11 +145,11 @@ class FusionParams:
         ``relax_max_angle_loss`` degrees of p05 against the plain remeshing (keeping less, it
         may cost little); the report's grid gives the ``fidelity_tolerance`` used (0: plain)
         and, after a miss, the plain remeshing's ``plain_deviation`` (same unit as the
-        positions). RiggedFigure's right arm: at 4x the shape
-        stays within 0.14% of the diagonal at p05 21.6 degrees, where the plain remeshing
-        rounded a box corner off by 2.2% (p05 21.3). The Horse + Knight centaur's plain
-        junction strays 0.11 units (1.7% of the diagonal) from its reference; at 4x its p05
-        falls from 28.4 to 20.1 with visibly jagged, feature-pinned triangles, so it stays plain.
+        positions). RiggedFigure's right arm: at 4x the shape stays within 0.14% of the
+        diagonal at p05 21.6 degrees, where the plain remeshing rounds a box corner off by 2.2%
+        (p05 21.3). The Horse + Knight centaur's plain junction strays 0.11 units (1.7% of the
+        diagonal) from its reference; at 4x its p05 would be 20.1 against the plain 28.4, with
+        visibly jagged, feature-pinned triangles, so it stays plain.
     relax_max_angle_loss : degrees, see ``fidelity_relax``.
     min_angle_p05 : degrees; the fidelity path is kept only if the junction's 5th percentile of
         triangle minimum angles stays at least this, or above the plain remeshing's.
@@ -160,29 +161,30 @@ class FusionParams:
     collapse_poor : free junction vertices of triangles under 20 degrees are collapsed into a
         neighbour where that raises the angles and moves the surface less than the fidelity
         tolerance (:func:`.remesh.collapse_to_improve_angles`). A uniform target edge cannot
-        meet the long seam edges of low-poly preserved faces (up to 8 target edges): without
-        this the shape-keeping path fell back to the plain one on 13 of the 37 limb
-        self-compositions, 11 of them more than 0.5% of the diagonal off (up to 2.2%); with
-        it on 3, one of them off (RiggedFigure's right arm).
+        meet the long seam edges of low-poly preserved faces (up to 8 target edges). Measured
+        on the 37 limb self-compositions: with it, the shape-keeping path falls back to the
+        plain one on 3, one of them more than 0.5% of the diagonal off (RiggedFigure's right
+        arm); without it, on 13, 11 of them off (up to 2.2%).
     copy_coincident : a junction cluster whose every face both inputs of an action have (the
         same corner positions bit for bit, same orientation) is copied as it is: both surfaces
         pass through those faces, so the blended field vanishes there and remeshing its
-        isosurface could only lose them. Each face is
-        kept once, from the input more present on it; its vertices get junction weights unless a
-        preserved face keeps the position (:attr:`FusedSurface.junction_vertices`). A limb
-        replaced by itself then comes back face for face: measured on the 37 limb
-        self-compositions of the shared characters, Hausdorff 0 and every face kept, where the
-        fields gave at most 0.44% and at least 90% of the faces kept on 24. A partly shared
+        isosurface could only lose them. Each face is kept once, from the input more present on
+        it; its vertices get junction weights unless a preserved face keeps the position
+        (:attr:`FusedSurface.junction_vertices`). A limb replaced by itself then comes back face
+        for face: measured on the 37 limb self-compositions of the shared characters, Hausdorff
+        0 and every face kept, where rebuilding from the fields gives a Hausdorff distance of
+        at most 0.44% and keeps at least 90% of the faces on 24 of them. A partly shared
         junction is rebuilt from the fields.
     bridge_recuts : times the isosurface may be cut back and the seam loops bridged again where
-        a bridge strip crosses the isosurface or the fan that closes a hole no seam claims (the
-        Horse + Knight centaur: 8 bridge triangles spanning 0.26 to 0.33 units, against a median
-        of 0.076, crossed an 87-vertex fan 101 times, and the remeshed junction kept 35 of the
-        crossings); the report's grids give ``bridge_recuts``.
+        a bridge strip crosses the isosurface or the fan that closes a hole no seam claims
+        (without recuts, 8 bridge triangles of the Horse + Knight centaur, spanning 0.26 to 0.33
+        units against a median of 0.076, cross an 87-vertex fan 101 times, and the remeshed
+        junction keeps 35 of the crossings); the report's grids give ``bridge_recuts``.
     untangle_move : folds left in a remeshed junction are smoothed open
         (:func:`.remesh.untangle`) only if no vertex of a shape-keeping junction moves farther
-        than this many fidelity tolerances (the box corners of RiggedFigure's arm, replaced by
-        itself, were rounded to 0.9% of the diagonal from 0.23% to open five folds).
+        than this many fidelity tolerances (opening five folds of RiggedFigure's arm, replaced
+        by itself, without this limit rounds its box corners to 0.9% of the diagonal, against
+        0.23% with it).
     min_island_faces : preserved parts bordering a junction with fewer faces join it (specks
         left by the presence pattern have no isosurface hole to meet).
     backend : "numpy" (numpy + libigl) or "openvdb".
