@@ -167,7 +167,7 @@ def test_remeshing_keeps_the_corners_it_would_chord_off():
     import igl
 
     from rigmix.fusion.remesh import is_edge_manifold
-    from rigmix.fusion.stitch import _remesh_keeping_features
+    from rigmix.fusion.stitch import remesh_keeping_features
 
     V, F = sphere(5)
     V = V * (1.0 + 0.3 * np.exp(-((V[:, 0] ** 2 + V[:, 1] ** 2) / 0.005)) * (V[:, 2] > 0))[:, None]
@@ -182,8 +182,8 @@ def test_remeshing_keeps_the_corners_it_would_chord_off():
     def stray(U, G):
         return np.sqrt(igl.point_mesh_squared_distance(V, U, G)[0]).max()
 
-    U0, G0, n0, _ = _remesh_keeping_features(V, F, border, target, 5, 0.0, 2)
-    U1, G1, n1, _ = _remesh_keeping_features(V, F, border, target, 5, tol, 3)
+    U0, G0, n0, _ = remesh_keeping_features(V, F, border, target, 5, 0.0, 2)
+    U1, G1, n1, _ = remesh_keeping_features(V, F, border, target, 5, tol, 3)
     assert n0 == len(border) and n1 > len(border)
     assert stray(U0, G0) > 5 * tol  # the bump's tip is gone
     assert stray(U1, G1) < 0.25 * stray(U0, G0), (stray(U0, G0), stray(U1, G1))
@@ -208,11 +208,11 @@ def test_points_inserted_into_a_mesh_become_vertices():
 
 
 def test_cancelling_isosurface_faces_are_dropped():
-    from rigmix.fusion.junction import _drop_cancelling_faces
+    from rigmix.fusion.junction import drop_cancelling_faces
 
     F = np.array([[0, 1, 2], [2, 1, 3], [3, 1, 2], [4, 5, 6], [5, 6, 4], [7, 8, 9]])
     # (2,1,3) and (3,1,2) cancel (a fin); (4,5,6) and (5,6,4) are one face twice
-    G = _drop_cancelling_faces(F)
+    G = drop_cancelling_faces(F)
     assert sorted(map(tuple, G)) == [(0, 1, 2), (4, 5, 6), (7, 8, 9)]
 
 

@@ -2,7 +2,7 @@
 
 A character's limb replaced by the same limb of the same character must give back the
 character. By default the junction's faces, which both inputs share, are copied as they are
-(:func:`rigmix.fusion.seams._coincident_faces`): every face comes back bit-identical. With
+(:func:`rigmix.fusion.seams.coincident_faces`): every face comes back bit-identical. With
 ``copy_coincident=False`` the junction is rebuilt from the blended fields as between two
 different characters, which is what most of these tests exercise: surface within 0.5% of the
 bounding-box diagonal (Hausdorff, both ways), at least 90% of the faces preserved exactly

@@ -6,18 +6,22 @@ Stages, each a function of :mod:`rigmix.fusion`:
 2. for attach, faces of one input inside or against the present part of the other stop being
    preserved (the union must cut through them);
 3. junction clusters: boxes around the faces that are neither preserved nor absent; a cluster
-   whose every face two inputs share is copied as it is (:func:`.seams._coincident_faces`);
+   whose every face two inputs share is copied as it is (:func:`.seams.coincident_faces`);
 4. local signed distance fields and their blend per action (:mod:`.fields`);
 5. isosurface, cut by the preserved faces, loops bridged, remeshed and smoothed
    (:mod:`.junction`, :mod:`.remesh`);
 6. assembly: preserved faces copied bit-identically, junction vertices appended.
+
+:func:`fuse_surfaces` runs them as named steps: :func:`_partition` (1 to 3),
+:func:`_fuse_cluster` per junction cluster (4, 5: :func:`.stitch.junction_for_cluster`),
+:func:`_assemble` (6) and :func:`_surface_report`.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal, Sequence
 
 import numpy as np
@@ -29,19 +33,19 @@ from .meshutil import average_edge_length
 from .presence import compute_presence
 from .report import mesh_report
 from .seams import (
-    _attach_conflicts,
-    _clusters,
-    _coincident_faces,
-    _drop_specks,
-    _grid_for,
-    _local_edge,
-    _open_notches,
-    _preserved_loops,
-    _select_faces,
-    _separate_seams,
-    _unpinch_preserved,
+    attach_conflicts,
+    cluster_grid,
+    coincident_faces,
+    drop_specks,
+    junction_clusters,
+    local_edge_length,
+    most_present_faces,
+    open_notches,
+    preserved_loops,
+    separate_seams,
+    unpinch_preserved,
 )
-from .stitch import _junction_for_cluster
+from .stitch import junction_for_cluster
 
 log = logging.getLogger(__name__)
 
@@ -103,12 +107,13 @@ class FusionParams:
     voxel_factor : voxel = voxel_factor x smallest average edge length (0.8) before refinement.
     min_voxels_across : the voxel is refined until this many span the junction (its second
         largest extent).
-    max_voxel_diagonal : if positive, and until it is at most this fraction of the smallest
-        input's bounding-box diagonal (0: off). Marching cubes rounds creases off by up to about
-        half a voxel, and low-poly characters get 1.1 to 1.3% of the diagonal per voxel from
-        the two rules above (RiggedFigure, Fox). 0.004 brings the isosurface within 0.35% on
-        every limb self-composition, but it is off by default: the thinner bridge strips it
-        makes cost junction angle quality (p05 26.9 -> 18.7 degrees on the two-ellipsoid test).
+    max_voxel_diagonal : if positive, the voxel is also refined until it is at most this
+        fraction of the smallest input's bounding-box diagonal (0: off). Marching cubes rounds
+        creases off by up to about half a voxel, and low-poly characters get 1.1 to 1.3% of the
+        diagonal per voxel from the two rules above (RiggedFigure, Fox). 0.004 brings the
+        isosurface within 0.35% on every limb self-composition, but it is off by default: the
+        thinner bridge strips it makes cost junction angle quality (on the two-ellipsoid test,
+        p05 18.7 degrees with 0.004 against 26.9 without).
     margin_voxels : the grid reaches this many voxels beyond the junction faces (10).
     band_voxels : exact distances within this many voxels of a surface, clamped beyond.
     max_voxels : cap on samples per grid (the voxel grows to respect it).
@@ -116,9 +121,9 @@ class FusionParams:
     attach_conflict_voxels : for attach, faces this close to the other's present part are blended.
     remesh_iterations, target_edge_factor : junction remeshing; target = factor x the smaller
         of the mean preserved boundary edge and the mean edge of the input faces the junction
-        replaces. The prototype's 0.8 chords off the creases of low-poly game meshes (measured:
-        up to 0.86% of the bounding-box diagonal on CesiumMan self-compositions); 0.5 keeps
-        them under 0.5%.
+        replaces. A factor of 0.8 (the prototype's) chords off the creases of low-poly game
+        meshes by up to 0.86% of the bounding-box diagonal on CesiumMan self-compositions; 0.5
+        keeps them under 0.5%.
     taubin_iterations : smoothing of the remeshed junction interior.
     project_voxels : junction vertices are then pulled at most this many voxels towards the
         presence-weighted closest input points (0 disables).
@@ -126,7 +131,7 @@ class FusionParams:
         most the smaller of this many voxels and this fraction of the smallest input's
         bounding-box diagonal (0 disables): remeshing to the neighbouring edge length alone
         chords off corners and thin parts (1 to 3% of the diagonal on self-compositions of
-        low-poly characters); see :func:`.stitch._remesh_keeping_features`.
+        low-poly characters); see :func:`.stitch.remesh_keeping_features`.
     keep_input_corners : vertices of the replaced input faces that the exact blended field puts
         on the surface (within a tenth of a voxel) but the isosurface misses are inserted into it
         and kept by the remeshing: corners and thin parts of low-poly inputs that marching cubes
@@ -140,11 +145,11 @@ class FusionParams:
         ``relax_max_angle_loss`` degrees of p05 against the plain remeshing (keeping less, it
         may cost little); the report's grid gives the ``fidelity_tolerance`` used (0: plain)
         and, after a miss, the plain remeshing's ``plain_deviation`` (same unit as the
-        positions). RiggedFigure's right arm: at 4x the shape
-        stays within 0.14% of the diagonal at p05 21.6 degrees, where the plain remeshing
-        rounded a box corner off by 2.2% (p05 21.3). The Horse + Knight centaur's plain
-        junction strays 0.11 units (1.7% of the diagonal) from its reference; at 4x its p05
-        falls from 28.4 to 20.1 with visibly jagged, feature-pinned triangles, so it stays plain.
+        positions). RiggedFigure's right arm: at 4x the shape stays within 0.14% of the
+        diagonal at p05 21.6 degrees, where the plain remeshing rounds a box corner off by 2.2%
+        (p05 21.3). The Horse + Knight centaur's plain junction strays 0.11 units (1.7% of the
+        diagonal) from its reference; at 4x its p05 would be 20.1 against the plain 28.4, with
+        visibly jagged, feature-pinned triangles, so it stays plain.
     relax_max_angle_loss : degrees, see ``fidelity_relax``.
     min_angle_p05 : degrees; the fidelity path is kept only if the junction's 5th percentile of
         triangle minimum angles stays at least this, or above the plain remeshing's.
@@ -156,29 +161,30 @@ class FusionParams:
     collapse_poor : free junction vertices of triangles under 20 degrees are collapsed into a
         neighbour where that raises the angles and moves the surface less than the fidelity
         tolerance (:func:`.remesh.collapse_to_improve_angles`). A uniform target edge cannot
-        meet the long seam edges of low-poly preserved faces (up to 8 target edges): without
-        this the shape-keeping path fell back to the plain one on 13 of the 37 limb
-        self-compositions, 11 of them more than 0.5% of the diagonal off (up to 2.2%); with
-        it on 3, one of them off (RiggedFigure's right arm).
+        meet the long seam edges of low-poly preserved faces (up to 8 target edges). Measured
+        on the 37 limb self-compositions: with it, the shape-keeping path falls back to the
+        plain one on 3, one of them more than 0.5% of the diagonal off (RiggedFigure's right
+        arm); without it, on 13, 11 of them off (up to 2.2%).
     copy_coincident : a junction cluster whose every face both inputs of an action have (the
         same corner positions bit for bit, same orientation) is copied as it is: both surfaces
         pass through those faces, so the blended field vanishes there and remeshing its
-        isosurface could only lose them. Each face is
-        kept once, from the input more present on it; its vertices get junction weights unless a
-        preserved face keeps the position (:attr:`FusedSurface.junction_vertices`). A limb
-        replaced by itself then comes back face for face: measured on the 37 limb
-        self-compositions of the shared characters, Hausdorff 0 and every face kept, where the
-        fields gave at most 0.44% and at least 90% of the faces kept on 24. A partly shared
+        isosurface could only lose them. Each face is kept once, from the input more present on
+        it; its vertices get junction weights unless a preserved face keeps the position
+        (:attr:`FusedSurface.junction_vertices`). A limb replaced by itself then comes back face
+        for face: measured on the 37 limb self-compositions of the shared characters, Hausdorff
+        0 and every face kept, where rebuilding from the fields gives a Hausdorff distance of
+        at most 0.44% and keeps at least 90% of the faces on 24 of them. A partly shared
         junction is rebuilt from the fields.
     bridge_recuts : times the isosurface may be cut back and the seam loops bridged again where
-        a bridge strip crosses the isosurface or the fan that closes a hole no seam claims (the
-        Horse + Knight centaur: 8 bridge triangles spanning 0.26 to 0.33 units, against a median
-        of 0.076, crossed an 87-vertex fan 101 times, and the remeshed junction kept 35 of the
-        crossings); the report's grids give ``bridge_recuts``.
+        a bridge strip crosses the isosurface or the fan that closes a hole no seam claims
+        (without recuts, 8 bridge triangles of the Horse + Knight centaur, spanning 0.26 to 0.33
+        units against a median of 0.076, cross an 87-vertex fan 101 times, and the remeshed
+        junction keeps 35 of the crossings); the report's grids give ``bridge_recuts``.
     untangle_move : folds left in a remeshed junction are smoothed open
         (:func:`.remesh.untangle`) only if no vertex of a shape-keeping junction moves farther
-        than this many fidelity tolerances (the box corners of RiggedFigure's arm, replaced by
-        itself, were rounded to 0.9% of the diagonal from 0.23% to open five folds).
+        than this many fidelity tolerances (opening five folds of RiggedFigure's arm, replaced
+        by itself, without this limit rounds its box corners to 0.9% of the diagonal, against
+        0.23% with it).
     min_island_faces : preserved parts bordering a junction with fewer faces join it (specks
         left by the presence pattern have no isosurface hole to meet).
     backend : "numpy" (numpy + libigl) or "openvdb".
@@ -316,6 +322,367 @@ def _check_inputs(inputs, actions):
             raise InputError(f"fusion: action {a} must name two different inputs")
 
 
+@dataclass(frozen=True)
+class _Partition:
+    """Which welded faces of each input the output keeps and which the junction replaces.
+
+    Attributes
+    ----------
+    pres : list of Presence
+        One per input.
+    preserved : list of (m_i,) bool arrays
+        Faces copied unchanged into the output.
+    copied : list of (m_i,) bool arrays
+        Junction faces copied as they are (both inputs of an action have them).
+    kept : list of (m_i,) bool arrays
+        ``preserved | copied``: both bound the junction (a copied face's vertices still get
+        junction weights).
+    junction : list of (m_i,) bool arrays
+        Faces the junction surface replaces.
+    h0 : float
+        Coarsest voxel, ``voxel_factor`` times the smallest average edge length.
+    diagonal : float
+        Smallest input's bounding-box diagonal (0 without vertices).
+    """
+
+    pres: list
+    preserved: list
+    copied: list
+    kept: list
+    junction: list
+    h0: float
+    diagonal: float
+
+
+def _partition(inputs, actions, params) -> _Partition:
+    """Presence of each input, then its preserved, copied and junction faces.
+
+    Preserved faces that conflict with the other input (attach, burial), that leave the
+    junction a thin wedge, that come too close to another seam, that form specks or pinch the
+    seam join the junction; a junction cluster that two inputs share face for face is copied.
+    """
+    pres = [compute_presence(x.V, x.F, x.W, x.used, snap=params.snap, iterations=params.smooth_iterations,
+                             alpha=params.smooth_alpha, preserve_threshold=params.preserve_threshold,
+                             morphology_rounds=params.morphology_rounds,
+                             secondary_variance=params.secondary_variance) for x in inputs]
+    edge_lengths = [average_edge_length(P.welded.V, P.welded.F) for P in pres]
+    h0 = params.voxel_factor * min([e for e in edge_lengths if e > 0] or [1.0])
+    diagonal = min([bounding_box_diagonal(P.welded.V) for P in pres if len(P.welded.V)] or [0.0])
+    preserved = attach_conflicts(pres, actions, h0 * params.attach_conflict_voxels / 2.0)
+    if params.min_seam_wedge > 0:
+        preserved = [open_notches(P, preserved[i], min_wedge=params.min_seam_wedge) for i, P in enumerate(pres)]
+    junction = [~preserved[i] & ~(P.absent & ~P.preserved) for i, P in enumerate(pres)]
+    if len(pres) > 1 and any(j.any() for j in junction):
+        # the finest voxel any junction will get bounds the room the cut needs between seams
+        boxes0 = junction_clusters(pres, junction, params.margin_voxels * h0)
+        h_est = min(cluster_grid(lo, hi, h0, params, diagonal).voxel for lo, hi in boxes0)
+        preserved = separate_seams(pres, preserved, (2.0 * params.cut_voxels + 1.5) * h_est)
+        preserved = drop_specks(pres, preserved, params.min_island_faces)
+        preserved = unpinch_preserved(pres, preserved)
+        if params.min_seam_wedge > 0:
+            preserved = [open_notches(P, preserved[i], min_wedge=params.min_seam_wedge) for i, P in enumerate(pres)]
+        junction = [~preserved[i] & ~(P.absent & ~P.preserved) for i, P in enumerate(pres)]
+    copied = [np.zeros(len(P.welded.F), bool) for P in pres]
+    if params.copy_coincident and len(pres) > 1:
+        copied, dropped = coincident_faces(pres, preserved, junction, actions, params.margin_voxels * h0)
+        junction = [junction[i] & ~copied[i] & ~dropped[i] for i in range(len(pres))]
+    kept = [preserved[i] | copied[i] for i in range(len(pres))]
+    return _Partition(pres=pres, preserved=preserved, copied=copied, kept=kept, junction=junction, h0=h0,
+                      diagonal=diagonal)
+
+
+def _seam_loops(part: _Partition):
+    """Seam loops of every input (:func:`.seams.preserved_loops` on its kept faces) and the
+    number of seam edges on open chains."""
+    loops_all, open_chain_edges = [], 0
+    for i, P in enumerate(part.pres):
+        L, c = preserved_loops(P, part.kept[i], i)
+        loops_all += L
+        open_chain_edges += c
+    return loops_all, open_chain_edges
+
+
+def _cluster_fields(grid, band, pres, surfaces, backend):
+    """Signed distance and presence of each input near ``grid``, at its samples.
+
+    Inputs with no surface within ``band`` of the grid get none. Inputs with the same geometry
+    (a character composed with itself) share one distance computation.
+
+    Returns
+    -------
+    dict
+        Input -> ``(d, p)``, each ``(grid.size,)`` float.
+    """
+    fields = {}
+    groups: dict = {}
+    for i, P in enumerate(pres):
+        Vw, Fs = P.welded.V, surfaces[i]
+        P3 = Vw[Fs].reshape(-1, 3) if len(Fs) else np.zeros((0, 3))
+        if len(P3) == 0 or np.any(P3.min(axis=0) > grid.upper + band) or np.any(P3.max(axis=0) < grid.origin - band):
+            continue
+        key = (Vw.shape, Fs.shape, hash(Vw.tobytes()), hash(Fs.tobytes()))
+        groups.setdefault(key, []).append(i)
+    for members in groups.values():
+        P = pres[members[0]]
+        vals = np.stack([pres[i].p_welded for i in members], axis=1)
+        d, val = backend.signed_distance(grid, P.welded.V, surfaces[members[0]], vals, band=band)
+        for c, i in enumerate(members):
+            fields[i] = (d, val[:, c])
+    return fields
+
+
+@dataclass(frozen=True)
+class _ClusterResult:
+    """One junction cluster's contribution to the output.
+
+    Attributes
+    ----------
+    V : (k, 3) float64, F : (q, 3) int64
+        Junction surface (empty after the face-selection fallback).
+    info : dict
+        The report's grid entry.
+    selected : list of (m_i,) bool arrays or None
+        Per input, faces kept by the face-selection fallback.
+    field : (name, Grid, float32 array) or None
+        The blended field, with ``FusionParams.keep_fields``.
+    timings : dict
+        Seconds: ``fields``, then those of :class:`.stitch.ClusterJunction`.
+    """
+
+    V: np.ndarray
+    F: np.ndarray
+    info: dict
+    selected: list | None
+    field: tuple | None
+    timings: dict
+
+
+def _fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params) -> _ClusterResult:
+    """Fields and junction surface of cluster ``ci`` (box ``lo``, ``hi``).
+
+    Where the isosurface cannot close the junction (open sheets have no inside; loops left
+    unmatched), the cluster's input faces are kept instead from the input most present on each
+    (:func:`.seams.most_present_faces`).
+    """
+    pres = part.pres
+    grid = cluster_grid(lo, hi, part.h0, params, part.diagonal)
+    band = params.band_voxels * grid.voxel
+    t0 = time.perf_counter()
+    fields = _cluster_fields(grid, band, pres, surfaces, backend)
+    t_fields = time.perf_counter() - t0
+    lo_g, hi_g = grid.origin, grid.upper
+    cl = [L for L in loops_all
+          if np.all(L.positions.mean(axis=0) >= lo_g) and np.all(L.positions.mean(axis=0) <= hi_g)]
+    cj = junction_for_cluster(grid, pres, surfaces, part.kept, cl, fields, actions, params, band,
+                              local_edge_length(pres, part.junction, grid), junction_masks=part.junction,
+                              diagonal=part.diagonal)
+    info = {**cj.info, "voxel_size": grid.voxel, "voxels": grid.size, "shape": list(grid.shape), "loops": len(cl)}
+    JV, JF, selected = cj.V, cj.F, None
+    if info["unmatched_preserved_loops"] > 0 or len(JF) == 0:
+        selected = most_present_faces(pres, part.junction, grid)
+        info["fallback"] = "face-selection"
+        log.warning("fusion: junction %d could not be closed by the isosurface (%d loops left); "
+                    "kept the most present input faces instead", ci, info["unmatched_preserved_loops"])
+        JV, JF = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    kept_field = (f"junction_{ci}", grid, cj.field.astype(np.float32)) if params.keep_fields else None
+    return _ClusterResult(V=JV, F=JF, info=info, selected=selected, field=kept_field,
+                          timings={"fields": t_fields, **cj.timings})
+
+
+@dataclass(frozen=True)
+class _InputPart:
+    """The faces of one input copied into the output: preserved ones, then fallback-selected
+    and copied ones.
+
+    Attributes
+    ----------
+    vertices : (k,) int64
+        Split vertices used, in source order; the output's vertices ``base .. base + k``.
+    faces : (f,) int64
+        Split faces, preserved first, then the others, each in source order.
+    F : (f, 3) int64
+        Those faces over the output's vertices.
+    extra : (start, count)
+        Output faces ``start .. start + count`` are fallback-selected or copied (junction faces).
+    copied_faces : (c,) int64
+        Output indices of the copied faces.
+    junction_vertices : (k,) bool
+        Vertices whose weights the weights stage computes: those of copied faces where no
+        preserved (or fallback-selected) face of the input keeps the position.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    F: np.ndarray
+    extra: tuple
+    copied_faces: np.ndarray
+    junction_vertices: np.ndarray
+
+
+def _input_part(x, P, preserved, selected, copied, base, face_base) -> _InputPart:
+    """The part of input ``x`` (presence ``P``) in the output, its first vertex at ``base`` and its
+    first face at ``face_base``."""
+    extra = (selected | copied) & ~preserved
+    fidx = np.concatenate([np.flatnonzero(preserved), np.flatnonzero(extra)])
+    start = face_base + int(np.count_nonzero(preserved))
+    Fi = np.asarray(x.F, np.int64)[fidx]
+    vidx = np.unique(Fi.ravel())
+    # a copied face's vertices get junction weights, except where the input keeps the
+    # position on a preserved (or fallback-selected) face: those keep the input's weights
+    W_ = P.welded
+    keeps = np.zeros(len(W_.V), bool)
+    keeps[W_.F[preserved | (selected & ~copied)].ravel()] = True
+    on_copied = np.zeros(len(x.V), bool)
+    on_copied[np.asarray(x.F, np.int64)[copied].ravel()] = True
+    remap = np.full(len(x.V), -1, np.int64)
+    remap[vidx] = base + np.arange(len(vidx))
+    return _InputPart(vertices=vidx, faces=fidx, F=remap[Fi], extra=(start, int(np.count_nonzero(extra))),
+                      copied_faces=start + np.flatnonzero(copied[extra]),
+                      junction_vertices=(on_copied & ~keeps[W_.index])[vidx])
+
+
+def _junction_sources(inputs, pres, Q, n_generated, h0, with_colors):
+    """Closest points on each input of the vertices whose weights the weights stage computes,
+    and the presence-weighted colours of the generated junction vertices.
+
+    Parameters
+    ----------
+    Q : (q, 3) float array
+        Those vertices; the generated ones are the last ``n_generated``.
+    h0 : float
+        Coarsest voxel; ``1e-3 h0`` keeps the inverse-distance colour weights finite.
+    with_colors : bool
+
+    Returns
+    -------
+    sources : list of dict
+        Per input, ``face``, ``bary``, ``distance`` and ``presence`` (see
+        :attr:`FusedSurface.junction_sources`).
+    colors : (n_generated, 4) float64 or None
+        Linear RGBA; white where no input is present.
+    """
+    import igl
+
+    nq, nJ = len(Q), n_generated
+    sources = []
+    wsum = np.zeros(nJ)
+    csum = np.zeros((nJ, 4))
+    gen = slice(nq - nJ, nq)
+    for i, x in enumerate(inputs):
+        if nq == 0:
+            sources.append({"face": np.zeros(0, np.int64), "bary": np.zeros((0, 3)), "distance": np.zeros(0),
+                            "presence": np.zeros(0)})
+            continue
+        Vx = np.asarray(x.V, np.float64)
+        Fx = np.asarray(x.F, np.int64)
+        d2, fid, C = igl.point_mesh_squared_distance(Q, Vx, Fx)
+        T = Fx[fid]
+        B = igl.barycentric_coordinates(C, Vx[T[:, 0]], Vx[T[:, 1]], Vx[T[:, 2]])
+        B = np.clip(np.nan_to_num(B, nan=1 / 3), 0, 1)
+        B /= np.maximum(B.sum(axis=1, keepdims=True), 1e-12)
+        p = np.einsum("nk,nk->n", B, pres[i].p[T])
+        sources.append({"face": fid, "bary": B, "distance": np.sqrt(d2), "presence": p})
+        if with_colors and nJ:
+            cx = np.asarray(x.colors, np.float64) if x.colors is not None else np.ones((len(Vx), 4))
+            w = p[gen] / (np.sqrt(d2[gen]) + 1e-3 * h0)
+            csum += w[:, None] * np.einsum("nk,nkc->nc", B[gen], cx[T[gen]])
+            wsum += w
+    colors = None
+    if with_colors:
+        colors = csum / np.maximum(wsum, 1e-12)[:, None]
+        colors[wsum <= 0] = 1.0
+    return sources, colors
+
+
+def _assemble(inputs, part: _Partition, selected, clusters) -> FusedSurface:
+    """The output surface, without its report: each input's parts (:class:`_InputPart`), then
+    the junction surfaces of the ``clusters``, with their attributes.
+
+    ``selected``: per input, the ``(m_i,)`` bool faces kept by the face-selection fallback.
+    """
+    import igl
+
+    pres, preserved, copied, h0 = part.pres, part.preserved, part.copied, part.h0
+    has_uv = all(x.uvs is not None for x in inputs)
+    has_n = all(x.normals is not None for x in inputs)
+    has_c = any(x.colors is not None for x in inputs)
+    parts = []
+    base = face_base = 0
+    for i, x in enumerate(inputs):
+        parts.append(_input_part(x, pres[i], preserved[i], selected[i], copied[i], base, face_base))
+        base += len(parts[-1].vertices)
+        face_base += len(parts[-1].faces)
+    Vs = [np.asarray(x.V, np.float64)[q.vertices] for x, q in zip(inputs, parts)]
+    Fs_out = [q.F for q in parts]
+    n_pres_faces = sum(len(f) for f in Fs_out)
+    jstart = base
+    for c in clusters:
+        Vs.append(c.V)
+        Fs_out.append(c.F + base)
+        base += len(c.V)
+    nJ = base - jstart
+    V_out = np.concatenate(Vs) if Vs else np.zeros((0, 3))
+    F_out = np.concatenate(Fs_out).astype(np.int64) if Fs_out else np.zeros((0, 3), np.int64)
+    n_generated_faces = len(F_out) - n_pres_faces
+    junction_faces = np.zeros(len(F_out), bool)
+    junction_faces[n_pres_faces:] = True
+    for start, count in (q.extra for q in parts):
+        junction_faces[start:start + count] = True
+    copied_faces = np.zeros(len(F_out), bool)
+    copied_faces[np.concatenate([q.copied_faces for q in parts]).astype(np.int64)] = True
+    junction_vertices = np.concatenate([q.junction_vertices for q in parts] + [np.ones(nJ, bool)])
+
+    # junction attributes: closest points on each input (for every vertex whose weights the
+    # weights stage computes), presence-weighted colours (generated vertices: the last nJ rows)
+    sources, jc = _junction_sources(inputs, pres, V_out[np.flatnonzero(junction_vertices)], nJ, h0, has_c)
+    uvs = normals = colors = None
+    if has_uv:
+        uvs = np.concatenate([np.asarray(x.uvs, np.float64)[q.vertices] for x, q in zip(inputs, parts)]
+                             + [np.zeros((nJ, 2))])
+    if has_n:
+        JVall, JFall = V_out[jstart:], F_out[n_pres_faces:] - jstart
+        jn = igl.per_vertex_normals(JVall, JFall) if len(JFall) else np.zeros((nJ, 3))
+        normals = np.concatenate([np.asarray(x.normals, np.float64)[q.vertices] for x, q in zip(inputs, parts)]
+                                 + [np.nan_to_num(np.asarray(jn))])
+    if has_c:
+        colors = np.concatenate([np.asarray(x.colors, np.float64)[q.vertices] if x.colors is not None
+                                 else np.ones((len(q.vertices), 4)) for x, q in zip(inputs, parts)] + [jc])
+    mesh_of_vertex = [np.asarray(x.mesh_of_vertex)[q.vertices] if x.mesh_of_vertex is not None
+                      else np.zeros(len(q.vertices), np.int64) for x, q in zip(inputs, parts)]
+    return FusedSurface(
+        V=V_out, F=F_out,
+        origin_input=np.concatenate([np.full(len(q.vertices), i) for i, q in enumerate(parts)]
+                                    + [np.full(nJ, -1)]).astype(np.int64),
+        origin_vertex=np.concatenate([q.vertices for q in parts] + [np.full(nJ, -1)]).astype(np.int64),
+        face_origin_input=np.concatenate([np.full(len(q.faces), i) for i, q in enumerate(parts)]
+                                         + [np.full(n_generated_faces, -1)]).astype(np.int64),
+        face_origin_face=np.concatenate([q.faces for q in parts] + [np.full(n_generated_faces, -1)]).astype(np.int64),
+        junction_faces=junction_faces, preserved=tuple(preserved), presence=tuple(P.p for P in pres),
+        mesh_of_vertex=np.concatenate(mesh_of_vertex + [np.full(nJ, -1)]).astype(np.int64),
+        uvs=uvs, normals=normals, colors=colors, junction_sources=tuple(sources),
+        fields=tuple(c.field for c in clusters if c.field is not None),
+        junction_vertices=junction_vertices, copied_faces=copied_faces,
+    )
+
+
+def _surface_report(surface, inputs, infos, h0, backend_name, open_chain_edges):
+    """The report's ``mesh`` (:func:`.report.mesh_report` and the junction counts) and
+    ``fields`` (``infos``: the clusters' grid entries) parts."""
+    mrep = mesh_report(surface.V, surface.F, surface.junction_faces & ~surface.copied_faces,
+                       [(x.V, x.F) for x in inputs])
+    mrep["junction_faces"] = int(surface.junction_faces.sum())
+    mrep["copied_faces"] = int(surface.copied_faces.sum())
+    mrep["unmatched_loops"] = int(sum(inf["unmatched_preserved_loops"] for inf in infos))
+    mrep["open_seam_edges"] = int(open_chain_edges)
+    fields = {
+        "voxel_size": float(min([g["voxel_size"] for g in infos], default=h0)),
+        "voxels": int(sum(g["voxels"] for g in infos)),
+        "backend": backend_name,
+        "grids": infos,
+    }
+    return mrep, fields
+
+
 def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction], *,
                   params: FusionParams = FusionParams()) -> FusedSurface:
     """Fuse the input surfaces into M_R = preserved parts + junction surface.
@@ -340,225 +707,39 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     InputError
         Malformed inputs or actions.
     """
-    import igl
-
     t_all = time.perf_counter()
-    timings: dict[str, float] = {}
     inputs = list(inputs)
     actions = list(actions)
     _check_inputs(inputs, actions)
     t0 = time.perf_counter()
-    pres = [compute_presence(x.V, x.F, x.W, x.used, snap=params.snap, iterations=params.smooth_iterations,
-                             alpha=params.smooth_alpha, preserve_threshold=params.preserve_threshold,
-                             morphology_rounds=params.morphology_rounds,
-                             secondary_variance=params.secondary_variance) for x in inputs]
-    edge_lengths = [average_edge_length(P.welded.V, P.welded.F) for P in pres]
-    h0 = params.voxel_factor * min([e for e in edge_lengths if e > 0] or [1.0])
-    diagonal = min([bounding_box_diagonal(P.welded.V) for P in pres if len(P.welded.V)] or [0.0])
-    preserved = _attach_conflicts(pres, actions, h0 * params.attach_conflict_voxels / 2.0)
-    if params.min_seam_wedge > 0:
-        preserved = [_open_notches(P, preserved[i], min_wedge=params.min_seam_wedge) for i, P in enumerate(pres)]
-    junction = [~preserved[i] & ~(P.absent & ~P.preserved) for i, P in enumerate(pres)]
-    if len(pres) > 1 and any(j.any() for j in junction):
-        # the finest voxel any junction will get bounds the room the cut needs between seams
-        boxes0 = _clusters(pres, junction, params.margin_voxels * h0)
-        h_est = min(_grid_for(lo, hi, h0, params, diagonal).voxel for lo, hi in boxes0)
-        preserved = _separate_seams(pres, preserved, (2.0 * params.cut_voxels + 1.5) * h_est)
-        preserved = _drop_specks(pres, preserved, params.min_island_faces)
-        preserved = _unpinch_preserved(pres, preserved)
-        if params.min_seam_wedge > 0:
-            preserved = [_open_notches(P, preserved[i], min_wedge=params.min_seam_wedge) for i, P in enumerate(pres)]
-        junction = [~preserved[i] & ~(P.absent & ~P.preserved) for i, P in enumerate(pres)]
-    copied = [np.zeros(len(P.welded.F), bool) for P in pres]
-    if params.copy_coincident and len(pres) > 1:
-        copied, dropped = _coincident_faces(pres, preserved, junction, actions, params.margin_voxels * h0)
-        junction = [junction[i] & ~copied[i] & ~dropped[i] for i in range(len(pres))]
-    # copied faces bound the junction like preserved ones (their vertices get junction weights)
-    kept = [preserved[i] | copied[i] for i in range(len(pres))]
-    timings["presence"] = time.perf_counter() - t0
+    part = _partition(inputs, actions, params)
+    timings = {"presence": time.perf_counter() - t0}
 
     t0 = time.perf_counter()
-    loops_all, open_chain_edges = [], 0
-    for i, P in enumerate(pres):
-        L, c = _preserved_loops(P, kept[i], i)
-        loops_all += L
-        open_chain_edges += c
-    boxes = _clusters(pres, junction, params.margin_voxels * h0)
+    loops_all, open_chain_edges = _seam_loops(part)
+    boxes = junction_clusters(part.pres, part.junction, params.margin_voxels * part.h0)
     backend = get_backend(params.backend)
     # secondary components are kept whole or dropped, never blended: not in the fields
-    surfaces = [prepare_surface(P.welded.V, P.welded.F[~P.secondary]) for P in pres]
+    surfaces = [prepare_surface(P.welded.V, P.welded.F[~P.secondary]) for P in part.pres]
     timings["setup"] = time.perf_counter() - t0
 
-    juncs, kept_fields, infos = [], [], []
-    selected = [np.zeros(len(P.welded.F), bool) for P in pres]
-    for ci, (lo, hi) in enumerate(boxes):
-        grid = _grid_for(lo, hi, h0, params, diagonal)
-        band = params.band_voxels * grid.voxel
-        t0 = time.perf_counter()
-        fields = {}
-        # inputs with the same geometry (a character composed with itself) share one field
-        groups: dict = {}
-        for i, P in enumerate(pres):
-            Vw, Fs = P.welded.V, surfaces[i]
-            P3 = Vw[Fs].reshape(-1, 3) if len(Fs) else np.zeros((0, 3))
-            if len(P3) == 0 or np.any(P3.min(axis=0) > grid.upper + band) or np.any(P3.max(axis=0) < grid.origin - band):
-                continue
-            key = (Vw.shape, Fs.shape, hash(Vw.tobytes()), hash(Fs.tobytes()))
-            groups.setdefault(key, []).append(i)
-        for members in groups.values():
-            P = pres[members[0]]
-            vals = np.stack([pres[i].p_welded for i in members], axis=1)
-            d, val = backend.signed_distance(grid, P.welded.V, surfaces[members[0]], vals, band=band)
-            for c, i in enumerate(members):
-                fields[i] = (d, val[:, c])
-        timings["fields"] = timings.get("fields", 0.0) + time.perf_counter() - t0
-        lo_g, hi_g = grid.origin, grid.upper
-        cl = [L for L in loops_all
-              if np.all(L.positions.mean(axis=0) >= lo_g) and np.all(L.positions.mean(axis=0) <= hi_g)]
-        JV, JF, fkeys, info, field3 = _junction_for_cluster(grid, pres, surfaces, kept, cl, fields, actions, params,
-                                                            band, timings, _local_edge(pres, junction, grid),
-                                                            junction_masks=junction, diagonal=diagonal)
-        info.update(voxel_size=grid.voxel, voxels=grid.size, shape=list(grid.shape), loops=len(cl))
-        if info["unmatched_preserved_loops"] > 0 or len(JF) == 0:
-            # no closed junction (open sheets have no inside; loops left unmatched): keep the
-            # input faces of the cluster from the input that is most present on each
-            sel = _select_faces(pres, junction, grid)
-            for i in range(len(pres)):
-                selected[i] |= sel[i]
-            info["fallback"] = "face-selection"
-            log.warning("fusion: junction %d could not be closed by the isosurface (%d loops left); "
-                        "kept the most present input faces instead", ci, info["unmatched_preserved_loops"])
-            JV, JF, fkeys = np.zeros((0, 3)), np.zeros((0, 3), np.int64), []
-        infos.append(info)
-        juncs.append((JV, JF, fkeys))
-        if params.keep_fields:
-            kept_fields.append((f"junction_{ci}", grid, field3.astype(np.float32)))
+    clusters = [_fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params)
+                for ci, (lo, hi) in enumerate(boxes)]
+    for c in clusters:
+        for k, v in c.timings.items():
+            timings[k] = timings.get(k, 0.0) + v
+    selected = [np.zeros(len(P.welded.F), bool) for P in part.pres]
+    for c in clusters:
+        if c.selected is not None:
+            selected = [s | c.selected[i] for i, s in enumerate(selected)]
 
-    # assembly -----------------------------------------------------------------------------
     t0 = time.perf_counter()
-    Vs, Fs_out, oin, over, foin, fof, mov = [], [], [], [], [], [], []
-    uv_l, nrm_l, col_l = [], [], []
-    has_uv = all(x.uvs is not None for x in inputs)
-    has_n = all(x.normals is not None for x in inputs)
-    has_c = any(x.colors is not None for x in inputs)
-    base = 0
-    sel_ranges, copied_out, jv_l = [], [], []
-    for i, x in enumerate(inputs):
-        extra = (selected[i] | copied[i]) & ~preserved[i]
-        fidx = np.concatenate([np.flatnonzero(preserved[i]), np.flatnonzero(extra)])
-        start = sum(len(f) for f in fof) + int(np.count_nonzero(preserved[i]))
-        sel_ranges.append((start, int(np.count_nonzero(extra))))
-        copied_out.append(start + np.flatnonzero(copied[i][extra]))
-        Fi = np.asarray(x.F, np.int64)[fidx]
-        vidx = np.unique(Fi.ravel())
-        # a copied face's vertices get junction weights, except where the input keeps the
-        # position on a preserved (or fallback-selected) face: those keep the input's weights
-        W_ = pres[i].welded
-        keeps = np.zeros(len(W_.V), bool)
-        keeps[W_.F[preserved[i] | (selected[i] & ~copied[i])].ravel()] = True
-        on_copied = np.zeros(len(x.V), bool)
-        on_copied[np.asarray(x.F, np.int64)[copied[i]].ravel()] = True
-        jv_l.append((on_copied & ~keeps[W_.index])[vidx])
-        remap = np.full(len(x.V), -1, np.int64)
-        remap[vidx] = base + np.arange(len(vidx))
-        Vs.append(np.asarray(x.V, np.float64)[vidx])
-        Fs_out.append(remap[Fi])
-        oin.append(np.full(len(vidx), i))
-        over.append(vidx)
-        foin.append(np.full(len(fidx), i))
-        fof.append(fidx)
-        mov.append(np.asarray(x.mesh_of_vertex)[vidx] if x.mesh_of_vertex is not None else np.zeros(len(vidx), np.int64))
-        if has_uv:
-            uv_l.append(np.asarray(x.uvs, np.float64)[vidx])
-        if has_n:
-            nrm_l.append(np.asarray(x.normals, np.float64)[vidx])
-        if has_c:
-            col_l.append(np.asarray(x.colors, np.float64)[vidx] if x.colors is not None else np.ones((len(vidx), 4)))
-        base += len(vidx)
-    n_pres_faces = sum(len(f) for f in Fs_out)
-    jstart = base
-    for JV, JF, _ in juncs:
-        Vs.append(JV)
-        Fs_out.append(JF + base)
-        base += len(JV)
-    nJ = base - jstart
-    V_out = np.concatenate(Vs) if Vs else np.zeros((0, 3))
-    F_out = np.concatenate(Fs_out).astype(np.int64) if Fs_out else np.zeros((0, 3), np.int64)
-    junction_faces = np.zeros(len(F_out), bool)
-    junction_faces[n_pres_faces:] = True
-    for start, count in sel_ranges:
-        junction_faces[start:start + count] = True
-    copied_faces = np.zeros(len(F_out), bool)
-    copied_faces[np.concatenate(copied_out).astype(np.int64)] = True
-    junction_vertices = np.concatenate(jv_l + [np.ones(nJ, bool)])
-    jrows = np.flatnonzero(junction_vertices)
-    nq = len(jrows)
-    JVall = V_out[jstart:]
-    JFall = F_out[n_pres_faces:] - jstart
-
-    # junction attributes: closest points on each input (for every vertex whose weights the
-    # weights stage computes), presence-weighted colours (generated vertices: the last nJ rows)
-    sources = []
-    wsum = np.zeros(nJ)
-    csum = np.zeros((nJ, 4))
-    gen = slice(nq - nJ, nq)
-    for i, x in enumerate(inputs):
-        if nq == 0:
-            sources.append({"face": np.zeros(0, np.int64), "bary": np.zeros((0, 3)), "distance": np.zeros(0),
-                            "presence": np.zeros(0)})
-            continue
-        Vx = np.asarray(x.V, np.float64)
-        Fx = np.asarray(x.F, np.int64)
-        d2, fid, C = igl.point_mesh_squared_distance(V_out[jrows], Vx, Fx)
-        T = Fx[fid]
-        B = igl.barycentric_coordinates(C, Vx[T[:, 0]], Vx[T[:, 1]], Vx[T[:, 2]])
-        B = np.clip(np.nan_to_num(B, nan=1 / 3), 0, 1)
-        B /= np.maximum(B.sum(axis=1, keepdims=True), 1e-12)
-        p = np.einsum("nk,nk->n", B, pres[i].p[T])
-        sources.append({"face": fid, "bary": B, "distance": np.sqrt(d2), "presence": p})
-        if has_c and nJ:
-            cx = np.asarray(x.colors, np.float64) if x.colors is not None else np.ones((len(Vx), 4))
-            w = p[gen] / (np.sqrt(d2[gen]) + 1e-3 * h0)
-            csum += w[:, None] * np.einsum("nk,nkc->nc", B[gen], cx[T[gen]])
-            wsum += w
-    uvs = normals = colors = None
-    if has_uv:
-        uvs = np.concatenate(uv_l + [np.zeros((nJ, 2))])
-    if has_n:
-        jn = igl.per_vertex_normals(JVall, JFall) if len(JFall) else np.zeros((nJ, 3))
-        normals = np.concatenate(nrm_l + [np.nan_to_num(np.asarray(jn))])
-    if has_c:
-        jc = csum / np.maximum(wsum, 1e-12)[:, None]
-        jc[wsum <= 0] = 1.0
-        colors = np.concatenate(col_l + [jc])
-    origin_input = np.concatenate(oin + [np.full(nJ, -1)]).astype(np.int64)
-    origin_vertex = np.concatenate(over + [np.full(nJ, -1)]).astype(np.int64)
+    surface = _assemble(inputs, part, selected, clusters)
     timings["assembly"] = time.perf_counter() - t0
-
     t0 = time.perf_counter()
-    mrep = mesh_report(V_out, F_out, junction_faces & ~copied_faces, [(x.V, x.F) for x in inputs])
-    mrep["junction_faces"] = int(junction_faces.sum())
-    mrep["copied_faces"] = int(copied_faces.sum())
-    mrep["unmatched_loops"] = int(sum(inf["unmatched_preserved_loops"] for inf in infos))
-    mrep["open_seam_edges"] = int(open_chain_edges)
+    infos = [c.info for c in clusters]
+    mrep, fields = _surface_report(surface, inputs, infos, part.h0, backend.name, open_chain_edges)
     timings["report"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all
-    report = {
-        "mesh": mrep,
-        "fields": {
-            "voxel_size": float(min([g["voxel_size"] for g in infos], default=h0)),
-            "voxels": int(sum(g["voxels"] for g in infos)),
-            "backend": backend.name,
-            "grids": infos,
-        },
-        "timings": {k: round(v, 4) for k, v in timings.items()},
-    }
-    return FusedSurface(
-        V=V_out, F=F_out, origin_input=origin_input, origin_vertex=origin_vertex,
-        face_origin_input=np.concatenate(foin + [np.full(len(F_out) - n_pres_faces, -1)]).astype(np.int64),
-        face_origin_face=np.concatenate(fof + [np.full(len(F_out) - n_pres_faces, -1)]).astype(np.int64),
-        junction_faces=junction_faces, preserved=tuple(preserved), presence=tuple(P.p for P in pres),
-        mesh_of_vertex=np.concatenate(mov + [np.full(nJ, -1)]).astype(np.int64),
-        uvs=uvs, normals=normals, colors=colors, junction_sources=tuple(sources),
-        fields=tuple(kept_fields), report=report, junction_vertices=junction_vertices, copied_faces=copied_faces,
-    )
+    report = {"mesh": mrep, "fields": fields, "timings": {k: round(v, 4) for k, v in timings.items()}}
+    return replace(surface, report=report)

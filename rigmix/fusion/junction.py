@@ -21,12 +21,16 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "isosurface",
+    "drop_cancelling_faces",
     "clip_mesh",
     "remove_unreferenced",
     "Loop",
     "boundary_loops",
     "bridge_loops",
+    "loop_distance",
     "match_loops",
+    "orientation_agrees",
+    "keep_components_touching",
 ]
 
 
@@ -76,12 +80,23 @@ def isosurface(field, origin, voxel):
     # with gradient_direction="descent" (default) skimage's triangles face increasing values,
     # i.e. outward for a field negative inside (checked by the sphere test)
     F = np.ascontiguousarray(F.astype(np.int64))
-    return V, _drop_cancelling_faces(F)
+    return V, drop_cancelling_faces(F)
 
 
-def _drop_cancelling_faces(F):
+def drop_cancelling_faces(F):
     """Remove a triangle together with its reverse (a zero-thickness fin, three or four faces
-    on one edge) and keep one copy of plain duplicates."""
+    on one edge) and keep one copy of plain duplicates.
+
+    Parameters
+    ----------
+    F : (m, 3) int array
+
+    Returns
+    -------
+    (k, 3) int array
+        The rows of ``F`` kept, in order. Of a group of faces over the same three vertices, one
+        face of the majority orientation is kept; none where the orientations cancel.
+    """
     if len(F) == 0:
         return F
     key = np.sort(F, axis=1)

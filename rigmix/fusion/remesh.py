@@ -17,7 +17,17 @@ from .meshutil import (
 
 log = logging.getLogger(__name__)
 
-__all__ = ["collapse_to_improve_angles", "is_edge_manifold", "remesh_junction", "smooth_interior"]
+__all__ = [
+    "collapse_to_improve_angles",
+    "flip_to_improve_angles",
+    "insert_points",
+    "is_edge_manifold",
+    "relocate_poor_vertices",
+    "remesh_junction",
+    "smooth_interior",
+    "snap_to_points",
+    "untangle",
+]
 
 
 def is_edge_manifold(F):

@@ -14,13 +14,43 @@ from .junction import boundary_loops
 from .meshutil import boundary_halfedges, corner_angles, edge_counts, face_adjacency
 from .presence import Presence
 
-def _attach_conflicts(pres: list[Presence], actions, h):
+__all__ = [
+    "attach_conflicts",
+    "pinched_faces",
+    "unpinch_preserved",
+    "drop_specks",
+    "separate_seams",
+    "open_notches",
+    "junction_clusters",
+    "cluster_grid",
+    "preserved_loops",
+    "most_present_faces",
+    "local_edge_length",
+    "coincident_faces",
+]
+
+
+def attach_conflicts(pres: list[Presence], actions, h):
     """Preserved faces the fused surface must cut through or that it buries.
 
     attach: faces of either input near or inside the other's present part. replace: faces of
     one input buried inside the present part of the other (the rider's hips inside the horse):
     their seams would have no isosurface to meet. Faces on the other surface itself (a
     character composed with itself) are not buried.
+
+    Parameters
+    ----------
+    pres : list of Presence
+        One per input.
+    actions : sequence of FusionAction
+    h : float
+        Distance unit (same units as the meshes): attach conflicts lie within ``2 h`` of the
+        other's present part, buried faces farther than ``h / 2`` from the other's surface.
+
+    Returns
+    -------
+    list of (m_i,) bool arrays
+        Per input, its preserved welded faces without the conflicting ones.
     """
     import igl
 
@@ -85,8 +115,17 @@ def _seam_components(P: Presence, preserved):
     return comps
 
 
-def _pinched(F):
-    """``(m,)`` bool: faces at a vertex where the boundary passes more than once."""
+def pinched_faces(F):
+    """Faces at a vertex where the mesh's boundary passes more than once.
+
+    Parameters
+    ----------
+    F : (m, 3) int array
+
+    Returns
+    -------
+    (m,) bool array
+    """
     B = boundary_halfedges(F)
     if len(B) == 0:
         return np.zeros(len(F), bool)
@@ -95,11 +134,24 @@ def _pinched(F):
     return (cnt[F] > 1).any(axis=1)
 
 
-def _unpinch_preserved(pres: list[Presence], preserved, rounds=3):
+def unpinch_preserved(pres: list[Presence], preserved, rounds=3):
     """Un-preserve the faces at seam vertices the preserved boundary visits twice.
 
     Two seam loops through one vertex would both be bridged from it and give an edge of three
     or four faces.
+
+    Parameters
+    ----------
+    pres : list of Presence
+    preserved : list of (m_i,) bool arrays
+        Per input, preserved welded faces.
+    rounds : int
+        Passes (un-preserving faces can pinch the boundary elsewhere).
+
+    Returns
+    -------
+    list of (m_i,) bool arrays
+        New masks; the inputs are not modified.
     """
     out = [m.copy() for m in preserved]
     for i, P in enumerate(pres):
@@ -107,16 +159,29 @@ def _unpinch_preserved(pres: list[Presence], preserved, rounds=3):
             idx = np.flatnonzero(out[i])
             if len(idx) == 0:
                 break
-            bad = _pinched(P.welded.F[idx])
+            bad = pinched_faces(P.welded.F[idx])
             if not bad.any():
                 break
             out[i][idx[bad]] = False
     return out
 
 
-def _drop_specks(pres: list[Presence], preserved, min_faces):
+def drop_specks(pres: list[Presence], preserved, min_faces):
     """Un-preserve preserved parts bordering a junction with fewer than ``min_faces`` faces
-    (and under 2% of the input's faces: a low-poly limb of a dozen faces is no speck)."""
+    (and under 2% of the input's faces: a low-poly limb of a dozen faces is no speck).
+
+    Parameters
+    ----------
+    pres : list of Presence
+    preserved : list of (m_i,) bool arrays
+        Per input, preserved welded faces.
+    min_faces : int
+
+    Returns
+    -------
+    list of (m_i,) bool arrays
+        New masks; the inputs are not modified.
+    """
     out = [m.copy() for m in preserved]
     for i, P in enumerate(pres):
         limit = min(min_faces, 0.02 * len(P.welded.F))
@@ -126,13 +191,26 @@ def _drop_specks(pres: list[Presence], preserved, min_faces):
     return out
 
 
-def _separate_seams(pres: list[Presence], preserved, delta):
+def separate_seams(pres: list[Presence], preserved, delta):
     """Un-preserve faces closer than ``delta`` to another preserved part bordering a junction.
 
     Where two preserved parts (of two inputs, or two parts of one input on either side of a
     junction) come closer than the isosurface cut leaves room for (the underside of a limb
     against the body), the cut isosurface would pinch there and its boundary loops merge,
     which no loop-to-loop bridge can close; widening the junction keeps every seam its own loop.
+
+    Parameters
+    ----------
+    pres : list of Presence
+    preserved : list of (m_i,) bool arrays
+        Per input, preserved welded faces.
+    delta : float
+        Distance (same units as the meshes).
+
+    Returns
+    -------
+    list of (m_i,) bool arrays
+        New masks; the inputs are not modified.
     """
     import igl
 
@@ -161,12 +239,28 @@ def _separate_seams(pres: list[Presence], preserved, delta):
     return out
 
 
-def _open_notches(P: Presence, preserved, *, min_wedge=60.0, rounds=3):
+def open_notches(P: Presence, preserved, *, min_wedge=60.0, rounds=3):
     """Un-preserve the faces around seam vertices where the junction would be a thin wedge.
 
     At a vertex of the preserved boundary, the junction gets what the preserved faces leave of
     the angle around it; below ``min_wedge`` degrees no triangulation reaches a good minimum
     angle there, so the preserved faces at that vertex join the junction.
+
+    Parameters
+    ----------
+    P : Presence
+        One input.
+    preserved : (m,) bool array
+        Its preserved welded faces.
+    min_wedge : float
+        Degrees.
+    rounds : int
+        Passes (opening a notch can leave a thin wedge beside it).
+
+    Returns
+    -------
+    (m,) bool array
+        New mask; ``preserved`` is not modified.
     """
     Fw = P.welded.F
     ok = ~P.absent | preserved
@@ -188,8 +282,22 @@ def _open_notches(P: Presence, preserved, *, min_wedge=60.0, rounds=3):
     return out
 
 
-def _clusters(pres, junction, margin):
-    """Boxes ``(lo, hi)`` around the junction faces, overlapping boxes merged."""
+def junction_clusters(pres, junction, margin):
+    """Boxes around the face-connected parts of the junction, boxes within ``2 margin`` merged.
+
+    Parameters
+    ----------
+    pres : list of Presence
+    junction : list of (m_i,) bool arrays
+        Per input, the welded faces the junction replaces.
+    margin : float
+        Same units as the meshes.
+
+    Returns
+    -------
+    list of [lo, hi]
+        Corners ``(3,)`` of each box (without the margin), one per junction cluster.
+    """
     boxes = []
     for i, P in enumerate(pres):
         J = np.flatnonzero(junction[i])
@@ -220,10 +328,28 @@ def _clusters(pres, junction, margin):
     return boxes
 
 
-def _grid_for(lo, hi, h0, params, diagonal=0.0):
+def cluster_grid(lo, hi, h0, params, diagonal=0.0):
     """The grid of one junction box: voxel ``h0``, refined so that ``min_voxels_across`` span
     the box's second largest extent and one voxel is at most ``max_voxel_diagonal`` of the
-    smallest input's bounding-box diagonal, then coarsened to respect ``max_voxels``."""
+    smallest input's bounding-box diagonal, then coarsened to respect ``max_voxels``.
+
+    Parameters
+    ----------
+    lo, hi : (3,) float arrays
+        The box (:func:`junction_clusters`).
+    h0 : float
+        Coarsest voxel (same units as the meshes).
+    params : FusionParams
+        ``min_voxels_across``, ``max_voxel_diagonal``, ``margin_voxels``, ``cut_voxels`` and
+        ``max_voxels`` are read.
+    diagonal : float
+        Smallest input's bounding-box diagonal (0: no diagonal rule).
+
+    Returns
+    -------
+    Grid
+        Reaching ``max(margin_voxels, cut_voxels + 4)`` voxels beyond the box.
+    """
     ext = hi - lo
     across = np.sort(ext)[1]
     h = min(h0, across / max(params.min_voxels_across, 1)) if across > 0 else h0
@@ -239,8 +365,25 @@ def _grid_for(lo, hi, h0, params, diagonal=0.0):
     return Grid(glo, float(h), shape)
 
 
-def _preserved_loops(P: Presence, preserved, source):
-    """Closed boundary loops of the preserved faces that run through the input's interior."""
+def preserved_loops(P: Presence, preserved, source):
+    """Closed boundary loops of the preserved faces that run through the input's interior.
+
+    Parameters
+    ----------
+    P : Presence
+        One input.
+    preserved : (m,) bool array
+        Its preserved (or copied) welded faces.
+    source : int
+        Input index recorded in each loop.
+
+    Returns
+    -------
+    loops : list of Loop
+        Seam loops, over welded vertices of the input.
+    open_edges : int
+        Seam edges on chains that do not close (left unbridged).
+    """
     Fw = P.welded.F
     B = boundary_halfedges(Fw[preserved])
     if len(B) == 0:
@@ -256,11 +399,23 @@ def _preserved_loops(P: Presence, preserved, source):
     return loops, int(sum(len(c) - 1 for c in chains))
 
 
-def _select_faces(pres, junction, grid):
+def most_present_faces(pres, junction, grid):
     """Fallback junction: each input's junction faces in ``grid`` where it is the most present.
 
     A face is kept from input ``i`` when its mean presence is above 0.5 (exactly 0.5: only for
     the first input), so a character composed with itself gets each face exactly once.
+
+    Parameters
+    ----------
+    pres : list of Presence
+    junction : list of (m_i,) bool arrays
+        Per input, the welded faces the junction replaces.
+    grid : Grid
+        The cluster's grid; a face is in it when its centroid is.
+
+    Returns
+    -------
+    list of (m_i,) bool arrays
     """
     out = []
     for i, P in enumerate(pres):
@@ -273,8 +428,22 @@ def _select_faces(pres, junction, grid):
     return out
 
 
-def _local_edge(pres, junction, grid):
-    """Mean edge length of the input faces replaced by the junction inside ``grid``."""
+def local_edge_length(pres, junction, grid):
+    """Mean edge length of the input faces replaced by the junction inside ``grid``.
+
+    Parameters
+    ----------
+    pres : list of Presence
+    junction : list of (m_i,) bool arrays
+        Per input, the welded faces the junction replaces.
+    grid : Grid
+        A face is in it when its centroid is.
+
+    Returns
+    -------
+    float
+        Same units as the meshes; 0 without such faces.
+    """
     lens = []
     for i, P in enumerate(pres):
         T = P.welded.F[junction[i]]
@@ -285,8 +454,6 @@ def _local_edge(pres, junction, grid):
         E = np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]])
         lens.append(np.linalg.norm(P.welded.V[E[:, 0]] - P.welded.V[E[:, 1]], axis=1))
     return float(np.concatenate(lens).mean()) if lens else 0.0
-
-
 
 
 def _face_pairs(Va, Fa, Vb, Fb):
@@ -321,7 +488,7 @@ def _face_pairs(Va, Fa, Vb, Fb):
     return ia[u], ib[u]
 
 
-def _coincident_faces(pres: list[Presence], preserved, junction, actions, margin):
+def coincident_faces(pres: list[Presence], preserved, junction, actions, margin):
     """Junctions whose faces two inputs of an action share: both surfaces pass through every
     face, so the blend of their signed distances (or their union) vanishes there and the
     junction is those faces as they are.
@@ -329,10 +496,19 @@ def _coincident_faces(pres: list[Presence], preserved, junction, actions, margin
     A shared face that one input preserves is dropped from the other's junction. A face in both
     junctions (or in one, absent from the other) is copied from the input more present on it
     (the first on a tie) and dropped from the other. This is done only for junction clusters
-    (:func:`_clusters` with ``margin``) whose every face is shared: a partly shared junction
+    (:func:`junction_clusters` with ``margin``) whose every face is shared: a partly shared junction
     would need seam loops that run along both inputs, and is remeshed from the fields instead.
     A character composed with itself thus gets every face back as it was (a limb replaced by
     itself); two different characters rarely share a face.
+
+    Parameters
+    ----------
+    pres : list of Presence
+    preserved, junction : lists of (m_i,) bool arrays
+        Per input, preserved welded faces and the welded faces the junction replaces.
+    actions : sequence of FusionAction
+    margin : float
+        Cluster margin (same units as the meshes), as in :func:`junction_clusters`.
 
     Returns
     -------
@@ -358,7 +534,7 @@ def _coincident_faces(pres: list[Presence], preserved, junction, actions, margin
         dropped[b][ib[open_a & live_b]] = True
         copied[b][ib[open_b]] = True
         dropped[a][ia[open_b & live_a]] = True
-    for lo, hi in _clusters(pres, junction, margin):
+    for lo, hi in junction_clusters(pres, junction, margin):
         inside = []
         for i, P in enumerate(pres):
             c = P.welded.V[P.welded.F].mean(axis=1)

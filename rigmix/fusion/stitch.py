@@ -1,12 +1,17 @@
 """One junction: blended field, isosurface, cut, bridges, remesh (PIPELINE.md section 3).
 
-Helper of :func:`rigmix.fusion.fuse_surfaces`.
+Helper of :func:`rigmix.fusion.fuse_surfaces`. :func:`junction_for_cluster` runs the steps in
+order: blend the inputs' fields (:func:`_field_for_cluster`), take the isosurface, cut it where
+preserved faces take over (:func:`_cut_isosurface`), bridge its loops to the seams, cutting it
+back where a bridge crosses it (:func:`_bridge_without_crossings`), and remesh the result with
+the seams fixed, keeping the shape where that costs no slivers (:func:`_remesh_bridged`).
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -22,6 +27,7 @@ from .junction import (
     orientation_agrees,
     remove_unreferenced,
 )
+from .meshutil import intersecting_face_pairs, triangle_min_angles
 from .remesh import (
     collapse_to_improve_angles,
     flip_to_improve_angles,
@@ -33,10 +39,11 @@ from .remesh import (
     snap_to_points,
     untangle,
 )
-from .meshutil import intersecting_face_pairs, triangle_min_angles
-from .seams import _pinched
+from .seams import pinched_faces
 
 log = logging.getLogger(__name__)
+
+__all__ = ["ClusterJunction", "junction_for_cluster", "remesh_keeping_features"]
 
 
 def _field_for_cluster(n, inputs_fields, actions, band):
@@ -234,8 +241,8 @@ def _angle_p05(V, F):
     return float(np.percentile(triangle_min_angles(V, F), 5)) if len(F) else 0.0
 
 
-def _remesh_keeping_features(V, F, fixed, target, iterations, tol, rounds, points=None, points_tol=None,
-                             max_insert=None):
+def remesh_keeping_features(V, F, fixed, target, iterations, tol, rounds, points=None, points_tol=None,
+                            max_insert=None):
     """Remesh with ``fixed`` kept, then again keeping what the result lost.
 
     Remeshing to the neighbouring edge length chords off the corners and thin parts of the
@@ -246,6 +253,25 @@ def _remesh_keeping_features(V, F, fixed, target, iterations, tol, rounds, point
     remesher then builds its isotropic triangles around them. Before the first pass, the
     points the reference itself misses by more than ``points_tol`` (default ``tol``) and that
     lie within ``max_insert`` of it are inserted. At most ``rounds`` more passes.
+
+    Parameters
+    ----------
+    V : (n, 3) float array, F : (m, 3) int array
+        The reference surface: edge-manifold, its border vertices among ``fixed``.
+    fixed : (k,) int array
+        Vertices of ``V`` kept exactly (the seams).
+    target : float
+        Target edge length (same units as ``V``).
+    iterations : int
+        Remeshing iterations per pass.
+    tol : float
+        Same units as ``V``; 0 gives one plain pass.
+    rounds : int
+        Extra passes at most.
+    points : (p, 3) float array, optional
+        Exact surface points to keep where the result misses them.
+    points_tol, max_insert : float, optional
+        See above; ``max_insert`` defaults to ``4 tol``.
 
     Returns
     -------
@@ -291,129 +317,209 @@ def _remesh_keeping_features(V, F, fixed, target, iterations, tol, rounds, point
     return U, G, len(keep), (V, F)
 
 
-def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields, actions, params, band, timings,
-                          local_edge=0.0, junction_masks=None, diagonal=0.0):
-    """Isosurface, cut, bridges and remesh of one cluster.
+def _cut_isosurface(Vi, Fi, pres, preserved, depth):
+    """Remove the isosurface where a preserved face is closer than ``depth``.
+
+    Parameters
+    ----------
+    Vi : (k, 3) float array, Fi : (q, 3) int array
+        The isosurface.
+    pres : list of Presence
+    preserved : list of (m_i,) bool arrays
+        Per input, preserved (or copied) welded faces; secondary components do not cut.
+    depth : float
+        Same units as the meshes.
 
     Returns
     -------
-    JV : (k, 3), JF : (q, 3), fixed_keys : list of (input, welded vertex) for ``JV[:len]``,
-    info : dict
+    Vc : (k', 3) float array, Fc : (q', 3) int array
+        What is left, with no boundary passing twice through one vertex (such faces are opened
+        up, three rounds at most).
     """
     import igl
 
-    t0 = time.perf_counter()
-    field3 = _field_for_cluster(grid.size, inputs_fields, actions, band).reshape(grid.shape)
-    timings["blend"] = timings.get("blend", 0.0) + time.perf_counter() - t0
-    t0 = time.perf_counter()
-    Vi, Fi = isosurface(field3, grid.origin, grid.voxel)
-    timings["isosurface"] = timings.get("isosurface", 0.0) + time.perf_counter() - t0
-    t0 = time.perf_counter()
-    h = grid.voxel
-    info = {"iso_faces": int(len(Fi)), "unmatched_preserved_loops": 0, "unmatched_iso_loops": 0,
-            "orientation_warnings": 0}
-    # cut: remove the isosurface where a preserved face is within cut_voxels
-    if len(Vi):
-        dmin = np.full(len(Vi), np.inf)
-        for i, P in enumerate(pres):
-            Fp = P.welded.F[preserved[i] & ~P.secondary]
-            if len(Fp) == 0:
+    if len(Vi) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    dmin = np.full(len(Vi), np.inf)
+    for i, P in enumerate(pres):
+        Fp = P.welded.F[preserved[i] & ~P.secondary]
+        if len(Fp) == 0:
+            continue
+        d2, _, _ = igl.point_mesh_squared_distance(Vi, P.welded.V, Fp)
+        dmin = np.minimum(dmin, np.sqrt(d2))
+    Vc, Fc, _ = clip_mesh(Vi, Fi, dmin - depth)
+    for _ in range(3):  # boundaries through one vertex twice: open them up
+        bad = pinched_faces(Fc) if len(Fc) else np.zeros(0, bool)
+        if not bad.any():
+            break
+        Vc, Fc, _ = remove_unreferenced(Vc, Fc[~bad])
+    return Vc, Fc
+
+
+@dataclass(frozen=True)
+class _Bridged:
+    """The junction before remeshing: the cut isosurface with its loops bridged to the seams.
+
+    Attributes
+    ----------
+    V : (k, 3) float64
+        The ``n_iso`` vertices of the kept isosurface (and the centres of the fans closing its
+        unclaimed holes), then the seam loop vertices.
+    F : (q, 3) int64
+        Isosurface and fan faces, then the ``n_bridge`` bridge faces.
+    n_iso : int
+    keys : dict
+        ``(input, welded vertex)`` of each seam vertex -> its index among the seam vertices
+        (``V[n_iso + index]``).
+    n_bridge : int
+    seam_edge : float
+        Mean edge length of the seam loops (the voxel without loops).
+    fans : dict
+        Fan centre vertex -> ``(l, 3)`` positions of the hole loop it closes.
+    unmatched_preserved_loops, unmatched_iso_loops, orientation_warnings : int
+        Seam loops left without a partner, isosurface holes closed by a fan, and partners of
+        opposite orientation bridged anyway.
+    """
+
+    V: np.ndarray
+    F: np.ndarray
+    n_iso: int
+    keys: dict
+    n_bridge: int
+    seam_edge: float
+    fans: dict
+    unmatched_preserved_loops: int
+    unmatched_iso_loops: int
+    orientation_warnings: int
+
+
+def _bridge(Vc, Fc, loops, h, cut_voxels):
+    """Match the seam loops to the loops of the cut isosurface (or to each other across inputs)
+    and bridge them.
+
+    Parameters
+    ----------
+    Vc : (k, 3) float array, Fc : (q, 3) int array
+        The cut isosurface (:func:`_cut_isosurface`).
+    loops : list of Loop
+        Seam loops of the cluster.
+    h : float
+        Voxel (same units as the meshes).
+    cut_voxels : float
+        The cut depth in voxels; loops farther apart than the cut leaves room for stay unmatched.
+
+    Returns
+    -------
+    _Bridged
+        Isosurface components that meet no matched loop are dropped; holes no seam claims are
+        closed by a fan.
+    """
+    unmatched_iso = warnings = 0
+    fans = {}  # fan centre vertex -> the positions of the hole's loop
+    iso_loops, _ = boundary_loops(Vc, Fc, -1) if len(Fc) else ([], [])
+    # match preserved loops to isosurface loops (or to each other across inputs)
+    edge = np.mean([np.linalg.norm(np.diff(np.vstack([L.positions, L.positions[:1]]), axis=0), axis=1).mean()
+                    for L in loops]) if loops else h
+    max_cost = max(cut_voxels * h * 3.0 + 2.0 * h, 1.5 * edge)
+    pairs = match_loops(loops, iso_loops, max_cost=max_cost)
+    matched_iso = [j for i, kind, j in pairs if kind == "iso"]
+    matched_pres = {i for i, _, _ in pairs} | {j for _, kind, j in pairs if kind == "preserved"}
+    # keep the isosurface components that meet a matched loop
+    if len(Fc) and matched_iso:
+        keepf = keep_components_touching(Fc, len(Vc), np.concatenate([iso_loops[j].vertices for j in matched_iso]))
+        Vc2, Fc2, old = remove_unreferenced(Vc, Fc[keepf])
+        new = np.full(len(Vc), -1, np.int64)
+        new[old] = np.arange(len(old))
+        iso_loops = [Loop(-1, new[L.vertices], L.positions) for L in iso_loops]
+        Vc, Fc = Vc2, Fc2
+        # isosurface holes no seam claims (cut around a preserved speck): closed by a fan
+        matched_sets = [frozenset(iso_loops[j].vertices.tolist()) for j in matched_iso]
+        remaining, _ = boundary_loops(Vc, Fc, -1)
+        extra_v, extra_f = [], []
+        for L in remaining:
+            if frozenset(L.vertices.tolist()) in matched_sets:
                 continue
-            d2, _, _ = igl.point_mesh_squared_distance(Vi, P.welded.V, Fp)
-            dmin = np.minimum(dmin, np.sqrt(d2))
-        Vc, Fc, _ = clip_mesh(Vi, Fi, dmin - params.cut_voxels * h)
-        for _ in range(3):  # boundaries through one vertex twice: open them up
-            bad = _pinched(Fc) if len(Fc) else np.zeros(0, bool)
-            if not bad.any():
-                break
-            Vc, Fc, _ = remove_unreferenced(Vc, Fc[~bad])
+            c = len(Vc) + len(extra_v)
+            extra_v.append(L.positions.mean(axis=0))
+            extra_f += [(L.vertices[k], L.vertices[k - 1], c) for k in range(len(L.vertices))]
+            fans[c] = L.positions
+            unmatched_iso += 1
+        if extra_v:
+            Vc = np.concatenate([Vc, np.asarray(extra_v)])
+            Fc = np.concatenate([Fc, np.asarray(extra_f, np.int64)])
     else:
         Vc, Fc = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    # junction vertex table: isosurface vertices, then preserved loop vertices (fixed)
+    keys: dict[tuple[int, int], int] = {}
+    fixed_pos = []
 
-    def bridged(Vc, Fc):
-        """Loops of the cut isosurface matched to the preserved loops and bridged: the junction
-        before remeshing, its vertex table, the number of bridge faces (last in JF) and the
-        mean seam edge."""
-        info["unmatched_iso_loops"] = info["orientation_warnings"] = 0
-        fans = {}  # fan centre vertex -> the positions of the hole's loop
-        iso_loops, _ = boundary_loops(Vc, Fc, -1) if len(Fc) else ([], [])
-        # match preserved loops to isosurface loops (or to each other across inputs)
-        edge = np.mean([np.linalg.norm(np.diff(np.vstack([L.positions, L.positions[:1]]), axis=0), axis=1).mean()
-                        for L in loops]) if loops else h
-        max_cost = max(params.cut_voxels * h * 3.0 + 2.0 * h, 1.5 * edge)
-        pairs = match_loops(loops, iso_loops, max_cost=max_cost)
-        matched_iso = [j for i, kind, j in pairs if kind == "iso"]
-        matched_pres = {i for i, _, _ in pairs} | {j for _, kind, j in pairs if kind == "preserved"}
-        info["unmatched_preserved_loops"] = int(len(loops) - len(matched_pres))
-        # keep the isosurface components that meet a matched loop
-        if len(Fc) and matched_iso:
-            keepf = keep_components_touching(Fc, len(Vc), np.concatenate([iso_loops[j].vertices for j in matched_iso]))
-            Vc2, Fc2, old = remove_unreferenced(Vc, Fc[keepf])
-            new = np.full(len(Vc), -1, np.int64)
-            new[old] = np.arange(len(old))
-            iso_loops = [Loop(-1, new[L.vertices], L.positions) for L in iso_loops]
-            Vc, Fc = Vc2, Fc2
-            # isosurface holes no seam claims (cut around a preserved speck): closed by a fan
-            matched_sets = [frozenset(iso_loops[j].vertices.tolist()) for j in matched_iso]
-            remaining, _ = boundary_loops(Vc, Fc, -1)
-            extra_v, extra_f = [], []
-            for L in remaining:
-                if frozenset(L.vertices.tolist()) in matched_sets:
-                    continue
-                c = len(Vc) + len(extra_v)
-                extra_v.append(L.positions.mean(axis=0))
-                extra_f += [(L.vertices[k], L.vertices[k - 1], c) for k in range(len(L.vertices))]
-                fans[c] = L.positions
-                info["unmatched_iso_loops"] += 1
-            if extra_v:
-                Vc = np.concatenate([Vc, np.asarray(extra_v)])
-                Fc = np.concatenate([Fc, np.asarray(extra_f, np.int64)])
+    def fixed_id(src, v, pos):
+        k = (int(src), int(v))
+        if k not in keys:
+            keys[k] = len(fixed_pos)
+            fixed_pos.append(pos)
+        return keys[k]
+
+    faces = []
+    nI = len(Vc)
+    for L in loops:
+        for v, pos in zip(L.vertices, L.positions):
+            fixed_id(L.source, v, pos)
+    for i, kind, j in pairs:
+        P = loops[i]
+        Q = iso_loops[j] if kind == "iso" else loops[j]
+        if not orientation_agrees(P.positions, Q.positions):
+            warnings += 1
+            log.warning("fusion: loops of different orientation bridged near %s", P.positions.mean(axis=0))
+        T = bridge_loops(P.positions, Q.positions)
+        pid = np.array([fixed_id(P.source, v, x) for v, x in zip(P.vertices, P.positions)]) + nI
+        if kind == "iso":
+            qid = Q.vertices
         else:
-            Vc, Fc = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
-        # junction vertex table: isosurface vertices, then preserved loop vertices (fixed)
-        keys: dict[tuple[int, int], int] = {}
-        fixed_pos = []
+            qid = np.array([fixed_id(Q.source, v, x) for v, x in zip(Q.vertices, Q.positions)]) + nI
+        ids = np.concatenate([pid, qid])
+        faces.append(ids[T])
+    fixed_pos = np.asarray(fixed_pos, dtype=np.float64).reshape(-1, 3)
+    JV = np.concatenate([Vc, fixed_pos])
+    JF = np.concatenate([Fc] + faces) if (len(Fc) or faces) else np.zeros((0, 3), np.int64)
+    return _Bridged(V=JV, F=JF, n_iso=nI, keys=keys, n_bridge=len(JF) - len(Fc), seam_edge=edge, fans=fans,
+                    unmatched_preserved_loops=int(len(loops) - len(matched_pres)),
+                    unmatched_iso_loops=unmatched_iso, orientation_warnings=warnings)
 
-        def fixed_id(src, v, pos):
-            k = (int(src), int(v))
-            if k not in keys:
-                keys[k] = len(fixed_pos)
-                fixed_pos.append(pos)
-            return keys[k]
 
-        faces = []
-        nI = len(Vc)
-        for L in loops:
-            for v, pos in zip(L.vertices, L.positions):
-                fixed_id(L.source, v, pos)
-        for i, kind, j in pairs:
-            P = loops[i]
-            Q = iso_loops[j] if kind == "iso" else loops[j]
-            if not orientation_agrees(P.positions, Q.positions):
-                info["orientation_warnings"] += 1
-                log.warning("fusion: loops of different orientation bridged near %s", P.positions.mean(axis=0))
-            T = bridge_loops(P.positions, Q.positions)
-            pid = np.array([fixed_id(P.source, v, x) for v, x in zip(P.vertices, P.positions)]) + nI
-            if kind == "iso":
-                qid = Q.vertices
-            else:
-                qid = np.array([fixed_id(Q.source, v, x) for v, x in zip(Q.vertices, Q.positions)]) + nI
-            ids = np.concatenate([pid, qid])
-            faces.append(ids[T])
-        fixed_pos = np.asarray(fixed_pos, dtype=np.float64).reshape(-1, 3)
-        JV = np.concatenate([Vc, fixed_pos])
-        JF = np.concatenate([Fc] + faces) if (len(Fc) or faces) else np.zeros((0, 3), np.int64)
-        return JV, JF, nI, keys, len(JF) - len(Fc), edge, fans
+def _bridge_without_crossings(Vc, Fc, loops, h, params):
+    """Bridge the seams (:func:`_bridge`), cutting the isosurface back where a bridge crosses it.
 
-    # a bridge strip must not pass through the isosurface, nor through the fan closing a hole no
-    # seam claims (where the cut loop recedes far from its seam, or a second hole opens beside
-    # it): the isosurface around what it crosses is cut away too and the loops bridged again.
-    # A recut stands only if every seam loop is still bridged and the junction stays
-    # edge-manifold (the remeshing needs it): CesiumMan's left leg replaced by itself, recut
-    # twice, bridged into a non-manifold junction that was then kept unremeshed (p05 2.3 degrees).
-    bridge = bridged(Vc, Fc)
+    A bridge strip must not pass through the isosurface, nor through the fan closing a hole no
+    seam claims (where the cut loop recedes far from its seam, or a second hole opens beside
+    it): the isosurface around what it crosses is cut away too and the loops bridged again, at
+    most ``params.bridge_recuts`` times. A recut stands only if every seam loop is still bridged
+    and the junction stays edge-manifold (the remeshing needs it): without that check,
+    CesiumMan's left leg replaced by itself, recut twice, bridges into a non-manifold junction
+    that stays unremeshed (p05 2.3 degrees).
+
+    Parameters
+    ----------
+    Vc : (k, 3) float array, Fc : (q, 3) int array
+        The cut isosurface.
+    loops : list of Loop
+        Seam loops of the cluster.
+    h : float
+        Voxel (same units as the meshes).
+    params : FusionParams
+
+    Returns
+    -------
+    bridge : _Bridged
+    recuts : int
+        Recuts that stood.
+    rejected : bool
+        Whether a recut was tried and undone.
+    """
+    bridge = _bridge(Vc, Fc, loops, h, params.cut_voxels)
+    recuts, rejected = 0, False
     for _ in range(params.bridge_recuts):
-        JV, JF, nI, keys, nb, edge, fans = bridge
+        JV, JF, nb, fans = bridge.V, bridge.F, bridge.n_bridge, bridge.fans
         if nb == 0 or len(Fc) == 0:
             break
         hits = intersecting_face_pairs(JV, JF, len(JF) - nb + np.arange(nb))
@@ -424,22 +530,170 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
         marked += [P for v in np.unique(JF[crossed].ravel()) if v in fans for P in fans[v]]
         near = np.isin(_position_keys(Vc), _position_keys(np.asarray(marked)))
         Vc2, Fc2, _ = remove_unreferenced(Vc, Fc[~near[Fc].any(axis=1)])
-        before = {k: info[k] for k in ("unmatched_preserved_loops", "unmatched_iso_loops", "orientation_warnings")}
-        again = bridged(Vc2, Fc2)
-        if (len(again[1]) == 0 or info["unmatched_preserved_loops"] > before["unmatched_preserved_loops"]
-                or not is_edge_manifold(again[1])):
-            info.update(before)
-            info["bridge_recuts_rejected"] = info.get("bridge_recuts_rejected", 0) + 1
+        again = _bridge(Vc2, Fc2, loops, h, params.cut_voxels)
+        if (len(again.F) == 0 or again.unmatched_preserved_loops > bridge.unmatched_preserved_loops
+                or not is_edge_manifold(again.F)):
+            rejected = True
             break
         Vc, Fc, bridge = Vc2, Fc2, again
-        info["bridge_recuts"] = info.get("bridge_recuts", 0) + 1
-    JV, JF, nI, keys, nb, edge, fans = bridge
-    timings["cut_bridge"] = timings.get("cut_bridge", 0.0) + time.perf_counter() - t0
-    t0 = time.perf_counter()
-    # remesh the union with the preserved loops fixed (drop unused fixed vertices first)
-    JV, JF, old = remove_unreferenced(JV, JF)
+        recuts += 1
+    return bridge, recuts, rejected
+
+
+@dataclass(frozen=True)
+class _RemeshJob:
+    """What every remeshing attempt of one junction shares.
+
+    Attributes
+    ----------
+    V : (k, 3) float64, F : (q, 3) int64
+        The bridged junction (the reference), edge-manifold.
+    fixed : (s,) int64
+        Its seam vertices, kept exactly.
+    target : float
+        Target edge length.
+    tol : float
+        How far the junction may stray from the reference (0: plain remeshing only).
+    h : float
+        Voxel.
+    forbidden : (e, 2) int64
+        Edges of preserved faces between seam vertices (never created by a flip).
+    corners : (c, 3) float64 or None
+        Input vertices on the blended surface, kept by the shape-keeping path.
+    targets : (t, 3) float64
+        Input vertices junction vertices may snap to.
+    pres, surfaces, inputs_fields, params
+        As in :func:`junction_for_cluster`.
+    """
+
+    V: np.ndarray
+    F: np.ndarray
+    fixed: np.ndarray
+    target: float
+    tol: float
+    h: float
+    forbidden: np.ndarray
+    corners: np.ndarray | None
+    targets: np.ndarray
+    pres: list
+    surfaces: list
+    inputs_fields: dict
+    params: object
+
+
+def _remesh_attempt(job, feature_tol):
+    """Remesh (keeping what strays farther than ``feature_tol``; 0: plain), smooth, improve
+    (a collapse never moves the shape by more than ``job.tol``, on either path).
+
+    Returns
+    -------
+    U : (p, 3) float64, G : (g, 3) int64
+        ``U[:len(job.fixed)] == job.V[job.fixed]``.
+    nfeat : int
+        Feature vertices kept after the seam vertices.
+    """
+    params, h, forb = job.params, job.h, job.forbidden
+    pres, surfaces, inputs_fields = job.pres, job.surfaces, job.inputs_fields
+    U, G, nfix, (RV, RF) = remesh_keeping_features(job.V, job.F, job.fixed, job.target, params.remesh_iterations,
+                                                   feature_tol, params.feature_rounds, points=job.corners,
+                                                   points_tol=0.1 * h, max_insert=3.0 * h)
+    U = smooth_interior(U, G, np.arange(nfix), iterations=params.taubin_iterations)
+    U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels)
+    G = flip_to_improve_angles(U, G, forbidden=forb)
+    U = relocate_poor_vertices(U, G, nfix, surface=(RV, RF))
+    G = flip_to_improve_angles(U, G, forbidden=forb)
+    if params.collapse_poor:
+        U, G = collapse_to_improve_angles(U, G, nfix, max_deviation=job.tol, forbidden=forb)
+        G = flip_to_improve_angles(U, G, forbidden=forb)
+        U = relocate_poor_vertices(U, G, nfix, surface=(RV, RF))
+        G = flip_to_improve_angles(U, G, forbidden=forb)
+    if len(job.targets):
+        U = snap_to_points(U, G, nfix, job.targets, max_dist=0.5 * job.target)
+        G = flip_to_improve_angles(U, G, forbidden=forb)
+    if feature_tol > 0:
+        # the quality moves above slide vertices along the reference, whose bridge
+        # strips chord across a voxel or two: back onto the inputs where they agree
+        U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels)
+    # folds smoothed open only where that keeps the shape-keeping junction's tolerance
+    U, _ = untangle(U, G, nfix, max_move=params.untangle_move * feature_tol if feature_tol > 0 else None)
+    return _separate_coincident(U, G, len(job.fixed)), G, nfix - len(job.fixed)
+
+
+def _remesh_choosing_fidelity(job, info):
+    """The shape-keeping remeshing, or a looser or plain one where it makes slivers.
+
+    Fidelity never at the price of slivers: the features stand only while the junction's
+    5th-percentile minimum angle stays at ``min_angle_p05``, or is no worse than the plain
+    remeshing's. Where the plain remeshing loses more of the shape than a looser tolerance
+    (``fidelity_relax``) allows, that looser tolerance (fewer kept features) is tried first;
+    keeping less, it may cost little. Folds do not choose: a fold-free plain junction would
+    cost RiggedFigure's legs, replaced by themselves, 1.4% of the diagonal against 0.08%.
+
+    ``fidelity``, ``fidelity_tolerance`` and, after a miss, ``plain_deviation`` and
+    ``fidelity_retries`` are written into ``info`` as each is decided, so that a remeshing
+    failure part-way leaves them in the report.
+
+    Returns
+    -------
+    U : (p, 3) float64, G : (g, 3) int64, nfeat : int
+        As :func:`_remesh_attempt`.
+    """
+    import igl
+
+    params, tol = job.params, job.tol
+    U, G, nfeat = _remesh_attempt(job, tol)
+    info["fidelity"] = bool(tol > 0)
+    info["fidelity_tolerance"] = float(tol)
+    angle = _angle_p05(U, G)
+    if tol > 0 and angle < params.min_angle_p05:
+        U0, G0, _ = _remesh_attempt(job, 0.0)
+        plain_angle = _angle_p05(U0, G0)
+        lost = np.sqrt(igl.point_mesh_squared_distance(job.V, U0, G0)[0]).max()  # job.V: the reference
+        info["plain_deviation"] = float(lost)
+        chosen = False
+        for loose in [tol * f for f in params.fidelity_relax]:
+            if lost <= loose:
+                break
+            U1, G1, n1 = _remesh_attempt(job, loose)
+            a1 = _angle_p05(U1, G1)
+            info.setdefault("fidelity_retries", []).append(
+                {"tolerance": float(loose), "junction_min_angle_p05": float(a1)})
+            if a1 >= params.min_angle_p05 and a1 >= plain_angle - params.relax_max_angle_loss:
+                U, G, nfeat, chosen = U1, G1, n1, True
+                info["fidelity_tolerance"] = float(loose)
+                break
+        if not chosen and plain_angle > angle:
+            U, G, nfeat = U0, G0, 0
+            info["fidelity"] = False
+            info["fidelity_tolerance"] = 0.0
+    return U, G, nfeat
+
+
+def _remesh_bridged(bridge, grid, pres, surfaces, preserved, inputs_fields, actions, params, band, field3,
+                    local_edge, junction_masks, diagonal):
+    """Remesh the bridged junction with the seam vertices fixed (unused ones dropped first).
+
+    The junction is kept as bridged where it is not edge-manifold or the remeshing fails
+    (remeshing is an improvement, never a reason to fail).
+
+    Returns
+    -------
+    JV : (k, 3) float64, JF : (q, 3) int64
+        Seam vertices first.
+    fixed_keys : list of (input, welded vertex)
+        Of ``JV[:len(fixed_keys)]``.
+    info : dict
+        ``fidelity``, ``fidelity_tolerance``, ``plain_deviation`` and ``fidelity_retries``
+        (:func:`_remesh_choosing_fidelity`), ``self_intersections``, ``feature_vertices`` and
+        ``remeshed``.
+    """
+    h = grid.voxel
+    nI, keys, edge = bridge.n_iso, bridge.keys, bridge.seam_edge
+    JV, JF, old = remove_unreferenced(bridge.V, bridge.F)
     isfixed = old >= nI
     fixed_keys = {v: k for k, v in keys.items()}
+    info: dict = {}
+    fkeys = None
     if len(JF) and is_edge_manifold(JF):
         fx = np.flatnonzero(isfixed)
         # fine enough for the shape, never much finer than the fixed seam edges (slivers)
@@ -452,71 +706,16 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
             tol = min(tol, params.fidelity_diagonal * diagonal)
         fid_to_final = {int(old[v] - nI): k for k, v in enumerate(fx)}
         forb = _preserved_edges_between(pres, preserved, keys, fid_to_final)
-        def finish(feature_tol):
-            """Remesh (keeping what strays farther than ``feature_tol``; 0: plain), smooth,
-            improve (a collapse never moves the shape by more than ``tol``, on either path)."""
-            U, G, nfix, (RV, RF) = _remesh_keeping_features(JV, JF, fx, target, params.remesh_iterations,
-                                                            feature_tol, params.feature_rounds, points=corners,
-                                                            points_tol=0.1 * h, max_insert=3.0 * h)
-            U = smooth_interior(U, G, np.arange(nfix), iterations=params.taubin_iterations)
-            U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels)
-            G = flip_to_improve_angles(U, G, forbidden=forb)
-            U = relocate_poor_vertices(U, G, nfix, surface=(RV, RF))
-            G = flip_to_improve_angles(U, G, forbidden=forb)
-            if params.collapse_poor:
-                U, G = collapse_to_improve_angles(U, G, nfix, max_deviation=tol, forbidden=forb)
-                G = flip_to_improve_angles(U, G, forbidden=forb)
-                U = relocate_poor_vertices(U, G, nfix, surface=(RV, RF))
-                G = flip_to_improve_angles(U, G, forbidden=forb)
-            if len(targets):
-                U = snap_to_points(U, G, nfix, targets, max_dist=0.5 * target)
-                G = flip_to_improve_angles(U, G, forbidden=forb)
-            if feature_tol > 0:
-                # the quality moves above slide vertices along the reference, whose bridge
-                # strips chord across a voxel or two: back onto the inputs where they agree
-                U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels)
-            # folds smoothed open only where that keeps the shape-keeping junction's tolerance
-            U, _ = untangle(U, G, nfix, max_move=params.untangle_move * feature_tol if feature_tol > 0 else None)
-            return _separate_coincident(U, G, len(fx)), G, nfix - len(fx)
-
         try:
             replaced = _replaced_input_vertices(pres, inputs_fields, junction_masks, preserved, grid)
             targets = _surface_input_vertices(replaced, grid, field3, h) if params.snap_input_vertices else replaced[:0]
             corners = None
             if params.keep_input_corners and tol > 0:
                 corners = _input_vertices_on_surface(replaced, pres, surfaces, inputs_fields, actions, band, 0.1 * h)
-            U, G, nfeat = finish(tol)
-            info["fidelity"] = bool(tol > 0)
-            info["fidelity_tolerance"] = float(tol)
-            angle = _angle_p05(U, G)
-            if tol > 0 and angle < params.min_angle_p05:
-                # fidelity never at the price of slivers: the features stand only while the
-                # junction's 5th-percentile minimum angle stays at the acceptance level, or is
-                # no worse than the plain remeshing's. Where the plain remeshing loses more of
-                # the shape than a looser tolerance allows, that looser tolerance (fewer kept
-                # features) is tried first; keeping less, it may cost little. (Folds do not
-                # choose: a fold-free plain junction cost RiggedFigure's legs, replaced by
-                # themselves, 1.4% of the diagonal against 0.08%.)
-                U0, G0, _ = finish(0.0)
-                plain_angle = _angle_p05(U0, G0)
-                lost = np.sqrt(igl.point_mesh_squared_distance(JV, U0, G0)[0]).max()  # JV: the reference
-                info["plain_deviation"] = float(lost)
-                chosen = False
-                for loose in [tol * f for f in params.fidelity_relax]:
-                    if lost <= loose:
-                        break
-                    U1, G1, n1 = finish(loose)
-                    a1 = _angle_p05(U1, G1)
-                    info.setdefault("fidelity_retries", []).append(
-                        {"tolerance": float(loose), "junction_min_angle_p05": float(a1)})
-                    if a1 >= params.min_angle_p05 and a1 >= plain_angle - params.relax_max_angle_loss:
-                        U, G, nfeat, chosen = U1, G1, n1, True
-                        info["fidelity_tolerance"] = float(loose)
-                        break
-                if not chosen and plain_angle > angle:
-                    U, G, nfeat = U0, G0, 0
-                    info["fidelity"] = False
-                    info["fidelity_tolerance"] = 0.0
+            job = _RemeshJob(V=JV, F=JF, fixed=fx, target=target, tol=tol, h=h, forbidden=forb, corners=corners,
+                             targets=targets, pres=pres, surfaces=surfaces, inputs_fields=inputs_fields,
+                             params=params)
+            U, G, nfeat = _remesh_choosing_fidelity(job, info)
             info["self_intersections"] = int(len(intersecting_face_pairs(U, G)))
             info["feature_vertices"] = int(nfeat)
             fkeys = [fixed_keys[int(old[v] - nI)] for v in fx]
@@ -525,17 +724,104 @@ def _junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields,
         except Exception as exc:  # remeshing is an improvement, never a reason to fail
             log.warning("fusion: junction remeshing failed (%s); keeping the bridged mesh", exc)
             info["remeshed"] = False
-            fkeys = None
     else:
         info["remeshed"] = False
-        fkeys = None
     if fkeys is None:
         order = np.concatenate([np.flatnonzero(isfixed), np.flatnonzero(~isfixed)])
         inv = np.empty_like(order)
         inv[order] = np.arange(len(order))
         JV, JF = JV[order], inv[JF]
         fkeys = [fixed_keys[int(old[v] - nI)] for v in np.flatnonzero(isfixed)]
-    timings["remesh"] = timings.get("remesh", 0.0) + time.perf_counter() - t0
-    return JV, JF, fkeys, info, field3
+    return JV, JF, fkeys, info
 
 
+@dataclass(frozen=True)
+class ClusterJunction:
+    """The junction surface of one cluster.
+
+    Attributes
+    ----------
+    V : (k, 3) float64
+        Junction vertices, seam vertices first (bit-identical to the inputs' welded positions).
+    F : (q, 3) int64
+        Junction faces over ``V``.
+    fixed_keys : list of (input, welded vertex)
+        Source of each seam vertex ``V[:len(fixed_keys)]``.
+    info : dict
+        ``iso_faces``, ``unmatched_preserved_loops``, ``unmatched_iso_loops``,
+        ``orientation_warnings``, ``bridge_recuts`` and ``bridge_recuts_rejected`` (when
+        non-zero), then the remeshing's entries (:func:`_remesh_bridged`).
+    field : (nx, ny, nz) float64
+        The blended field on the cluster's grid.
+    timings : dict
+        Seconds: ``blend``, ``isosurface``, ``cut_bridge``, ``remesh``.
+    """
+
+    V: np.ndarray
+    F: np.ndarray
+    fixed_keys: list
+    info: dict
+    field: np.ndarray
+    timings: dict
+
+
+def junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields, actions, params, band,
+                         local_edge=0.0, junction_masks=None, diagonal=0.0) -> ClusterJunction:
+    """Isosurface, cut, bridges and remesh of one cluster.
+
+    Parameters
+    ----------
+    grid : Grid
+        The cluster's grid (:func:`.seams.cluster_grid`).
+    pres : list of Presence
+    surfaces : list of (f_i, 3) int arrays
+        Per input, the welded faces its field is computed from.
+    preserved : list of (m_i,) bool arrays
+        Per input, welded faces the output keeps (preserved or copied): they cut the
+        isosurface and their boundary gives the seams.
+    loops : list of Loop
+        Seam loops in the cluster.
+    inputs_fields : dict
+        Input -> ``(d, p)``, signed distance and presence at the grid's samples, ``(N,)`` each.
+    actions : sequence of FusionAction
+    params : FusionParams
+    band : float
+        Distances are exact within ``band`` of a surface (same units as the meshes).
+    local_edge : float
+        Mean edge of the input faces the junction replaces (:func:`.seams.local_edge_length`).
+    junction_masks : list of (m_i,) bool arrays
+        Per input, the welded faces the junction replaces.
+    diagonal : float
+        Smallest input's bounding-box diagonal (0: no diagonal rule).
+
+    Returns
+    -------
+    ClusterJunction
+    """
+    t0 = time.perf_counter()
+    field3 = _field_for_cluster(grid.size, inputs_fields, actions, band).reshape(grid.shape)
+    t_blend = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    Vi, Fi = isosurface(field3, grid.origin, grid.voxel)
+    t_iso = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    h = grid.voxel
+    Vc, Fc = _cut_isosurface(Vi, Fi, pres, preserved, params.cut_voxels * h)
+    bridge, recuts, rejected = _bridge_without_crossings(Vc, Fc, loops, h, params)
+    info = {"iso_faces": int(len(Fi)), "unmatched_preserved_loops": bridge.unmatched_preserved_loops,
+            "unmatched_iso_loops": bridge.unmatched_iso_loops, "orientation_warnings": bridge.orientation_warnings}
+    if recuts:
+        info["bridge_recuts"] = recuts
+    if rejected:
+        info["bridge_recuts_rejected"] = 1
+    t_bridge = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    JV, JF, fkeys, remesh_info = _remesh_bridged(bridge, grid, pres, surfaces, preserved, inputs_fields, actions,
+                                                 params, band, field3, local_edge, junction_masks, diagonal)
+    info.update(remesh_info)
+    t_remesh = time.perf_counter() - t0
+    return ClusterJunction(V=JV, F=JF, fixed_keys=fkeys, info=info, field=field3,
+                           timings={"blend": t_blend, "isosurface": t_iso, "cut_bridge": t_bridge,
+                                    "remesh": t_remesh})
