@@ -651,12 +651,12 @@ def test_hidden_junction_of_a_coarse_character_mirrors_across_its_body_plane():
     from benchmarks.self_composition import REBUILT, hidden_weights, self_config
     from rigmix.pipeline import compose
     from rigmix.quality import self_composition_errors
-    from rigmix.weights.mesh import _welded
+    from rigmix.weights.mesh import welded_mesh
 
     for joint in ("leg_joint_L_1", "leg_joint_R_1"):
         comp = compose(self_config(asset("RiggedFigure"), joint, fusion=REBUILT), until="fusion")
         surface = comp.surface
-        g = _welded(surface.V, surface.F)
+        g = welded_mesh(surface.V, surface.F)
         plane = symmetry_plane(g.V, g.F)
         assert plane is not None and abs(plane.normal[0]) > 1 - 1e-9, (joint, plane)
         figs = {}

@@ -62,7 +62,7 @@ from .mirror import feature_field as distill_feature_field
 from .params import WeightParams
 from .fill import fill_weights
 from .mesh import sparsify
-from .locality import geodesic_locality, welded_graph as _welded_graph
+from .locality import geodesic_locality, welded_graph
 
 __all__ = ["SkinWeights", "WEIGHT_METHODS", "BLEND_FACTORS", "ON_SURFACE", "JUNCTION_SMOOTHING", "FIELD_DISTILL",
            "retarget_weights", "closest_point_weights", "harmonic_blend_factors", "continue_far_parts",
@@ -366,7 +366,7 @@ def _harmonic_rows(V, F, X, fixed, free, graph=None):
     :func:`rigmix.weights.locality.welded_graph` of ``(V, F)`` when the caller has it."""
     X = np.asarray(X, np.float64).copy()
     fixed, free = np.asarray(fixed, bool), np.asarray(free, bool) & ~np.asarray(fixed, bool)
-    Vw, index, G = graph if graph is not None else _welded_graph(V, F)
+    Vw, index, G = graph if graph is not None else welded_graph(V, F)
     k = len(Vw)
     fixed_w = np.zeros(k, bool)
     fixed_w[index[fixed]] = True
@@ -440,7 +440,7 @@ def continue_far_parts(V, F, parts, distances, junction, known, *, near, jump=0.
         P = np.asarray(P, np.float64)
         far = np.asarray(d) > near
         if far.any() and graph is None:
-            graph = _welded_graph(V, F)  # built once: at a million faces it is the cost
+            graph = welded_graph(V, F)  # built once: at a million faces it is the cost
         cont = far & (_junction_roughness(graph, P, jrows) > jump) if far.any() else far
         if not cont.any():
             out.append(P.copy())
@@ -490,7 +490,7 @@ def smooth_rows(V, F, W, rows, *, iterations=10, alpha=0.5):
     rows = np.asarray(rows, bool)
     if not rows.any() or iterations <= 0:
         return W
-    Vw, index, G = _welded_graph(V, F)
+    Vw, index, G = welded_graph(V, F)
     k = len(Vw)
     A = (G > 0).astype(np.float64)
     deg = np.asarray(A.sum(axis=1)).ravel()
@@ -597,7 +597,7 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, params: WeightPar
         ``dfd`` (default True): distill the DFD feature field of the fused surface (settings
         :data:`FIELD_DISTILL`, or ``distill_options``) and trust the mirror prior only where a
         vertex and its mirror point differ in features by no more than the field's known vertices
-        differ from theirs (:func:`rigmix.weights.mirror._mirror_prior`); ``field_cache=DIR``
+        differ from theirs (:func:`rigmix.weights.mirror.mirror_prior`); ``field_cache=DIR``
         caches the field.
         Only distilled when some junction vertex is filled and the surface has a mirror plane
         (report ``feature_field_distilled``, ``feature_field_s``).
@@ -679,7 +679,7 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, params: WeightPar
             T = np.zeros((N, len(inputs)))
             T[pres, surface.origin_input[pres]] = 1.0
             T[jrows] = t
-            graph = _welded_graph(surface.V, surface.F)  # built once: at a million faces it is the cost
+            graph = welded_graph(surface.V, surface.F)  # built once: at a million faces it is the cost
             t = harmonic_blend_factors(surface.V, surface.F, T, junction, graph=graph)[jrows]
             owned = [pres[surface.origin_input[pres] == i] for i in range(len(inputs))]
             known = [(r, retargeted[i][surface.origin_vertex[r]]) for i, r in enumerate(owned)]
@@ -770,7 +770,7 @@ def _grow(V, F, mask, rings):
     """``mask`` grown by ``rings`` rings of the welded mesh."""
     if rings <= 0 or not mask.any():
         return mask
-    Vw, index, G = _welded_graph(V, F)
+    Vw, index, G = welded_graph(V, F)
     m = np.zeros(len(Vw), bool)
     m[index[mask]] = True
     A = G > 0

@@ -21,18 +21,21 @@ from dfd.mesh import face_areas, surface_samples
 from ..errors import InputError
 from ..geometry import bounding_box_diagonal
 from .locality import geodesic_locality
-from .methods import _fill_inpaint, _known_surface_weights
 from .mesh import (
-    _Welded,
-    _bilaplacian,
-    _edge_scale,
-    _key,
-    _orphans,
-    _smooth,
-    _solvable,
-    _welded,
+    WeldedMesh,
+    array_key,
+    bilaplacian,
+    edge_scale,
+    fill_orphans,
+    smooth_unknown,
+    solvable_rows,
     sparsify,
+    welded_mesh,
 )
+from .methods import fill_inpaint, known_surface_weights
+
+__all__ = ["Plane", "symmetry_plane", "mirror_joints", "mirror_prior", "posed_reflection", "feature_field", "fill_dfd",
+           "TRUSTED"]
 
 
 @dataclass(frozen=True)
@@ -201,7 +204,7 @@ def _mirror_by_names(names):
     return np.where(out[out] == np.arange(len(names)), out, np.arange(len(names))).astype(np.int64)
 
 
-def _mirror_lookup(g: _Welded, W, unk, plane: Plane, mirror, rows, *, bones=None, far=None):
+def _mirror_lookup(g: WeldedMesh, W, unk, plane: Plane, mirror, rows, *, bones=None, far=None):
     """Weights at the reflection of ``rows`` on the known surface, joints mirrored.
 
     Only known rows are read (faces with three known corners, interpolated, or the closest
@@ -209,7 +212,7 @@ def _mirror_lookup(g: _Welded, W, unk, plane: Plane, mirror, rows, *, bones=None
 
     With ``bones`` (rest positions ``(J, 3)``, parents ``(J,)``) and ``far`` ``(k,)`` (a distance
     per welded vertex), a row whose reflection lands farther than ``far`` from the known surface
-    tries its *posed reflection* (:func:`_posed_reflection`: where the two sides' rest poses
+    tries its *posed reflection* (:func:`posed_reflection`: where the two sides' rest poses
     differ, a limb's mirror is posed elsewhere) and keeps it where it lands closer, on a point
     weighted by the followed bone's joints.
 
@@ -219,13 +222,13 @@ def _mirror_lookup(g: _Welded, W, unk, plane: Plane, mirror, rows, *, bones=None
     """
     rows = np.asarray(rows, dtype=np.int64)
     X = plane.reflect(g.V[rows])
-    src, d = _known_surface_weights(g, W, unk, X)
+    src, d = known_surface_weights(g, W, unk, X)
     if bones is not None and far is not None:
         retry = np.flatnonzero(d > far[rows])
         if len(retry):
             owner = _owner_joints(g, W, unk, rows[retry])
-            Xp, own = _posed_reflection(X[retry], plane, bones[0], bones[1], mirror, owner=owner)
-            sp_, dp = _known_surface_weights(g, W, unk, Xp)
+            Xp, own = posed_reflection(X[retry], plane, bones[0], bones[1], mirror, owner=owner)
+            sp_, dp = known_surface_weights(g, W, unk, Xp)
             mirror_own = np.asarray(mirror)[own]
             better = (dp < d[retry]) & (np.take_along_axis(sp_, mirror_own, axis=1).sum(axis=1) > 0)
             src[retry[better]] = sp_[better]
@@ -233,7 +236,7 @@ def _mirror_lookup(g: _Welded, W, unk, plane: Plane, mirror, rows, *, bones=None
     return src[:, mirror], d
 
 
-def _owner_joints(g: _Welded, W, unk, rows, *, min_weight=0.1):
+def _owner_joints(g: WeldedMesh, W, unk, rows, *, min_weight=0.1):
     """``(r, J)`` bool: the joints weighting (at least ``min_weight``) the known vertex nearest
     to each row along the surface (the row itself when it is known).
 
@@ -254,7 +257,7 @@ def _owner_joints(g: _Welded, W, unk, rows, *, min_weight=0.1):
     return out
 
 
-def _posed_reflection(X, plane: Plane, positions, parents, mirror, *, owner=None):
+def posed_reflection(X, plane: Plane, positions, parents, mirror, *, owner=None):
     """Reflected points moved with their bone onto its mirror bone, where the rest pose of the two
     sides differs.
 
@@ -327,7 +330,7 @@ def _empty_prior(W, unk):
     return np.zeros_like(W), np.zeros(len(W)), np.flatnonzero(unk), np.flatnonzero(~unk)
 
 
-def _mirror_prior(g: _Welded, W, unk, plane: Plane, mirror, *, tol=0.25, field=None,
+def mirror_prior(g: WeldedMesh, W, unk, plane: Plane, mirror, *, tol=0.25, field=None,
                   feature_scale=0.5, agreement=0.1, neighbours=16, self_mirror=0.5, bones=None):
     """The prior of each unknown vertex: its mirror point's known weights, with a confidence.
 
@@ -353,7 +356,7 @@ def _mirror_prior(g: _Welded, W, unk, plane: Plane, mirror, *, tol=0.25, field=N
     P, c, rows, known = _empty_prior(W, unk)
     if len(rows) == 0 or len(known) == 0:
         return P, c
-    scale = tol * _edge_scale(g)
+    scale = tol * edge_scale(g)
     P[rows], d = _mirror_lookup(g, W, unk, plane, mirror, rows, bones=bones, far=scale)
     conf = np.exp(-((d / scale[rows]) ** 2))
     # symmetry of the artist's painting, measured on the known vertices around each unknown one
@@ -405,7 +408,7 @@ def feature_field(V, F, *, cache=None, seed=0, **distill_options):
     """
     from dfd.distill import distill  # heavy (torch): imported where used
 
-    g = _welded(np.asarray(V, dtype=np.float64), np.asarray(F, dtype=np.int64).reshape(-1, 3))
+    g = welded_mesh(np.asarray(V, dtype=np.float64), np.asarray(F, dtype=np.int64).reshape(-1, 3))
     return distill(g.V, g.F, seed=seed, cache=None if cache is None else str(cache), **distill_options)
 
 
@@ -413,13 +416,13 @@ _FEATURES: dict[tuple, tuple] = {}
 _PLANES: dict[bytes, Plane | None] = {}
 
 
-def _mirror_feature_distance(g: _Welded, field, plane: Plane):
+def _mirror_feature_distance(g: WeldedMesh, field, plane: Plane):
     """``(k,)`` feature distance between each welded vertex and its reflection.
 
     Evaluated once per (field, mesh, plane) and cached: a field evaluation costs far more than
     a band fill, and the benchmark fills dozens of bands of one character.
     """
-    key = (id(field), _key(g.V, plane.normal, np.float64(plane.offset)))
+    key = (id(field), array_key(g.V, plane.normal, np.float64(plane.offset)))
     if key not in _FEATURES:
         if len(_FEATURES) >= 8:
             _FEATURES.pop(next(iter(_FEATURES)))
@@ -436,19 +439,19 @@ def _evaluate(field, X):
     return f / np.maximum(np.linalg.norm(f, axis=1, keepdims=True), 1e-12)
 
 
-def _solve_prior(g: _Welded, W, unk, P, c, *, strength=10.0):
+def _solve_prior(g: WeldedMesh, W, unk, P, c, *, strength=10.0):
     """Minimize ``w^T Q w + lam sum_v c_v m_v |w_v - P_v|^2`` over the unknown rows.
 
     ``Q`` is the inpainting energy; ``lam`` is ``strength`` times the mean diagonal of ``Q``
     over the unknown rows per unit area, so that ``strength`` is scale free.
     """
-    Q = _bilaplacian(g)
+    Q = bilaplacian(g)
     s = np.flatnonzero(unk)
     if len(s) == 0:
         return W.copy()
     reg = c[s] * g.M[s]
     # rows with a prior are solvable even in a component without any known vertex
-    solve = _solvable(g, unk) | (unk & (c > 1e-6))
+    solve = solvable_rows(g, unk) | (unk & (c > 1e-6))
     comp_ok = np.zeros(g.component.max() + 1, dtype=bool)
     comp_ok[g.component[solve]] = True
     solve = unk & comp_ok[g.component]
@@ -462,7 +465,7 @@ def _solve_prior(g: _Welded, W, unk, P, c, *, strength=10.0):
         A = (Qss + sp.diags(reg)).tocsc()
         rhs = -(Q[s][:, kn] @ W[kn]) + reg[:, None] * P[s]
         out[s] = splu(A).solve(np.ascontiguousarray(rhs))
-    return _orphans(g, out, unk, solve)
+    return fill_orphans(g, out, unk, solve)
 
 
 #: Confidence from which a prior row is trusted: it witnesses its joints for the geodesic
@@ -470,7 +473,7 @@ def _solve_prior(g: _Welded, W, unk, P, c, *, strength=10.0):
 TRUSTED = 0.5
 
 
-def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
+def fill_dfd(g: WeldedMesh, W, unk, *, field=None, plane=None, joint_mirror=None,
               joint_names=None, joint_positions=None, mirror_tol=0.25, strength=10.0,
               iterations=0, alpha=0.8, field_cache=None, distill_options=None,
               joint_parents=None, bone_prior=0.1, locality=0.0, locality_power=1.0,
@@ -482,7 +485,7 @@ def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
     through the skeleton's mirror, are the prior, trusted by the reflection distance and, with a
     DFD feature field, by the feature agreement of the two points. With the skeleton
     (``joint_positions`` and ``joint_parents``), a reflection that lands away from the known
-    surface follows its bone onto the mirror bone (:func:`_posed_reflection`: a limb posed
+    surface follows its bone onto the mirror bone (:func:`posed_reflection`: a limb posed
     differently on the two sides). Where the mirror is hidden
     too (a band across the plane) and ``joint_parents`` is given, the skeleton's bones give a
     weaker prior (:func:`_bone_prior`). Where no prior exists, the fill is the inpainting.
@@ -512,20 +515,20 @@ def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
     return out
 
 
-def _fill_dfd_prior(g: _Welded, W, unk, *, field, plane, joint_mirror, joint_names, joint_positions,
+def _fill_dfd_prior(g: WeldedMesh, W, unk, *, field, plane, joint_mirror, joint_names, joint_positions,
                     mirror_tol, strength, iterations, alpha, field_cache, distill_options, joint_parents,
                     bone_prior):
-    """:func:`_fill_dfd` before the locality: ``(filled W, prior P or None, confidence c or None)``."""
+    """:func:`fill_dfd` before the locality: ``(filled W, prior P or None, confidence c or None)``."""
     J = W.shape[1]
     if plane is None:
-        key = _key(g.V, g.F)
+        key = array_key(g.V, g.F)
         if key not in _PLANES:
             if len(_PLANES) >= 8:  # a memo of the last meshes, not a store: bounded like _FEATURES
                 _PLANES.pop(next(iter(_PLANES)))
             _PLANES[key] = symmetry_plane(g.V, g.F)
         plane = _PLANES[key]
     if plane is None:  # no mirror prior, nothing for a field to judge: no distillation either
-        return _fill_inpaint(g, W, unk, iterations=iterations, alpha=alpha), None, None
+        return fill_inpaint(g, W, unk, iterations=iterations, alpha=alpha), None, None
     if field is False:  # ablation: geometry only
         field = None
     elif field is None:
@@ -540,7 +543,7 @@ def _fill_dfd_prior(g: _Welded, W, unk, *, field, plane, joint_mirror, joint_nam
             joint_mirror = _mirror_from_weights(g, W, unk, plane)
     mirror = np.asarray(joint_mirror, dtype=np.int64).reshape(J)
     bones = (joint_positions, joint_parents) if joint_positions is not None and joint_parents is not None else None
-    P, c = _mirror_prior(g, W, unk, plane, mirror, tol=mirror_tol, field=field, bones=bones)
+    P, c = mirror_prior(g, W, unk, plane, mirror, tol=mirror_tol, field=field, bones=bones)
     if bones is not None and bone_prior > 0:
         Pb, cb = _bone_prior(g, W, unk, joint_positions, joint_parents, confidence=bone_prior)
         cb = cb * (1.0 - c)  # the mirror, where it exists, is the better witness
@@ -552,7 +555,7 @@ def _fill_dfd_prior(g: _Welded, W, unk, *, field, plane, joint_mirror, joint_nam
     # post-smoothing; a trusted row keeps the painting it borrowed (smoothed, the Horse's
     # mirrored legs went from 0.005 to 0.07 mean junction weight error, hidden protocol)
     smooth = unk & (c < TRUSTED)
-    return (_smooth(g, out, smooth, iterations=iterations, alpha=alpha) if iterations else out), P, c
+    return (smooth_unknown(g, out, smooth, iterations=iterations, alpha=alpha) if iterations else out), P, c
 
 
 def _segment_distances(X, a, b):
@@ -581,7 +584,7 @@ def _bone_distances(V, positions, parents):
     return D
 
 
-def _bone_prior(g: _Welded, W, unk, positions, parents, *, confidence=0.1, width=0.5,
+def _bone_prior(g: WeldedMesh, W, unk, positions, parents, *, confidence=0.1, width=0.5,
                 ring_scale=0.2, neighbours=8):
     """A prior from the skeleton for hidden regions: a soft nearest-bone assignment.
 
@@ -617,7 +620,7 @@ def _bone_prior(g: _Welded, W, unk, positions, parents, *, confidence=0.1, width
     return P, c
 
 
-def _mirror_from_weights(g: _Welded, W, unk, plane):
+def _mirror_from_weights(g: WeldedMesh, W, unk, plane):
     """Joint mirror from the weighted centroids of the known vertices (no skeleton given)."""
     known = ~unk
     mass = W[known].sum(axis=0)
