@@ -175,6 +175,13 @@ def test_mirror_joints_names_and_positions():
     assert list(mirror_joints(names=["Body", "Arm.L", "Arm.X"], positions=P, plane=plane)) == [0, 2, 1]
 
 
+def test_mirror_joints_swaps_sides_as_the_mirror_operation_does():
+    """The weights' joint mirror pairs names by :func:`rigmix.operations.mirror.swap_side`: a
+    leading side letter and a trailing lower-case one are sides, a word ending in "right" is not."""
+    names = ["Hips", "L_Hand", "R_Hand", "hand_l", "hand_r", "upright", "upleft", "hand_left", "hand_right"]
+    assert list(mirror_joints(names=names)) == [0, 2, 1, 4, 3, 5, 6, 8, 7]
+
+
 def test_dfd_borrows_the_mirror_side():
     V, F, W, names, P = mirrored_arms()
     band = (W[:, 1] > 0.05) & (W[:, 1] < 0.95)

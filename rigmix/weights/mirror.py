@@ -7,7 +7,6 @@ agreement), and the solve ``min w^T Q w + lam sum_v c_v m_v |w_v - P_v|^2``.
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,6 +19,7 @@ from dfd.mesh import face_areas, surface_samples
 
 from ..errors import InputError
 from ..geometry import bounding_box_diagonal
+from ..operations.mirror import swap_side
 from .locality import geodesic_locality
 from .mesh import (
     WeldedMesh,
@@ -129,20 +129,6 @@ def symmetry_plane(V, F=None, *, tol=0.02, iterations=3, samples=2000, seed=0):
     return best
 
 
-_SIDES = [
-    (r"(?<=[._\-\s])L(?=$|[._\-\s\d])", "R"), (r"(?<=[._\-\s])R(?=$|[._\-\s\d])", "L"),
-    (r"Left", "Right"), (r"Right", "Left"), (r"left", "right"), (r"right", "left"),
-]
-
-
-def _swap_side(name: str) -> str | None:
-    for pattern, repl in _SIDES:
-        swapped, count = re.subn(pattern, repl, name)
-        if count:
-            return swapped
-    return None
-
-
 def mirror_joints(*, names=None, positions=None, plane=None, tol=0.05):
     """For each joint, its mirror image across the character's symmetry plane.
 
@@ -174,9 +160,9 @@ def mirror_joints(*, names=None, positions=None, plane=None, tol=0.05):
         R = plane.reflect(P)
         D = np.linalg.norm(R[:, None, :] - P[None, :, :], axis=2)  # (J, J)
         if names is not None:  # names break ties between coincident joints
-            swapped = [_swap_side(a) for a in names]
-            same = np.array([[sa == b or (a == b and sa is None) for b in names]
-                             for a, sa in zip(names, swapped)])
+            # a name without a side token swaps to itself: a central joint is its own mirror
+            swapped = [swap_side(a) for a in names]
+            same = np.array([[sa == b for b in names] for sa in swapped])
             D = D - 1e-6 * scale * same
         m = np.argmin(D, axis=1)
         ok = (D[np.arange(J), m] <= tol * scale) & (m[m] == np.arange(J))
@@ -194,11 +180,12 @@ def mirror_joints(*, names=None, positions=None, plane=None, tol=0.05):
 
 
 def _mirror_by_names(names):
-    """``(J,)`` int64 joint mirror from side names (``Arm.L`` <-> ``Arm.R``), mutual pairs only."""
+    """``(J,)`` int64 joint mirror from side names (``Arm.L`` <-> ``Arm.R``, :func:`swap_side`),
+    mutual pairs only."""
     index = {nm: i for i, nm in enumerate(names)}
     out = np.arange(len(names))
     for i, nm in enumerate(names):
-        other = _swap_side(nm)
+        other = swap_side(nm)
         if other in index:
             out[i] = index[other]
     return np.where(out[out] == np.arange(len(names)), out, np.arange(len(names))).astype(np.int64)
