@@ -13,17 +13,10 @@ from rigmix.errors import InputError
 from rigmix.fusion import FusedSurface, FusionInput
 from rigmix.geometry import weld
 from rigmix.mapping import BoneMap
-from rigmix.weights.blend import (
-    WEIGHT_METHODS,
-    blend_weights,
-    closest_point_weights,
-    continue_far_parts,
-    harmonic_blend_factors,
-    match_junction,
-    retarget_weights,
-    to_influences,
-)
 from rigmix.weights import WeightParams, symmetry_plane
+from rigmix.weights.blend import WEIGHT_METHODS, blend_weights
+from rigmix.weights.junction import continue_far_parts, harmonic_blend_factors, match_junction
+from rigmix.weights.retarget import closest_point_weights, retarget_weights, to_influences
 
 EXAMPLES = sorted((ROOT / "examples").glob("*.toml"))
 
@@ -216,7 +209,7 @@ def test_junction_component_with_no_matched_vertex_gets_finite_normalized_weight
 def test_geodesic_locality_keeps_weights_off_a_look_alike_part():
     """Two identical spheres, each driven by its own joint; the right sphere's cap is unknown.
     The filled cap must take the right sphere's joint only, never the left twin's."""
-    from rigmix.weights.blend import geodesic_locality
+    from rigmix.weights.locality import geodesic_locality
 
     VA, F = _sphere(c=(-3.0, 0, 0))
     VB, _ = _sphere(c=(3.0, 0, 0))
@@ -651,12 +644,12 @@ def test_hidden_junction_of_a_coarse_character_mirrors_across_its_body_plane():
     from benchmarks.self_composition import REBUILT, hidden_weights, self_config
     from rigmix.pipeline import compose
     from rigmix.quality import self_composition_errors
-    from rigmix.weights.mesh import _welded
+    from rigmix.weights.mesh import welded_mesh
 
     for joint in ("leg_joint_L_1", "leg_joint_R_1"):
         comp = compose(self_config(asset("RiggedFigure"), joint, fusion=REBUILT), until="fusion")
         surface = comp.surface
-        g = _welded(surface.V, surface.F)
+        g = welded_mesh(surface.V, surface.F)
         plane = symmetry_plane(g.V, g.F)
         assert plane is not None and abs(plane.normal[0]) > 1 - 1e-9, (joint, plane)
         figs = {}

@@ -175,6 +175,13 @@ def test_mirror_joints_names_and_positions():
     assert list(mirror_joints(names=["Body", "Arm.L", "Arm.X"], positions=P, plane=plane)) == [0, 2, 1]
 
 
+def test_mirror_joints_swaps_sides_as_the_mirror_operation_does():
+    """The weights' joint mirror pairs names by :func:`rigmix.operations.mirror.swap_side`: a
+    leading side letter and a trailing lower-case one are sides, a word ending in "right" is not."""
+    names = ["Hips", "L_Hand", "R_Hand", "hand_l", "hand_r", "upright", "upleft", "hand_left", "hand_right"]
+    assert list(mirror_joints(names=names)) == [0, 2, 1, 4, 3, 5, 6, 8, 7]
+
+
 def test_dfd_borrows_the_mirror_side():
     V, F, W, names, P = mirrored_arms()
     band = (W[:, 1] > 0.05) & (W[:, 1] < 0.95)
@@ -193,25 +200,25 @@ def test_posed_reflection_follows_the_bone_onto_its_mirror_bone():
     """A right arm hanging down, a left arm held out: the reflection of a point on the right arm
     moves with the reflected bone onto the left bone (same distance along it, same offset); a
     point may only follow the bones of its owner joints."""
-    from rigmix.weights.mirror import _posed_reflection
+    from rigmix.weights.mirror import posed_reflection
 
     plane = Plane(np.array([1.0, 0.0, 0.0]), 0.0)
     positions = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [-1, 0, 0], [-1, -1, 0]], float)
     parents = np.array([-1, 0, 1, 0, 3])
     mirror = np.array([0, 3, 4, 1, 2])
     X = plane.reflect(np.array([[-1.0, -0.5, 0.1], [-1.1, -0.9, 0.0]]))
-    Xp, own = _posed_reflection(X, plane, positions, parents, mirror)
+    Xp, own = posed_reflection(X, plane, positions, parents, mirror)
     np.testing.assert_allclose(Xp, [[1.5, 0.0, 0.1], [1.9, 0.1, 0.0]], atol=1e-12)
     assert own.tolist() == [[3, 4, 0], [3, 4, 0]]  # followed bone: right shoulder -> right hand
     # a symmetric pose gives the plain reflection back
     sym = positions.copy()
     sym[4] = [-2, 0, 0]
     Y = plane.reflect(np.array([[-1.5, 0.2, 0.1]]))
-    np.testing.assert_allclose(_posed_reflection(Y, plane, sym, parents, mirror)[0], Y, atol=1e-12)
+    np.testing.assert_allclose(posed_reflection(Y, plane, sym, parents, mirror)[0], Y, atol=1e-12)
     # owned by the root only: the point follows the root's bones, not the arm's
     owner = np.zeros((2, 5), bool)
     owner[:, 0] = True
-    _, own = _posed_reflection(X, plane, positions, parents, mirror, owner=owner)
+    _, own = posed_reflection(X, plane, positions, parents, mirror, owner=owner)
     assert set(own[:, 0]) == {0}
 
 
@@ -221,8 +228,8 @@ def test_dfd_trusts_a_field_that_tells_the_sides_apart_everywhere():
     trust. A field that differs only on the band does lower it. (Judged by the raw feature
     distance, the sided field took most of the prior away: mean band error 0.041, against
     0.0007 calibrated and inpaint's 0.082.)"""
-    from rigmix.weights.mesh import _welded
-    from rigmix.weights.mirror import _mirror_prior
+    from rigmix.weights.mesh import welded_mesh
+    from rigmix.weights.mirror import mirror_prior
 
     V, F, W, names, P = mirrored_arms()
     band = (W[:, 1] > 0.05) & (W[:, 1] < 0.95)
@@ -235,7 +242,7 @@ def test_dfd_trusts_a_field_that_tells_the_sides_apart_everywhere():
     Wf = fill_weights(V, F, hidden, band, method="dfd", joint_names=names, joint_positions=P, field=sided)
     assert 0.5 * np.abs(Wf[band] - W[band]).sum(1).mean() < 0.02
     # the prior's confidence on the band: unchanged by the sided field, lowered by a band-only one
-    g = _welded(V, F)
+    g = welded_mesh(V, F)
     unk = np.zeros(len(g.V), bool)
     unk[g.index[band]] = True
     Ww = np.zeros((len(g.V), W.shape[1]))
@@ -248,7 +255,7 @@ def test_dfd_trusts_a_field_that_tells_the_sides_apart_everywhere():
         inside = (np.abs(X[:, 0]) >= np.abs(g.V[unk, 0]).min()) & (X[:, 0] > 0)
         return np.c_[sym(X), 2.0 * inside]
 
-    c = {k: _mirror_prior(g, Ww, unk, plane, mirror, field=f)[1][unk].mean()
+    c = {k: mirror_prior(g, Ww, unk, plane, mirror, field=f)[1][unk].mean()
          for k, f in (("none", None), ("symmetric", sym), ("sided", sided), ("band", band_only))}
     assert c["none"] > 0.5
     assert c["sided"] == pytest.approx(c["symmetric"], abs=1e-9) and c["symmetric"] == pytest.approx(c["none"])

@@ -53,9 +53,9 @@ import logging
 import numpy as np
 
 from ..errors import InputError
-from .methods import _fill_harmonic, _fill_inpaint, _fill_nearest
-from .mesh import _weld_rows, _welded, sparsify
-from .mirror import Plane, _fill_dfd, feature_field, mirror_joints, symmetry_plane
+from .mesh import sparsify, weld_rows, welded_mesh
+from .methods import fill_harmonic, fill_inpaint, fill_nearest
+from .mirror import Plane, feature_field, fill_dfd, mirror_joints, symmetry_plane
 
 __all__ = [
     "fill_weights", "sparsify", "feature_field", "mirror_joints", "symmetry_plane", "Plane",
@@ -136,16 +136,16 @@ def fill_weights(V, F, W, unknown, *, method="inpaint", max_influences=4, **opti
         return out
     if np.all(unknown):
         raise InputError("weights: fill_weights has no known vertex to fill from (all unknown)")
-    fill = {"nearest": _fill_nearest, "harmonic": _fill_harmonic, "inpaint": _fill_inpaint,
-            "dfd": _fill_dfd}[method]
+    fill = {"nearest": fill_nearest, "harmonic": fill_harmonic, "inpaint": fill_inpaint,
+            "dfd": fill_dfd}[method]
     uniform = options.pop("uniform", 1e-3)
     allowed = [p.name for p in inspect.signature(fill).parameters.values() if p.kind == p.KEYWORD_ONLY]
     bad = sorted(set(options) - set(allowed))
     if bad:
         raise InputError(f"weights: fill method {method!r} has no option {', '.join(bad)}; "
                          f"its options are {', '.join(allowed) or 'none'}")
-    g = _welded(V, F, uniform=uniform)
-    Ww, unk = _weld_rows(np.nan_to_num(W), g.index, unknown, len(g.V))
+    g = welded_mesh(V, F, uniform=uniform)
+    Ww, unk = weld_rows(np.nan_to_num(W), g.index, unknown, len(g.V))
     filled = fill(g, Ww, unk, **options)
     filled = sparsify(filled[unk], max_influences)
     rows = np.zeros(len(g.V), dtype=np.int64)

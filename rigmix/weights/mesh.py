@@ -22,12 +22,17 @@ from dfd.mesh import face_areas, welded_graph
 
 from ..geometry import bounding_box_diagonal
 
+__all__ = [
+    "WeldedMesh", "welded_mesh", "array_key", "weld_rows", "nearest_vertex", "solvable_rows", "solve_fixed",
+    "fill_orphans", "bilaplacian", "smooth_unknown", "edge_scale", "sparsify",
+]
+
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class _Welded:
-    """The welded mesh and its operators (cached per ``(V, F)``).
+class WeldedMesh:
+    """The welded mesh and its operators (:func:`welded_mesh`, cached per ``(V, F, uniform)``).
 
     Attributes
     ----------
@@ -49,10 +54,11 @@ class _Welded:
     component: np.ndarray
 
 
-_CACHE: dict[bytes, _Welded] = {}
+_CACHE: dict[bytes, WeldedMesh] = {}
 
 
-def _key(*arrays) -> bytes:
+def array_key(*arrays) -> bytes:
+    """A 16-byte digest of the shapes and bytes of ``arrays`` (a memo key for meshes and planes)."""
     h = hashlib.blake2b(digest_size=16)
     for a in arrays:
         a = np.ascontiguousarray(a)
@@ -73,8 +79,25 @@ def _clean_faces(V, F):
     return F[area > tiny]
 
 
-def _welded(V, F, *, uniform=1e-3) -> _Welded:
-    key = _key(V, F, np.float64(uniform))
+def welded_mesh(V, F, *, uniform=1e-3) -> WeldedMesh:
+    """The mesh welded by position, with its Laplacian, areas, adjacency and components.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+        Vertex positions (split glTF vertices are welded by position).
+    F : (m, 3) int array
+    uniform : float
+        Weight of the uniform graph Laplacian added over every welded edge, relative to the mean
+        absolute cotangent weight (keeps every connected component connected for the solvers).
+
+    Returns
+    -------
+    WeldedMesh
+        Cached: the last 8 ``(V, F, uniform)`` return the same object (its arrays are shared,
+        never modify them).
+    """
+    key = array_key(V, F, np.float64(uniform))
     if key in _CACHE:
         return _CACHE[key]
     # adjacency over every welded edge, including edges of faces that collapse to a segment
@@ -107,17 +130,32 @@ def _welded(V, F, *, uniform=1e-3) -> _Welded:
     m = np.nan_to_num(m, nan=0.0)
     mean_m = m[m > 0].mean() if np.any(m > 0) else 1.0
     m = np.maximum(m, 1e-2 * mean_m)
-    out = _Welded(Vw, Fc, index, L, m, A, component)
+    out = WeldedMesh(Vw, Fc, index, L, m, A, component)
     if len(_CACHE) >= 8:
         _CACHE.pop(next(iter(_CACHE)))
     _CACHE[key] = out
     return out
 
 
-def _weld_rows(W, index, unknown, k):
+def weld_rows(W, index, unknown, k):
     """Welded weights (mean of the known split rows) and the welded unknown mask.
 
     A welded vertex is unknown as soon as one of its split vertices is.
+
+    Parameters
+    ----------
+    W : (n, J) float array
+    index : (n,) int array
+        Welded vertex of each split vertex (:attr:`WeldedMesh.index`).
+    unknown : (n,) bool array
+    k : int
+        Number of welded vertices.
+
+    Returns
+    -------
+    Ww : (k, J) float64
+        Zero on welded vertices with no known split vertex.
+    unk : (k,) bool
     """
     unk = np.zeros(k, dtype=bool)
     unk[index[unknown]] = True
@@ -136,22 +174,30 @@ def _weld_rows(W, index, unknown, k):
 # --------------------------------------------------------------------------------------------
 
 
-def _nearest_vertex(Vw, W, unk, rows):
-    """Weights of the closest known welded vertex for ``rows`` (Euclidean)."""
+def nearest_vertex(Vw, W, unk, rows):
+    """Weights ``(r, J)`` of the closest known welded vertex (Euclidean) for ``rows`` ``(r,)``.
+
+    ``Vw`` (k, 3) welded positions, ``W`` (k, J) welded weights, ``unk`` (k,) bool unknown mask.
+    """
     tree = cKDTree(Vw[~unk])
     _, i = tree.query(Vw[rows])
     return W[np.flatnonzero(~unk)[i]]
 
 
-def _solvable(g: _Welded, unk):
-    """Unknown vertices whose component has a known vertex (the others would be singular)."""
+def solvable_rows(g: WeldedMesh, unk):
+    """``(k,)`` bool: unknown vertices whose component has a known vertex (the others would be
+    singular); ``unk`` (k,) bool."""
     has_known = np.zeros(g.component.max() + 1 if len(g.component) else 0, dtype=bool)
     has_known[g.component[~unk]] = True
     return unk & has_known[g.component]
 
 
-def _solve_fixed(Q, W, unk, solve):
-    """Minimize ``w^T Q w`` per column with rows ``~unk`` fixed, for the rows ``solve``."""
+def solve_fixed(Q, W, unk, solve):
+    """Minimize ``w^T Q w`` per column for the rows ``solve``, every other row fixed.
+
+    ``Q`` (k, k) sparse, ``W`` (k, J), ``unk`` and ``solve`` (k,) bool. Returns ``(k, J)``:
+    ``W`` with the ``solve`` rows replaced by the minimizer.
+    """
     out = W.copy()
     s = np.flatnonzero(solve)
     if len(s) == 0:
@@ -165,26 +211,33 @@ def _solve_fixed(Q, W, unk, solve):
     return out
 
 
-def _orphans(g: _Welded, W, unk, solve):
-    """Fill the unknown vertices of components without any known vertex: closest known vertex."""
+def fill_orphans(g: WeldedMesh, W, unk, solve):
+    """Fill the unknown vertices of components without any known vertex: closest known vertex.
+
+    ``W`` (k, J), ``unk`` and ``solve`` (k,) bool (``solve``: the rows a solver filled). Returns
+    ``(k, J)``, a copy where anything changed.
+    """
     orphan = unk & ~solve
     if np.any(orphan):
         log.debug("weights: %d unknown vertices in components with no known vertex", orphan.sum())
         W = W.copy()
-        W[orphan] = _nearest_vertex(g.V, W, unk, np.flatnonzero(orphan))
+        W[orphan] = nearest_vertex(g.V, W, unk, np.flatnonzero(orphan))
     return W
 
 
-def _bilaplacian(g: _Welded):
-    """The squared Laplacian energy of the Robust Skin Weights Transfer, ``-L + L M^-1 L``."""
+def bilaplacian(g: WeldedMesh):
+    """The squared Laplacian energy of the Robust Skin Weights Transfer, ``-L + L M^-1 L``
+    ``(k, k)`` csr."""
     return (-g.L + g.L @ sp.diags(1.0 / g.M) @ g.L).tocsr()
 
 
-def _smooth(g: _Welded, W, unk, *, iterations=10, keep=0.8):
+def smooth_unknown(g: WeldedMesh, W, unk, *, iterations=10, keep=0.8):
     """``iterations`` of ``w <- keep w + (1 - keep) mean(neighbours)`` on the unknown rows.
 
-    :func:`dfd.mesh.smooth` with ``alpha = 1 - keep``, written with its own arithmetic (the
-    mean as a product with ``1 / degree``), which the weight fills' results are bit-for-bit.
+    ``W`` (k, J) welded weights, ``unk`` (k,) bool rows to smooth (the others fixed). Returns
+    ``(k, J)``. This is :func:`dfd.mesh.smooth` with ``alpha = 1 - keep``, written with its own
+    arithmetic (the mean as a product with ``1 / degree``), to which the fills' results are
+    bit-for-bit.
     """
     deg = np.asarray(g.A.sum(axis=1)).ravel()
     rows = np.flatnonzero(unk & (deg > 0))
@@ -198,7 +251,7 @@ def _smooth(g: _Welded, W, unk, *, iterations=10, keep=0.8):
     return W
 
 
-def _edge_scale(g: _Welded):
+def edge_scale(g: WeldedMesh):
     """Mean length of the welded edges at each vertex, ``(k,)`` (the diagonal for isolated ones)."""
     A = sp.triu(g.A, k=1).tocoo()
     length = np.linalg.norm(g.V[A.row] - g.V[A.col], axis=1)

@@ -10,34 +10,28 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..errors import InputError
-from .mesh import (
-    _Welded,
-    _bilaplacian,
-    _nearest_vertex,
-    _orphans,
-    _smooth,
-    _solvable,
-    _solve_fixed,
-)
+from .mesh import WeldedMesh, bilaplacian, fill_orphans, nearest_vertex, smooth_unknown, solvable_rows, solve_fixed
+
+__all__ = ["fill_nearest", "fill_harmonic", "fill_inpaint", "known_surface_weights"]
 
 
-def _fill_nearest(g: _Welded, W, unk, *, mode="vertex"):
+def fill_nearest(g: WeldedMesh, W, unk, *, mode="vertex"):
     """Closest known welded vertex (``mode="vertex"``, the anchor protocol) or closest point of
-    the known surface (:func:`_known_surface_weights`, ``mode="surface"``)."""
+    the known surface (:func:`known_surface_weights`, ``mode="surface"``), for the unknown rows."""
     out = W.copy()
     rows = np.flatnonzero(unk)
     if len(rows) == 0:
         return out
     if mode == "vertex":
-        out[rows] = _nearest_vertex(g.V, W, unk, rows)
+        out[rows] = nearest_vertex(g.V, W, unk, rows)
     elif mode == "surface":
-        out[rows] = _known_surface_weights(g, W, unk, g.V[rows])[0]
+        out[rows] = known_surface_weights(g, W, unk, g.V[rows])[0]
     else:
         raise InputError(f"weights: unknown nearest mode {mode!r} (use 'surface' or 'vertex')")
     return out
 
 
-def _known_surface_weights(g: _Welded, W, unk, X):
+def known_surface_weights(g: WeldedMesh, W, unk, X):
     """Weights ``(q, J)`` at the points of the known surface closest to ``X`` ``(q, 3)``, and the
     distances ``(q,)``: interpolated on faces with three known corners, else the closest known
     vertex's (a known vertex outside every known face, isolated or only on faces touching the
@@ -59,19 +53,19 @@ def _known_surface_weights(g: _Welded, W, unk, X):
     return src, d
 
 
-def _fill_harmonic(g: _Welded, W, unk):
-    solve = _solvable(g, unk)
-    out = _solve_fixed(-g.L, W, unk, solve)
-    return _orphans(g, out, unk, solve)
+def fill_harmonic(g: WeldedMesh, W, unk):
+    """Cotangent-Laplacian interpolation of the unknown rows, the known rows fixed."""
+    solve = solvable_rows(g, unk)
+    out = solve_fixed(-g.L, W, unk, solve)
+    return fill_orphans(g, out, unk, solve)
 
 
-def _fill_inpaint(g: _Welded, W, unk, *, iterations=10, keep=0.8):
-    solve = _solvable(g, unk)
-    out = _solve_fixed(_bilaplacian(g), W, unk, solve)
-    out = _orphans(g, out, unk, solve)
-    return _smooth(g, out, unk, iterations=iterations, keep=keep)
+def fill_inpaint(g: WeldedMesh, W, unk, *, iterations=10, keep=0.8):
+    """The Robust Skin Weights Transfer's inpainting: the squared Laplacian energy
+    (:func:`.mesh.bilaplacian`) minimized with the known rows fixed, then ``iterations`` of
+    :func:`.mesh.smooth_unknown` (``keep``) on the unknown rows."""
+    solve = solvable_rows(g, unk)
+    out = solve_fixed(bilaplacian(g), W, unk, solve)
+    out = fill_orphans(g, out, unk, solve)
+    return smooth_unknown(g, out, unk, iterations=iterations, keep=keep)
 
-
-# --------------------------------------------------------------------------------------------
-# Public entry point
-# --------------------------------------------------------------------------------------------

@@ -7,7 +7,6 @@ agreement), and the solve ``min w^T Q w + lam sum_v c_v m_v |w_v - P_v|^2``.
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,19 +19,23 @@ from dfd.mesh import face_areas, surface_samples
 
 from ..errors import InputError
 from ..geometry import bounding_box_diagonal
+from ..operations.mirror import swap_side
 from .locality import geodesic_locality
-from .methods import _fill_inpaint, _known_surface_weights
 from .mesh import (
-    _Welded,
-    _bilaplacian,
-    _edge_scale,
-    _key,
-    _orphans,
-    _smooth,
-    _solvable,
-    _welded,
+    WeldedMesh,
+    array_key,
+    bilaplacian,
+    edge_scale,
+    fill_orphans,
+    smooth_unknown,
+    solvable_rows,
     sparsify,
+    welded_mesh,
 )
+from .methods import fill_inpaint, known_surface_weights
+
+__all__ = ["Plane", "symmetry_plane", "mirror_joints", "mirror_prior", "posed_reflection", "feature_field", "fill_dfd",
+           "TRUSTED"]
 
 
 @dataclass(frozen=True)
@@ -71,7 +74,7 @@ def symmetry_plane(V, F=None, *, tol=0.02, iterations=3, samples=2000, seed=0):
     a remeshed junction band is many times denser than the coarse original it replaces, and
     its vertices, reflected onto the coarse side, land on the surface but far from its
     vertices. On the shared RiggedFigure with a leg's band remeshed (72% of the welded
-    vertices), the vertex median picked the front/back plane (0.011 of the diagonal against
+    vertices), the vertex median picks the front/back plane (0.011 of the diagonal against
     0.022 for the true plane, x = 0); the surface median picks x = 0.
 
     Parameters
@@ -126,20 +129,6 @@ def symmetry_plane(V, F=None, *, tol=0.02, iterations=3, samples=2000, seed=0):
     return best
 
 
-_SIDES = [
-    (r"(?<=[._\-\s])L(?=$|[._\-\s\d])", "R"), (r"(?<=[._\-\s])R(?=$|[._\-\s\d])", "L"),
-    (r"Left", "Right"), (r"Right", "Left"), (r"left", "right"), (r"right", "left"),
-]
-
-
-def _swap_side(name: str) -> str | None:
-    for pattern, repl in _SIDES:
-        swapped, count = re.subn(pattern, repl, name)
-        if count:
-            return swapped
-    return None
-
-
 def mirror_joints(*, names=None, positions=None, plane=None, tol=0.05):
     """For each joint, its mirror image across the character's symmetry plane.
 
@@ -171,9 +160,9 @@ def mirror_joints(*, names=None, positions=None, plane=None, tol=0.05):
         R = plane.reflect(P)
         D = np.linalg.norm(R[:, None, :] - P[None, :, :], axis=2)  # (J, J)
         if names is not None:  # names break ties between coincident joints
-            swapped = [_swap_side(a) for a in names]
-            same = np.array([[sa == b or (a == b and sa is None) for b in names]
-                             for a, sa in zip(names, swapped)])
+            # a name without a side token swaps to itself: a central joint is its own mirror
+            swapped = [swap_side(a) for a in names]
+            same = np.array([[sa == b for b in names] for sa in swapped])
             D = D - 1e-6 * scale * same
         m = np.argmin(D, axis=1)
         ok = (D[np.arange(J), m] <= tol * scale) & (m[m] == np.arange(J))
@@ -191,17 +180,18 @@ def mirror_joints(*, names=None, positions=None, plane=None, tol=0.05):
 
 
 def _mirror_by_names(names):
-    """``(J,)`` int64 joint mirror from side names (``Arm.L`` <-> ``Arm.R``), mutual pairs only."""
+    """``(J,)`` int64 joint mirror from side names (``Arm.L`` <-> ``Arm.R``, :func:`swap_side`),
+    mutual pairs only."""
     index = {nm: i for i, nm in enumerate(names)}
     out = np.arange(len(names))
     for i, nm in enumerate(names):
-        other = _swap_side(nm)
+        other = swap_side(nm)
         if other in index:
             out[i] = index[other]
     return np.where(out[out] == np.arange(len(names)), out, np.arange(len(names))).astype(np.int64)
 
 
-def _mirror_lookup(g: _Welded, W, unk, plane: Plane, mirror, rows, *, bones=None, far=None):
+def _mirror_lookup(g: WeldedMesh, W, unk, plane: Plane, mirror, rows, *, bones=None, far=None):
     """Weights at the reflection of ``rows`` on the known surface, joints mirrored.
 
     Only known rows are read (faces with three known corners, interpolated, or the closest
@@ -209,7 +199,7 @@ def _mirror_lookup(g: _Welded, W, unk, plane: Plane, mirror, rows, *, bones=None
 
     With ``bones`` (rest positions ``(J, 3)``, parents ``(J,)``) and ``far`` ``(k,)`` (a distance
     per welded vertex), a row whose reflection lands farther than ``far`` from the known surface
-    tries its *posed reflection* (:func:`_posed_reflection`: where the two sides' rest poses
+    tries its *posed reflection* (:func:`posed_reflection`: where the two sides' rest poses
     differ, a limb's mirror is posed elsewhere) and keeps it where it lands closer, on a point
     weighted by the followed bone's joints.
 
@@ -219,13 +209,13 @@ def _mirror_lookup(g: _Welded, W, unk, plane: Plane, mirror, rows, *, bones=None
     """
     rows = np.asarray(rows, dtype=np.int64)
     X = plane.reflect(g.V[rows])
-    src, d = _known_surface_weights(g, W, unk, X)
+    src, d = known_surface_weights(g, W, unk, X)
     if bones is not None and far is not None:
         retry = np.flatnonzero(d > far[rows])
         if len(retry):
             owner = _owner_joints(g, W, unk, rows[retry])
-            Xp, own = _posed_reflection(X[retry], plane, bones[0], bones[1], mirror, owner=owner)
-            sp_, dp = _known_surface_weights(g, W, unk, Xp)
+            Xp, own = posed_reflection(X[retry], plane, bones[0], bones[1], mirror, owner=owner)
+            sp_, dp = known_surface_weights(g, W, unk, Xp)
             mirror_own = np.asarray(mirror)[own]
             better = (dp < d[retry]) & (np.take_along_axis(sp_, mirror_own, axis=1).sum(axis=1) > 0)
             src[retry[better]] = sp_[better]
@@ -233,7 +223,7 @@ def _mirror_lookup(g: _Welded, W, unk, plane: Plane, mirror, rows, *, bones=None
     return src[:, mirror], d
 
 
-def _owner_joints(g: _Welded, W, unk, rows, *, min_weight=0.1):
+def _owner_joints(g: WeldedMesh, W, unk, rows, *, min_weight=0.1):
     """``(r, J)`` bool: the joints weighting (at least ``min_weight``) the known vertex nearest
     to each row along the surface (the row itself when it is known).
 
@@ -254,7 +244,7 @@ def _owner_joints(g: _Welded, W, unk, rows, *, min_weight=0.1):
     return out
 
 
-def _posed_reflection(X, plane: Plane, positions, parents, mirror, *, owner=None):
+def posed_reflection(X, plane: Plane, positions, parents, mirror, *, owner=None):
     """Reflected points moved with their bone onto its mirror bone, where the rest pose of the two
     sides differs.
 
@@ -327,7 +317,7 @@ def _empty_prior(W, unk):
     return np.zeros_like(W), np.zeros(len(W)), np.flatnonzero(unk), np.flatnonzero(~unk)
 
 
-def _mirror_prior(g: _Welded, W, unk, plane: Plane, mirror, *, tol=0.25, field=None,
+def mirror_prior(g: WeldedMesh, W, unk, plane: Plane, mirror, *, tol=0.25, field=None,
                   feature_scale=0.5, agreement=0.1, neighbours=16, self_mirror=0.5, bones=None):
     """The prior of each unknown vertex: its mirror point's known weights, with a confidence.
 
@@ -353,7 +343,7 @@ def _mirror_prior(g: _Welded, W, unk, plane: Plane, mirror, *, tol=0.25, field=N
     P, c, rows, known = _empty_prior(W, unk)
     if len(rows) == 0 or len(known) == 0:
         return P, c
-    scale = tol * _edge_scale(g)
+    scale = tol * edge_scale(g)
     P[rows], d = _mirror_lookup(g, W, unk, plane, mirror, rows, bones=bones, far=scale)
     conf = np.exp(-((d / scale[rows]) ** 2))
     # symmetry of the artist's painting, measured on the known vertices around each unknown one
@@ -405,7 +395,7 @@ def feature_field(V, F, *, cache=None, seed=0, **distill_options):
     """
     from dfd.distill import distill  # heavy (torch): imported where used
 
-    g = _welded(np.asarray(V, dtype=np.float64), np.asarray(F, dtype=np.int64).reshape(-1, 3))
+    g = welded_mesh(np.asarray(V, dtype=np.float64), np.asarray(F, dtype=np.int64).reshape(-1, 3))
     return distill(g.V, g.F, seed=seed, cache=None if cache is None else str(cache), **distill_options)
 
 
@@ -413,13 +403,13 @@ _FEATURES: dict[tuple, tuple] = {}
 _PLANES: dict[bytes, Plane | None] = {}
 
 
-def _mirror_feature_distance(g: _Welded, field, plane: Plane):
+def _mirror_feature_distance(g: WeldedMesh, field, plane: Plane):
     """``(k,)`` feature distance between each welded vertex and its reflection.
 
     Evaluated once per (field, mesh, plane) and cached: a field evaluation costs far more than
     a band fill, and the benchmark fills dozens of bands of one character.
     """
-    key = (id(field), _key(g.V, plane.normal, np.float64(plane.offset)))
+    key = (id(field), array_key(g.V, plane.normal, np.float64(plane.offset)))
     if key not in _FEATURES:
         if len(_FEATURES) >= 8:
             _FEATURES.pop(next(iter(_FEATURES)))
@@ -436,19 +426,19 @@ def _evaluate(field, X):
     return f / np.maximum(np.linalg.norm(f, axis=1, keepdims=True), 1e-12)
 
 
-def _solve_prior(g: _Welded, W, unk, P, c, *, strength=10.0):
+def _solve_prior(g: WeldedMesh, W, unk, P, c, *, strength=10.0):
     """Minimize ``w^T Q w + lam sum_v c_v m_v |w_v - P_v|^2`` over the unknown rows.
 
     ``Q`` is the inpainting energy; ``lam`` is ``strength`` times the mean diagonal of ``Q``
     over the unknown rows per unit area, so that ``strength`` is scale free.
     """
-    Q = _bilaplacian(g)
+    Q = bilaplacian(g)
     s = np.flatnonzero(unk)
     if len(s) == 0:
         return W.copy()
     reg = c[s] * g.M[s]
     # rows with a prior are solvable even in a component without any known vertex
-    solve = _solvable(g, unk) | (unk & (c > 1e-6))
+    solve = solvable_rows(g, unk) | (unk & (c > 1e-6))
     comp_ok = np.zeros(g.component.max() + 1, dtype=bool)
     comp_ok[g.component[solve]] = True
     solve = unk & comp_ok[g.component]
@@ -462,7 +452,7 @@ def _solve_prior(g: _Welded, W, unk, P, c, *, strength=10.0):
         A = (Qss + sp.diags(reg)).tocsc()
         rhs = -(Q[s][:, kn] @ W[kn]) + reg[:, None] * P[s]
         out[s] = splu(A).solve(np.ascontiguousarray(rhs))
-    return _orphans(g, out, unk, solve)
+    return fill_orphans(g, out, unk, solve)
 
 
 #: Confidence from which a prior row is trusted: it witnesses its joints for the geodesic
@@ -470,7 +460,7 @@ def _solve_prior(g: _Welded, W, unk, P, c, *, strength=10.0):
 TRUSTED = 0.5
 
 
-def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
+def fill_dfd(g: WeldedMesh, W, unk, *, field=None, plane=None, joint_mirror=None,
               joint_names=None, joint_positions=None, mirror_tol=0.25, strength=10.0,
               iterations=0, keep=0.8, field_cache=None, distill_options=None,
               joint_parents=None, bone_prior=0.1, locality=0.0, locality_power=1.0,
@@ -482,22 +472,22 @@ def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
     through the skeleton's mirror, are the prior, trusted by the reflection distance and, with a
     DFD feature field, by the feature agreement of the two points. With the skeleton
     (``joint_positions`` and ``joint_parents``), a reflection that lands away from the known
-    surface follows its bone onto the mirror bone (:func:`_posed_reflection`: a limb posed
+    surface follows its bone onto the mirror bone (:func:`posed_reflection`: a limb posed
     differently on the two sides). Where the mirror is hidden
     too (a band across the plane) and ``joint_parents`` is given, the skeleton's bones give a
     weaker prior (:func:`_bone_prior`). Where no prior exists, the fill is the inpainting.
     With ``locality`` (a graph radius), each filled joint then fades with the distance to its
     nearest witness (:func:`.locality.geodesic_locality`): a known vertex it drives, or a filled
     vertex whose prior, trusted (confidence at least 0.5), gives it. A joint whose surface is
-    all hidden is witnessed by its mirror image; without the prior's witnesses the Fox's left
-    upper arm, hidden across a self-composition's junction band, lost it (mean junction weight
-    error 0.87 against 0.18). A joint with no witness at all is removed, unless it is one of
-    ``deforming_joints`` (the joints that deform the characters the mesh was made from): its
+    all hidden is witnessed by its mirror image: without the prior's witnesses the Fox's left
+    upper arm, hidden across a self-composition's junction band, loses it (mean junction weight
+    error 0.87 without, 0.18 with). A joint with no witness at all is removed, unless it is one
+    of ``deforming_joints`` (the joints that deform the characters the mesh was made from): its
     whole surface is then hidden, and the fill, from its bone, is all there is. Hidden
-    protocol: the shared RiggedFigure's head joint, whose surface the junction band swallows,
-    was removed and the head followed the neck (mean junction weight error 1.18 against 0.49
+    protocol: removing the shared RiggedFigure's head joint, whose surface the junction band
+    swallows, makes the head follow the neck (mean junction weight error 1.18 removed, 0.49
     kept); the Knight's root ``Bone``, which deforms nothing, must go (kept, its bone through
-    the legs took 11% of the right hip's band, skinned error 4% -> 19% of the diagonal).
+    the legs takes 11% of the right hip's band: skinned error 19% of the diagonal, 4% removed).
     Options are listed in :func:`rigmix.weights.fill_weights`.
     """
     out, P, c = _fill_dfd_prior(g, W, unk, field=field, plane=plane, joint_mirror=joint_mirror,
@@ -512,20 +502,20 @@ def _fill_dfd(g: _Welded, W, unk, *, field=None, plane=None, joint_mirror=None,
     return out
 
 
-def _fill_dfd_prior(g: _Welded, W, unk, *, field, plane, joint_mirror, joint_names, joint_positions,
+def _fill_dfd_prior(g: WeldedMesh, W, unk, *, field, plane, joint_mirror, joint_names, joint_positions,
                     mirror_tol, strength, iterations, keep, field_cache, distill_options, joint_parents,
                     bone_prior):
-    """:func:`_fill_dfd` before the locality: ``(filled W, prior P or None, confidence c or None)``."""
+    """:func:`fill_dfd` before the locality: ``(filled W, prior P or None, confidence c or None)``."""
     J = W.shape[1]
     if plane is None:
-        key = _key(g.V, g.F)
+        key = array_key(g.V, g.F)
         if key not in _PLANES:
             if len(_PLANES) >= 8:  # a memo of the last meshes, not a store: bounded like _FEATURES
                 _PLANES.pop(next(iter(_PLANES)))
             _PLANES[key] = symmetry_plane(g.V, g.F)
         plane = _PLANES[key]
     if plane is None:  # no mirror prior, nothing for a field to judge: no distillation either
-        return _fill_inpaint(g, W, unk, iterations=iterations, keep=keep), None, None
+        return fill_inpaint(g, W, unk, iterations=iterations, keep=keep), None, None
     if field is False:  # ablation: geometry only
         field = None
     elif field is None:
@@ -540,7 +530,7 @@ def _fill_dfd_prior(g: _Welded, W, unk, *, field, plane, joint_mirror, joint_nam
             joint_mirror = _mirror_from_weights(g, W, unk, plane)
     mirror = np.asarray(joint_mirror, dtype=np.int64).reshape(J)
     bones = (joint_positions, joint_parents) if joint_positions is not None and joint_parents is not None else None
-    P, c = _mirror_prior(g, W, unk, plane, mirror, tol=mirror_tol, field=field, bones=bones)
+    P, c = mirror_prior(g, W, unk, plane, mirror, tol=mirror_tol, field=field, bones=bones)
     if bones is not None and bone_prior > 0:
         Pb, cb = _bone_prior(g, W, unk, joint_positions, joint_parents, confidence=bone_prior)
         cb = cb * (1.0 - c)  # the mirror, where it exists, is the better witness
@@ -549,10 +539,10 @@ def _fill_dfd_prior(g: _Welded, W, unk, *, field, plane, joint_mirror, joint_nam
         c = c + cb
     out = _solve_prior(g, W, unk, P, c, strength=strength)
     # where no prior is trusted the fill is the inpainting and gets the inpainting's
-    # post-smoothing; a trusted row keeps the painting it borrowed (smoothed, the Horse's
-    # mirrored legs went from 0.005 to 0.07 mean junction weight error, hidden protocol)
+    # post-smoothing; a trusted row keeps the painting it borrowed (hidden protocol, the Horse's
+    # mirrored legs: mean junction weight error 0.005 as borrowed, 0.07 smoothed)
     smooth = unk & (c < TRUSTED)
-    return (_smooth(g, out, smooth, iterations=iterations, keep=keep) if iterations else out), P, c
+    return (smooth_unknown(g, out, smooth, iterations=iterations, keep=keep) if iterations else out), P, c
 
 
 def _segment_distances(X, a, b):
@@ -581,7 +571,7 @@ def _bone_distances(V, positions, parents):
     return D
 
 
-def _bone_prior(g: _Welded, W, unk, positions, parents, *, confidence=0.1, width=0.5,
+def _bone_prior(g: WeldedMesh, W, unk, positions, parents, *, confidence=0.1, width=0.5,
                 ring_scale=0.2, neighbours=8):
     """A prior from the skeleton for hidden regions: a soft nearest-bone assignment.
 
@@ -617,7 +607,7 @@ def _bone_prior(g: _Welded, W, unk, positions, parents, *, confidence=0.1, width
     return P, c
 
 
-def _mirror_from_weights(g: _Welded, W, unk, plane):
+def _mirror_from_weights(g: WeldedMesh, W, unk, plane):
     """Joint mirror from the weighted centroids of the known vertices (no skeleton given)."""
     known = ~unk
     mass = W[known].sum(axis=0)

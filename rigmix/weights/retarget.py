@@ -1,0 +1,164 @@
+"""Retargeting: input weights onto the output joints, and the closest-point transfer.
+
+The first steps of :func:`rigmix.weights.blend_weights`: each input's weights re-indexed through
+its bone map (:func:`retarget_weights`), the paper's closest-point weights of a junction vertex
+(:func:`closest_point_weights`, blended by :func:`blend_parts`), and the conversion of dense
+weights to the glTF's per-vertex influences (:func:`to_influences`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+__all__ = ["retarget_weights", "retarget_inputs", "closest_point_weights", "blend_parts", "to_influences"]
+
+
+def retarget_weights(W, target, num_output_joints, *, confidence=None):
+    """W' = B(W): input weights re-indexed onto the output joints.
+
+    Parameters
+    ----------
+    W : (n, J_in) float array
+        Dense input weights.
+    target : (J_in,) int array
+        Output joint of each input joint (``BoneMap.target``), ``-1`` when unmapped.
+    num_output_joints : int
+    confidence : (J_in,) float array, optional
+        Mapping confidence per input joint.
+
+    Returns
+    -------
+    Wr : (n, J_R) float64
+        Weights of input joints mapped to the same output joint summed; rows renormalized
+        (mass on unmapped joints dropped); a row left empty stays all zero.
+    c : (n,) float64
+        Confidence of each row: ``sum_j W[:, j] confidence[j]`` (1 without ``confidence``).
+    """
+    W = np.asarray(W, dtype=np.float64)
+    target = np.asarray(target, dtype=np.int64)
+    ok = target >= 0
+    B = sp.csr_matrix((np.ones(int(ok.sum())), (np.flatnonzero(ok), target[ok])),
+                      shape=(len(target), num_output_joints))
+    Wr = np.asarray((sp.csr_matrix(W) @ B).todense())
+    s = Wr.sum(axis=1)
+    nz = s > 0
+    # leave rows whose sum is already 1 bit-identical (preserved vertices copy them exactly)
+    off = nz & (np.abs(s - 1.0) > 1e-12)
+    Wr[off] /= s[off, None]
+    c = np.ones(len(W)) if confidence is None else W @ np.asarray(confidence, dtype=np.float64)
+    return Wr, np.clip(c, 0.0, 1.0)
+
+
+def retarget_inputs(inputs, maps, num_output_joints):
+    """Every input's weights retargeted through its bone map (:func:`retarget_weights`).
+
+    Parameters
+    ----------
+    inputs : sequence of rigmix.fusion.FusionInput
+        Their ``W`` ``(n_i, J_i)`` on the input joints.
+    maps : sequence of rigmix.mapping.BoneMap
+        B_i per input, same order (``target`` and ``confidence``).
+    num_output_joints : int
+
+    Returns
+    -------
+    retargeted : list of (n_i, J_R) float64 arrays
+    confidence : list of (n_i,) float64 arrays
+        Mapping confidence of each row.
+    """
+    retargeted, confidence = [], []
+    for x, bm in zip(inputs, maps):
+        Wr, c = retarget_weights(x.W, bm.target, num_output_joints, confidence=bm.confidence)
+        retargeted.append(Wr)
+        confidence.append(c)
+    return retargeted, confidence
+
+
+def closest_point_weights(sources, retargeted, faces, *, tolerance, return_parts=False):
+    """The paper's junction weights: closest points of the inputs, blended.
+
+    Parameters
+    ----------
+    sources : sequence of dict
+        Per input, ``FusedSurface.junction_sources[i]``: ``face`` (q,), ``bary`` (q, 3),
+        ``distance`` (q,), ``presence`` (q,).
+    retargeted : sequence of (n_i, J_R) float arrays
+        Retargeted weights of each input, per split vertex.
+    faces : sequence of (m_i, 3) int arrays
+        Faces of each input.
+    tolerance : float
+        Inputs farther than the closest one by more than this do not contribute (a far input
+        with presence 1, e.g. the other end of a three-character composition, must not).
+
+    Returns
+    -------
+    W : (q, J_R) float64
+        ``sum_i t_i w_i / sum_i t_i`` with ``t_i = p_i / (d_i + eps)`` over the near inputs,
+        ``w_i`` the barycentric interpolation of the retargeted weights at the closest point.
+    t : (q, I) float64
+        The normalized blend factors.
+    parts : (I, q, J_R) float64
+        Only with ``return_parts``: the ``w_i``, to blend with other factors (:func:`blend_parts`).
+    """
+    D = np.stack([np.asarray(s["distance"], np.float64) for s in sources], axis=1)  # (q, I)
+    P = np.stack([np.asarray(s["presence"], np.float64) for s in sources], axis=1)
+    near = D <= D.min(axis=1, keepdims=True) + tolerance
+    eps = 1e-3 * tolerance + 1e-12
+    t = np.where(near, np.clip(P, 0.0, 1.0) / (D + eps), 0.0)
+    none = t.sum(axis=1) <= 0  # no near input is present there: the closest one decides
+    t[none] = np.where(near[none], 1.0 / (D[none] + eps), 0.0)
+    t /= t.sum(axis=1, keepdims=True)
+    parts = np.stack([
+        np.einsum("qk,qkj->qj", np.asarray(s["bary"], np.float64),
+                  retargeted[i][np.asarray(faces[i], np.int64)[np.asarray(s["face"], np.int64)]])
+        for i, s in enumerate(sources)])
+    out, _ = blend_parts(t, parts)
+    return (out, t, parts) if return_parts else (out, t)
+
+
+def blend_parts(t, parts):
+    """Blend per-input weights by blend factors, and measure how much the inputs disagree.
+
+    Parameters
+    ----------
+    t : (q, I) float array
+        Blend factors, rows summing to 1.
+    parts : (I, q, J) float array (or a sequence of I ``(q, J)`` arrays)
+        Each input's weights at the ``q`` points.
+
+    Returns
+    -------
+    W : (q, J) float64
+        ``sum_i t_i w_i``.
+    spread : (q,) float64
+        ``sum_i t_i |w_i - W|_1``: 0 where one input decides or where the inputs agree (as in a
+        self-composition).
+    """
+    W = np.einsum("qi,iqj->qj", t, parts)
+    spread = np.einsum("qi,iq->q", t, np.abs(parts - W[None]).sum(axis=2))
+    return W, spread
+
+
+def to_influences(W, k=4):
+    """The ``k`` largest influences of each row of dense weights, largest first.
+
+    Parameters
+    ----------
+    W : (n, J) float array
+    k : int
+        Influences per vertex (at most ``J``).
+
+    Returns
+    -------
+    joints : (n, k) int64
+        Joint indices; 0 in unused slots.
+    weights : (n, k) float64
+        Their weights; 0 in unused slots.
+    """
+    W = np.asarray(W, np.float64)
+    k = min(k, W.shape[1]) if W.shape[1] else k
+    idx = np.argsort(-W, axis=1, kind="stable")[:, :k]
+    w = np.take_along_axis(W, idx, axis=1)
+    idx = np.where(w > 0, idx, 0)
+    return idx.astype(np.int64), w
