@@ -18,6 +18,16 @@ errors. Every field is checked where it is used instead.
 Reads are bounded: a declared ``byteLength`` is checked against the bytes that really exist
 before anything is allocated; buffer view and accessor ranges are checked before numpy sees
 them. Every failure is an :class:`rigmix.errors.InputError` naming the file and the object.
+
+Reads are confined (:meth:`Document.resolve_uri`, :func:`read_regular_file`): the file given and
+every file a URI names must be a *regular* file (never a device, FIFO or folder: ``/dev/zero``
+would be read until memory runs out), no larger than :data:`MAX_FILE_BYTES` (images:
+:data:`MAX_IMAGE_BYTES`), its size checked before it is read. A URI names a file inside the
+glTF's own folder only: it is percent-decoded and its symlinks resolved, and an absolute path, a
+scheme other than ``data:``, or a path that ends up outside the folder (``../``, ``%2e%2e/``, a
+symlink pointing out) is refused without being opened, with a message that echoes neither the
+URI nor the outside path and does not tell whether that file exists. ``data:`` URIs are capped
+before decoding by what their declared ``byteLength`` (or the image limit) can need.
 """
 
 from __future__ import annotations
@@ -26,6 +36,9 @@ import base64
 import binascii
 import json
 import math
+import os
+import re
+import stat
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,7 +48,10 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["Document", "load_document", "COMPONENT_DTYPES", "TYPE_SHAPES", "decode_data_uri"]
+__all__ = [
+    "Document", "load_document", "COMPONENT_DTYPES", "TYPE_SHAPES", "decode_data_uri", "read_regular_file",
+    "MAX_FILE_BYTES", "MAX_IMAGE_BYTES",
+]
 
 GLB_MAGIC = b"glTF"
 CHUNK_JSON = 0x4E4F534A
@@ -62,6 +78,15 @@ TYPE_SHAPES = {
 }
 #: An accessor without a buffer view is all zeros; refuse to allocate more elements than this.
 MAX_ZERO_ELEMENTS = 1 << 24
+#: Largest input file, external buffer or ``data:`` buffer read (1 GiB): the largest shared
+#: character is some 30 MB, and reading the whole of anything larger would not fit the 2 GB of
+#: memory a composition is allowed.
+MAX_FILE_BYTES = 1 << 30
+#: Largest image read for a base colour texture (256 MiB: a 8k x 8k RGBA PNG is at most 256 MiB
+#: uncompressed); a larger image is refused before it is read.
+MAX_IMAGE_BYTES = 1 << 28
+#: A URI scheme (``file:``, ``http:``, ...): only ``data:`` is read, by :func:`decode_data_uri`.
+_SCHEME = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*:")
 
 
 @dataclass
@@ -225,14 +250,50 @@ class Document:
             raise self.error(f"{label} reads bytes {offset}..{offset + nbytes} of a bufferView of {len(view)} bytes")
         return view[offset : offset + nbytes]
 
-    def resolve_uri(self, uri: str, what: str) -> Path:
-        """The external file a relative ``uri`` names (percent-decoded), which must exist."""
-        if "://" in uri:
-            raise self.error(f"{what} refers to {uri!r}: only relative file URIs and data URIs can be read")
-        path = self.path.parent / unquote(uri)
-        if not path.is_file():
-            raise self.error(f"{what} refers to {uri!r} which was not found next to the file ({path})")
-        return path
+    def resolve_uri(self, uri: str, what: str, *, must_exist: bool = True) -> Path | None:
+        """The regular file inside the glTF's folder that a relative ``uri`` names.
+
+        Parameters
+        ----------
+        uri : str
+            Percent-encoded relative URI (not a ``data:`` URI).
+        what : str
+            Who refers to it, for messages (e.g. ``"buffers[1]"``).
+        must_exist : bool
+            ``False``: a URI naming no file inside the folder gives ``None`` (a missing texture
+            is dropped with a warning); anything that is not confined is refused all the same.
+
+        Returns
+        -------
+        Path
+            The real path (symlinks resolved), a regular file within the folder's real path.
+
+        Raises
+        ------
+        InputError
+            A scheme, an absolute path, a path leading outside the folder (``..``, a symlink), a
+            NUL byte, or something that is not a regular file. Outside paths are never opened
+            nor echoed, and whether they exist is never told.
+        """
+        fix = "only files inside the glTF's own folder are read: embed the data or copy the file next to it"
+        decoded = unquote(uri)
+        if _SCHEME.match(uri) or _SCHEME.match(decoded):  # file:, http:, a drive letter
+            raise self.error(f"{what} has a URI with a scheme or drive letter: {fix}")
+        if "\0" in decoded or os.path.isabs(decoded) or decoded.startswith(("\\", "/")):
+            raise self.error(f"{what} has an absolute or malformed file URI: {fix}")
+        folder = os.path.realpath(self.path.parent)
+        target = os.path.realpath(os.path.join(folder, decoded.replace("\\", "/")))
+        if os.path.commonpath([folder, target]) != folder:
+            raise self.error(f"{what} has a URI that leads outside the glTF's folder: {fix}")
+        try:
+            st = os.stat(target)
+        except OSError:
+            if not must_exist:
+                return None
+            raise self.error(f"{what} refers to {uri!r} which was not found next to the file") from None
+        if not stat.S_ISREG(st.st_mode):
+            raise self.error(f"{what} refers to {uri!r} which is not a regular file: {fix}")
+        return Path(target)
 
 
 def _int(doc: Document, obj: dict, key: str, label: str, default=None) -> int:
@@ -255,20 +316,95 @@ def _normalize_ints(a: np.ndarray) -> np.ndarray:
     return np.maximum(f, -1.0) if info.min < 0 else f
 
 
-def decode_data_uri(uri: str, doc: Document, what: str) -> tuple[bytes, str]:
-    """Decode a ``data:[mime][;base64],payload`` URI into ``(bytes, mime)``."""
+def decode_data_uri(uri: str, doc: Document, what: str, max_bytes: int = MAX_FILE_BYTES) -> tuple[bytes, str]:
+    """Decode a ``data:[mime][;base64],payload`` URI into ``(bytes, mime)``.
+
+    Parameters
+    ----------
+    uri : str
+    doc : Document
+        For messages.
+    what : str
+        Who holds the URI (e.g. ``"buffers[0]"``).
+    max_bytes : int
+        The most bytes the caller needs (a buffer's ``byteLength``, the image limit): a payload
+        whose encoded length could only decode to more (beyond 3 bytes of padding) is refused
+        before anything is decoded.
+
+    Raises
+    ------
+    InputError
+        A malformed URI, a payload that cannot be decoded, or one longer than ``max_bytes`` allows.
+    """
     head, sep, payload = uri.partition(",")
     if not sep:
         raise doc.error(f"{what}: malformed data URI (no comma)")
     mime = head[5:].split(";")[0]
+    base64_encoded = head.endswith(";base64")
+    # base64: 4 characters per 3 bytes; percent-encoding: up to 3 characters per byte
+    limit = 4 * (-(-(max_bytes + 3) // 3)) if base64_encoded else 3 * (max_bytes + 3)
+    if len(payload) > limit:
+        raise doc.error(
+            f"{what}: data URI of {len(payload)} characters is longer than its {max_bytes} bytes can need "
+            "(declared byteLength, or the size limit): corrupt or hostile file"
+        )
     try:
-        if head.endswith(";base64"):
+        if base64_encoded:
             data = base64.b64decode(payload, validate=False)
         else:
             data = unquote(payload).encode("latin-1")
     except (binascii.Error, ValueError, UnicodeEncodeError) as exc:
         raise doc.error(f"{what}: data URI cannot be decoded ({exc})") from None
     return data, mime
+
+
+def read_regular_file(path, *, limit: int | None, name: str, label: str = "the file",
+                      at_most: int | None = None) -> bytes:
+    """The bytes of a regular file, refused before reading when it is not one or is too large.
+
+    Parameters
+    ----------
+    path : str or Path
+        Followed if a symlink (the caller confines it first when it comes from a URI).
+    limit : int or None
+        Largest file size accepted, in bytes (:data:`MAX_FILE_BYTES`, :data:`MAX_IMAGE_BYTES`);
+        ``None`` when ``at_most`` bounds the read instead.
+    name : str
+        The file name messages start with.
+    label : str
+        What is read, for messages (``"buffers[1]"``).
+    at_most : int, optional
+        Read only this many bytes (a buffer's ``byteLength``; the file may be longer).
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable, a device, FIFO, socket or folder, or larger than ``limit``.
+    """
+    try:
+        st = os.stat(path)  # before opening: a FIFO would block, /dev/zero never end
+    except OSError as exc:
+        raise InputError(f"{name}: cannot read {label} ({exc.strerror or type(exc).__name__})") from None
+    _check_regular(st, limit, name, label)
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0)
+    try:
+        fd = os.open(path, flags)
+    except OSError as exc:
+        raise InputError(f"{name}: cannot read {label} ({exc.strerror or type(exc).__name__})") from None
+    with os.fdopen(fd, "rb") as fh:
+        _check_regular(os.fstat(fh.fileno()), limit, name, label)  # the file opened, not a swapped one
+        try:
+            return fh.read(at_most) if at_most is not None else fh.read()
+        except OSError as exc:
+            raise InputError(f"{name}: cannot read {label} ({exc.strerror or type(exc).__name__})") from None
+
+
+def _check_regular(st: os.stat_result, limit: int | None, name: str, label: str) -> None:
+    if not stat.S_ISREG(st.st_mode):
+        kind = "a folder" if stat.S_ISDIR(st.st_mode) else "a device, FIFO or socket"
+        raise InputError(f"{name}: {label} is {kind}, not a regular file")
+    if limit is not None and st.st_size > limit:
+        raise InputError(f"{name}: {label} has {st.st_size} bytes, more than the {limit}-byte limit")
 
 
 def _split_glb(raw: bytes, name: str) -> tuple[bytes, bytes | None]:
@@ -330,10 +466,7 @@ def load_document(path) -> Document:
     """
     path = Path(path)
     name = path.name
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise InputError(f"{name}: cannot read the file ({exc.strerror or exc})") from None
+    raw = read_regular_file(path, limit=MAX_FILE_BYTES, name=name)
     bin_chunk = None
     if raw[:4] == GLB_MAGIC:
         text, bin_chunk = _split_glb(raw, name)
@@ -343,6 +476,7 @@ def load_document(path) -> Document:
     else:
         raise InputError(f"{name}: not a glTF file (neither the GLB magic 'glTF' nor a JSON document)")
     doc = Document(js, [], path)
+    budget = MAX_FILE_BYTES  # all buffers read from URIs together
     for i, buf in enumerate(doc.items("buffers")):
         if not isinstance(buf, dict):
             raise doc.error(f"buffers[{i}] must be a JSON object")
@@ -356,16 +490,20 @@ def load_document(path) -> Document:
         elif not isinstance(uri, str):
             raise doc.error(f"buffers[{i}].uri must be a string")
         elif uri.startswith("data:"):
-            data, _ = decode_data_uri(uri, doc, f"buffers[{i}]")
+            data, _ = decode_data_uri(uri, doc, f"buffers[{i}]", max_bytes=max(0, min(declared, budget)))
             where = "its data URI"
+            budget -= len(data)
         else:
             ext = doc.resolve_uri(uri, f"buffers[{i}]")
             size = ext.stat().st_size
             if declared > size:  # checked before reading: never allocate a declared size
                 raise doc.error(f"buffers[{i}] declares {declared} bytes but {uri!r} has {size}")
-            with open(ext, "rb") as fh:
-                data = fh.read(declared)
+            if declared > budget:
+                raise doc.error(f"buffers[{i}] declares {declared} bytes: the buffers of one file may hold "
+                                f"{MAX_FILE_BYTES} bytes in all")
+            data = read_regular_file(ext, limit=None, name=name, label=f"buffers[{i}] ({uri!r})", at_most=declared)
             where = repr(uri)
+            budget -= declared
         if declared < 0 or declared > len(data):
             raise doc.error(
                 f"buffers[{i}] declares byteLength {declared} but {where} holds {len(data)} bytes "

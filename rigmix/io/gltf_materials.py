@@ -7,8 +7,7 @@ Images come from a buffer view, a ``data:`` URI or a file next to the glTF; only
 from __future__ import annotations
 
 from ..character import Material, Texture
-from ..errors import InputError
-from .accessors import Document, decode_data_uri
+from .accessors import MAX_IMAGE_BYTES, Document, decode_data_uri, read_regular_file
 
 __all__ = ["read_materials"]
 
@@ -27,13 +26,14 @@ def _image(doc, index: int, log) -> tuple[bytes, str] | None:
     if "bufferView" in img:
         data = bytes(doc.buffer_view(img["bufferView"], label))
     elif isinstance(img.get("uri"), str) and img["uri"].startswith("data:"):
-        data, _ = decode_data_uri(img["uri"], doc, label)
+        data, _ = decode_data_uri(img["uri"], doc, label, max_bytes=MAX_IMAGE_BYTES)
     elif isinstance(img.get("uri"), str):
-        try:
-            data = doc.resolve_uri(img["uri"], label).read_bytes()
-        except InputError as exc:
-            log(f"{label}: {str(exc).split(': ', 1)[1]}: texture dropped")
+        # confined like buffers (an error); only a file missing from the folder drops the texture
+        path = doc.resolve_uri(img["uri"], label, must_exist=False)
+        if path is None:
+            log(f"{label}: {img['uri']!r} was not found next to the file: texture dropped")
             return None
+        data = read_regular_file(path, limit=MAX_IMAGE_BYTES, name=doc.name, label=f"{label} ({img['uri']!r})")
     else:
         raise doc.error(f"{label} has neither a bufferView nor a uri")
     mime = _sniff_mime(data)

@@ -82,20 +82,97 @@ def read_gltf(path) -> Character:
 
 #: Required extensions without which the geometry cannot be read.
 UNREADABLE_EXTENSIONS = ("KHR_draco_mesh_compression", "EXT_meshopt_compression", "KHR_meshopt_compression")
+#: The only extension rigmix reads that a file may list in ``extensionsRequired``: its integer
+#: attributes are read by the accessor reader. Any other required extension is refused, as the
+#: glTF 2.0 specification asks of a loader that does not support it (section 3.12).
+SUPPORTED_REQUIRED_EXTENSIONS = ("KHR_mesh_quantization",)
+#: A quaternion whose length is off 1 by more than this is reported when normalized: the Khronos
+#: validator reports ROTATION_NON_UNIT from an error of about 5e-3 on the length, and SimpleSkin's
+#: keys (3-digit decimals) are 2.3e-4 off.
+UNIT_TOLERANCE = 2e-3
+#: Vertex attribute -> the (componentType, normalized) pairs glTF 2.0 allows (section 3.7.2.1).
+ATTRIBUTE_TYPES = {
+    "POSITION": {(5126, False)},
+    "NORMAL": {(5126, False)},
+    "TEXCOORD": {(5126, False), (5121, True), (5123, True)},
+    "COLOR": {(5126, False), (5121, True), (5123, True)},
+    "WEIGHTS": {(5126, False), (5121, True), (5123, True)},
+}
+#: The pairs ``KHR_mesh_quantization`` adds.
+QUANTIZED_TYPES = {
+    "POSITION": {(c, n) for c in (5120, 5121, 5122, 5123) for n in (False, True)},
+    "NORMAL": {(5120, True), (5122, True)},
+    "TEXCOORD": {(5120, False), (5120, True), (5121, False), (5122, False), (5122, True), (5123, False)},
+}
+_COMPONENT_NAMES = {5120: "BYTE", 5121: "UNSIGNED_BYTE", 5122: "SHORT", 5123: "UNSIGNED_SHORT",
+                    5125: "UNSIGNED_INT", 5126: "FLOAT"}
 
 
-def _read(doc: Document, log: _Log) -> Character:
-    required = doc.json.get("extensionsRequired", [])
+def _check_extensions(doc: Document) -> None:
+    """Refuse any ``extensionsRequired`` entry rigmix cannot read (compressed geometry named)."""
+    required = doc.items("extensionsRequired")
     for ext in required:
+        if not isinstance(ext, str):
+            raise doc.error(f"extensionsRequired must list extension names, got {ext!r}")
         if ext in UNREADABLE_EXTENSIONS:
             raise UnsupportedError(
                 f"{doc.name}: compressed geometry ({ext}) is not supported: re-export the file "
                 "without mesh compression (e.g. gltf-transform copy, or Blender without Draco)"
             )
-    for ext in required:
-        if ext != "KHR_mesh_quantization":  # integer attributes: the accessor reader handles them
-            log(f"required extension {ext} is not supported: its data are ignored")
-    graph = _node_graph(doc)
+        if ext not in SUPPORTED_REQUIRED_EXTENSIONS:
+            raise UnsupportedError(
+                f"{doc.name}: the file requires extension {ext!r}, which rigmix cannot read (it reads "
+                f"{', '.join(SUPPORTED_REQUIRED_EXTENSIONS)}): re-export the file without it"
+            )
+
+
+def _check_scenes(doc: Document, graph: "_Graph") -> None:
+    """``scene`` and every ``scenes[k].nodes`` refer to existing root nodes, each once."""
+    scenes = doc.items("scenes")
+    if "scene" in doc.json:
+        doc.get("scenes", doc.json["scene"], "'scene'")
+    N = len(graph.parent)
+    for k in range(len(scenes)):
+        roots = doc.get("scenes", k).get("nodes", [])
+        if not isinstance(roots, list):
+            raise doc.error(f"scenes[{k}].nodes must be a JSON array")
+        for n in roots:
+            if not isinstance(n, int) or isinstance(n, bool) or not 0 <= n < N:
+                raise doc.error(f"scenes[{k}].nodes refers to nodes[{n!r}], which does not exist: the file has "
+                                f"{N} nodes")
+            if graph.parent[n] >= 0:
+                raise doc.error(f"scenes[{k}].nodes lists nodes[{n}], a child of nodes[{graph.parent[n]}]: "
+                                "a scene lists root nodes only")
+        if len(set(roots)) != len(roots):
+            raise doc.error(f"scenes[{k}].nodes lists the same node twice")
+
+
+def _quantized(doc: Document) -> bool:
+    used = doc.json.get("extensionsUsed", [])
+    return isinstance(used, list) and "KHR_mesh_quantization" in used + doc.items("extensionsRequired")
+
+
+def _check_attribute_type(doc: Document, index: int, key: str, label: str) -> None:
+    """Refuse a vertex attribute stored in a component type glTF 2.0 does not allow for it."""
+    semantic = key.split("_")[0] if key.split("_")[-1].isdigit() else key
+    allowed = ATTRIBUTE_TYPES.get(semantic)
+    if allowed is None:
+        return
+    acc = doc.get("accessors", index)
+    pair = (acc.get("componentType"), bool(acc.get("normalized", False)))
+    if pair in allowed or (pair in QUANTIZED_TYPES.get(semantic, ()) and _quantized(doc)):
+        return
+    ctype = _COMPONENT_NAMES.get(pair[0], repr(pair[0]))
+    kind = f"{'normalized ' if pair[1] else ''}{ctype}"
+    hint = " without KHR_mesh_quantization" if semantic in QUANTIZED_TYPES and pair in QUANTIZED_TYPES[semantic] else ""
+    raise doc.error(f"{label}: {key} is stored as {kind}{hint}, which glTF 2.0 does not allow: re-export it "
+                    "(FLOAT, or the normalized integer types the specification lists)")
+
+
+def _read(doc: Document, log: _Log) -> Character:
+    _check_extensions(doc)
+    graph = _node_graph(doc, log)
+    _check_scenes(doc, graph)
     skins = _choose_skin(doc, graph)
     skeleton, joint_of_node = _skeleton(doc, graph, skins, log)
     materials = read_materials(doc, log)
@@ -151,7 +228,57 @@ def _node_locals(doc: Document, nodes: list) -> np.ndarray:
     return local
 
 
-def _node_graph(doc: Document) -> _Graph:
+def _unit_rotations(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normalize finite quaternions ``(n, 4)`` without overflow.
+
+    Returns
+    -------
+    unit : (n, 4) float64
+        ``q / |q|`` (bit-identical to :func:`rigmix.transforms.quat_normalize` where ``|q|`` is
+        finite), scaled by its largest component first where ``|q|`` overflows; identity where
+        ``q`` is zero.
+    zero : (n,) bool
+        Zero quaternions (made identity).
+    off : (n,) bool
+        Non-zero quaternions whose length was off 1 by more than :data:`UNIT_TOLERANCE`.
+    """
+    q = np.asarray(q, dtype=np.float64)
+    with np.errstate(over="ignore"):
+        norm = np.linalg.norm(q, axis=-1)
+    huge = ~np.isfinite(norm)
+    if huge.any():  # [1e300, 0, 0, 1e300]: |q| is inf, q / |q| would be 0
+        q = q.copy()
+        q[huge] /= np.abs(q[huge]).max(axis=-1, keepdims=True)
+        norm = np.linalg.norm(q, axis=-1)
+    unit = quat_normalize(q)
+    zero = norm <= 1e-12
+    off = ~zero & (huge | (np.abs(norm - 1.0) > UNIT_TOLERANCE))
+    return unit, zero, off
+
+
+def _rest_rotations(doc: Document, nodes: list, log) -> list:
+    """``nodes`` with zero, overflowing or non-unit rest rotations made unit (each reported)."""
+    index = [i for i, n in enumerate(nodes) if isinstance(n, dict) and "rotation" in n]
+    try:
+        q = np.array([nodes[i]["rotation"] for i in index], dtype=np.float64).reshape(len(index), 4)
+    except (TypeError, ValueError):
+        return nodes  # malformed: _node_locals names the node
+    if not np.all(np.isfinite(q)):
+        return nodes
+    unit, zero, off = _unit_rotations(q)
+    if not (zero.any() or off.any()):
+        return nodes
+    nodes = list(nodes)
+    for k in np.flatnonzero(zero | off):
+        i = index[k]
+        label = f"nodes[{i}]" + (f" {nodes[i]['name']!r}" if isinstance(nodes[i].get("name"), str) else "")
+        how = "is zero: replaced by the identity" if zero[k] else "is not unit: normalized"
+        log(f"{label}: rest rotation quaternion {how}")
+        nodes[i] = dict(nodes[i], rotation=unit[k].tolist())
+    return nodes
+
+
+def _node_graph(doc: Document, log) -> _Graph:
     nodes = doc.items("nodes")
     N = len(nodes)
     parent = np.full(N, -1, dtype=np.int64)
@@ -175,7 +302,7 @@ def _node_graph(doc: Document) -> _Graph:
         for c in reversed(chain):
             d += 1
             depth[c] = d
-    local = _node_locals(doc, nodes)
+    local = _node_locals(doc, _rest_rotations(doc, nodes, log))
     world = np.empty_like(local)
     for i in np.argsort(depth, kind="stable"):
         world[i] = local[i] if parent[i] < 0 else world[parent[i]] @ local[i]
@@ -211,9 +338,38 @@ def _read_skin(doc: Document, i: int) -> _Skin:
         if m.shape[1] != 16 or len(m) < len(joints):
             raise doc.error(f"skins[{i}] inverseBindMatrices must be {len(joints)} MAT4, got {m.shape}")
         ibm = m[: len(joints)].reshape(-1, 4, 4).transpose(0, 2, 1).astype(np.float64)
+        _check_inverse_binds(doc, i, joints, ibm)
     else:
         ibm = np.broadcast_to(np.eye(4), (len(joints), 4, 4)).copy()
     return _Skin(i, np.asarray(joints, dtype=np.int64), ibm)
+
+
+#: An inverse bind matrix whose determinant is below this fraction of the product of its column
+#: lengths (1 for a rotation, whatever the scale) is singular.
+SINGULAR_IBM = 1e-12
+
+
+def _check_inverse_binds(doc: Document, skin: int, joints: list, ibm: np.ndarray) -> None:
+    """Refuse inverse bind matrices ``(n, 4, 4)`` that are not finite, affine and invertible."""
+
+    def refuse(k, problem):
+        name = doc.get("nodes", joints[k]).get("name")
+        joint = f"joint {name!r}" if isinstance(name, str) and name else f"nodes[{joints[k]}]"
+        return doc.error(f"skins[{skin}] inverseBindMatrices[{k}] ({joint}) {problem}: re-export the skin "
+                         "from its bind pose")
+
+    bad = ~np.all(np.isfinite(ibm), axis=(1, 2))
+    if bad.any():
+        raise refuse(int(np.argmax(bad)), "holds NaN or infinite values")
+    affine = np.all(np.abs(ibm[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])) <= 1e-6, axis=1)
+    if not affine.all():
+        raise refuse(int(np.argmin(affine)), "is not affine (its last row must be 0, 0, 0, 1)")
+    # scale-free test on the 3x3 part, each matrix divided by its largest entry (no overflow)
+    a = ibm[:, :3, :3]
+    a = a / np.maximum(np.abs(a).max(axis=(1, 2)), 1e-300)[:, None, None]
+    singular = ~(np.abs(np.linalg.det(a)) > SINGULAR_IBM * np.prod(np.linalg.norm(a, axis=1), axis=1))
+    if singular.any():
+        raise refuse(int(np.argmax(singular)), "is not invertible (zero scale or collapsed axes)")
 
 
 def _choose_skin(doc: Document, graph: _Graph) -> list[_Skin]:
@@ -394,12 +550,14 @@ def _read_primitive(doc, prim: dict, label: str, njoints: int | None, log) -> di
         log(f"{label} has no POSITION: skipped")
         return None
     V = doc.accessor(attrs["POSITION"], f"{label} POSITION")
+    _check_attribute_type(doc, attrs["POSITION"], "POSITION", label)
     n = len(V)
     if V.shape[1] != 3 or not np.all(np.isfinite(V)):
         raise doc.error(f"{label}: POSITION must be finite VEC3")
 
     def attr(key, comps):
         a = doc.accessor(attrs[key], f"{label} {key}")
+        _check_attribute_type(doc, attrs[key], key, label)
         if len(a) != n or a.shape[1] not in comps:
             raise doc.error(f"{label}: {key} has {len(a)} x {a.shape[1]} values, expected {n} x {comps}")
         return a
@@ -587,6 +745,9 @@ def _track(doc, sampler: dict, joint: int, path: str, label: str, log) -> Track:
     if times.shape[1] != 1 or not np.all(np.isfinite(times)):
         raise doc.error(f"{label}: input must be finite scalar times")
     times = times[:, 0]
+    if len(times) and times.min() < 0:
+        raise doc.error(f"{label}: key time {float(times.min())!r} is negative: glTF 2.0 key times start "
+                        "at 0 or later (animation.sampler.input, time[0] >= 0); re-export the clip")
     values = doc.accessor(sampler.get("output"), f"{label} output")
     C = 4 if path == "rotation" else 3
     per = 3 if interp == "CUBICSPLINE" else 1
@@ -603,5 +764,11 @@ def _track(doc, sampler: dict, joint: int, path: str, label: str, log) -> Track:
         values = values[first]
         log(f"{label}: key times not strictly increasing: sorted, duplicates dropped")
     if path == "rotation" and per == 1:
-        values = quat_normalize(values)
+        values, zero, off = _unit_rotations(values)
+        if zero.any():
+            log(f"{label}: {int(zero.sum())} zero rotation quaternions replaced by the identity")
+        if off.any():
+            log(f"{label}: {int(off.sum())} rotation quaternions not unit: normalized")
+    elif path == "rotation" and np.abs(values).max() > 1e150:  # tangents: no safe rescaling
+        raise doc.error(f"{label}: rotation values as large as {float(np.abs(values).max()):.3g}: re-export the clip")
     return Track(joint, path, times, values, interp)

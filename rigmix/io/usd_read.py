@@ -23,11 +23,17 @@ Reads what :func:`rigmix.io.usd.write_usd` writes, and ordinary UsdSkel assets o
   ``roughness``, ``emissiveColor``); a ``diffuseColor`` driven by a ``UsdUVTexture`` gives the
   base colour texture (file bytes as they are, from a folder or inside a ``.usdz``) and its
   ``scale`` the base colour factor.
+* **Confinement** (as :mod:`rigmix.io.accessors` for glTF). The file is a regular file of at
+  most :data:`rigmix.io.accessors.MAX_FILE_BYTES`, checked before USD opens it; every layer it
+  composes (sublayers, references, payloads, recursively) and every texture must be a file
+  inside the folder of the file given (or inside the ``.usdz`` itself), checked before the stage
+  is composed; textures larger than :data:`rigmix.io.accessors.MAX_IMAGE_BYTES` are dropped.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import replace
 from pathlib import Path
 
@@ -36,6 +42,7 @@ import numpy as np
 from ..character import Anchor, Character, Clip, Material, Mesh, Prop, Skeleton, Texture, Track
 from ..errors import InputError, UnsupportedError
 from ..transforms import matrix_to_trs
+from .accessors import MAX_FILE_BYTES, MAX_IMAGE_BYTES, read_regular_file
 
 __all__ = ["read_usd"]
 
@@ -74,6 +81,8 @@ def read_usd(path) -> Character:
     from pxr import Usd, UsdGeom, UsdSkel
 
     path = Path(path)
+    read_regular_file(path, limit=MAX_FILE_BYTES, name=path.name, at_most=0)  # no device, FIFO, folder
+    _check_layers(path)
     try:
         stage = Usd.Stage.Open(str(path))
     except Exception as exc:  # pxr raises Tf.ErrorException
@@ -131,6 +140,53 @@ def read_usd(path) -> Character:
     name = top.GetCustomDataByKey("rigmix:name") if top.IsValid() and top != stage.GetPseudoRoot() else None
     return Character(name or (top.GetName() if top != stage.GetPseudoRoot() else path.stem), skeleton,
                      tuple(meshes), clips, tuple(materials), tuple(props), str(path), tuple(warnings))
+
+
+def _inside(folder: str, resolved: str) -> bool:
+    """Whether a resolved USD asset path (``file`` or ``package.usdz[inner]``) lies in ``folder``."""
+    outer = resolved.split("[", 1)[0] if resolved.endswith("]") else resolved
+    real = os.path.realpath(outer)
+    return os.path.commonpath([folder, real]) == folder
+
+
+def _check_layers(path: Path) -> None:
+    """Refuse a layer stack that composes a file outside the folder of ``path``.
+
+    Each layer is opened alone (``Sdf.Layer``, no composition) and its sublayers, references and
+    payloads are resolved and checked before any of them is opened; the stage is composed only
+    once every layer is known to be inside.
+    """
+    from pxr import Sdf
+
+    folder = os.path.realpath(path.parent)
+    seen, todo = set(), [str(path)]
+    while todo:
+        ident = todo.pop()
+        if ident in seen:
+            continue
+        seen.add(ident)
+        try:
+            layer = Sdf.Layer.FindOrOpen(ident)
+        except Exception as exc:  # pxr raises Tf.ErrorException
+            if ident == str(path):
+                raise InputError(f"usd: {path.name}: cannot open the file "
+                                 f"({str(exc).strip().splitlines()[-1]})") from None
+            raise InputError(f"usd: {path.name}: a layer it composes cannot be opened") from None
+        if layer is None:
+            if ident == str(path):
+                raise InputError(f"usd: {path.name}: cannot open the file")
+            continue  # a missing layer: USD reports it as it composes
+        for dep in layer.GetCompositionAssetDependencies():
+            resolved = layer.ComputeAbsolutePath(dep)
+            if "://" in dep or not _inside(folder, resolved):
+                raise InputError(
+                    f"usd: {path.name}: a sublayer, reference or payload leads outside the file's folder: "
+                    "only files inside it are read; copy or flatten the layers next to it")
+            outer = resolved.split("[", 1)[0] if resolved.endswith("]") else resolved
+            if os.path.exists(outer):
+                read_regular_file(outer, limit=MAX_FILE_BYTES, name=path.name,
+                                  label=f"layer {dep!r}", at_most=0)
+                todo.append(resolved)
 
 
 def _empty_skeleton():
@@ -326,7 +382,7 @@ def _material(path, mat, Ar, Sdf):
         scale = np.array(_input_value(tex, "scale", (1, 1, 1, 1)), dtype=np.float64)
         rgb, alpha = scale[:3], float(scale[3])
         asset = _input_value(tex, "file", None)
-        data = _asset_bytes(asset, Ar) if asset is not None else None
+        data = _asset_bytes(path, asset, Ar) if asset is not None else None
         if data is not None:
             mime = "image/png" if data[:8] == b"\x89PNG\r\n\x1a\n" else "image/jpeg" if data[:3] == b"\xff\xd8\xff" else None
             if mime is not None:
@@ -347,14 +403,27 @@ def _material(path, mat, Ar, Sdf):
                     emissive=np.array(_input_value(surface, "emissiveColor", (0, 0, 0)), dtype=np.float64))
 
 
-def _asset_bytes(asset, Ar):
-    """Bytes of a resolved asset (a plain file or a file inside a .usdz), None if missing."""
+def _asset_bytes(path, asset, Ar):
+    """Bytes of a resolved asset (a plain file or a file inside a .usdz), None if missing.
+
+    An asset outside the folder of ``path`` is refused (:class:`InputError`, without its path);
+    one that is not a regular file or is larger than :data:`MAX_IMAGE_BYTES` is refused too.
+    """
     resolved = asset.resolvedPath
     if not resolved:
         return None
+    if not _inside(os.path.realpath(path.parent), resolved):
+        raise InputError(f"usd: {path.name}: a texture leads outside the file's folder: only files inside it are "
+                         "read; copy the image next to the file")
+    outer = resolved.split("[", 1)[0] if resolved.endswith("]") else resolved
+    if outer == resolved:  # a plain file: regular and within the limit, checked before opening
+        read_regular_file(outer, limit=MAX_IMAGE_BYTES, name=path.name, label="a texture", at_most=0)
     handle = Ar.GetResolver().OpenAsset(Ar.ResolvedPath(resolved))
     if handle is None:
         return None
+    if handle.GetSize() > MAX_IMAGE_BYTES:
+        raise InputError(f"usd: {path.name}: a texture has {handle.GetSize()} bytes, more than the "
+                         f"{MAX_IMAGE_BYTES}-byte limit")
     return bytes(memoryview(handle.GetBuffer())) if hasattr(handle, "GetBuffer") else None
 
 
