@@ -46,13 +46,26 @@ Repairs (each logged with ``logger.warning`` and kept in ``Character.warnings`` 
 5. Unused slots are set to joint 0, weight 0.
 6. A ``skin.skeleton`` that is not a common root of the joints is ignored (the skeleton never
    depends on it). Key times that are not strictly increasing are sorted and de-duplicated.
+7. A zero rotation quaternion (rest or key) becomes identity; a non-unit one (off by more than
+   2e-3) is normalized, scaled down first so that an overflowing norm never turns it into identity.
 
 Not repaired (:class:`InputError`, one line naming the file and the object): not a glTF file,
 truncated GLB, corrupted JSON chunk, missing external buffer, a buffer shorter than its declared
 ``byteLength`` (never allocated from the declaration), buffer view or accessor ranges outside
 their buffer, sparse indices past the accessor count, triangle indices past the vertex count,
 joint indices past the skin's joint count, NaN positions or animation values, a node hierarchy
-with cycles.
+with cycles; inverse bind matrices that are not finite, not affine or not invertible; attribute
+component types the glTF 2.0 attribute table does not allow (POSITION as UNSIGNED_INT, or SHORT
+without ``KHR_mesh_quantization``; WEIGHTS as UNSIGNED_INT or BYTE); negative key times; a scene
+naming a missing or non-root node; an unknown extension in ``extensionsRequired``
+(:class:`UnsupportedError`).
+
+Confinement: the input and every file it names are read only when they are regular files; a URI
+resolves (percent-decoded, symlinks resolved) only to a file inside the glTF's own folder, and a
+refusal never repeats an outside path. Sizes are checked before reading
+(:data:`rigmix.io.accessors.MAX_FILE_BYTES` for the file and its buffers,
+:data:`rigmix.io.accessors.MAX_IMAGE_BYTES` per image), and a ``data:`` URI longer than its
+declared ``byteLength`` needs is refused before it is decoded.
 
 Writing: model -> glTF
 ----------------------
