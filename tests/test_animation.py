@@ -185,3 +185,21 @@ def test_real_clips_reproduce_key_values(name):
         T, R, S = sample_clip(ch.skeleton, clip, clip_times(clip))
         assert np.isfinite(T).all() and np.isfinite(R).all() and np.isfinite(S).all()
         np.testing.assert_allclose(np.linalg.norm(R, axis=-1), 1.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("fps", [24.0, 30.0, 60.0])
+def test_clip_times_stay_strictly_increasing_in_float32(fps):
+    """glTF stores key times as float32: an end a few float32 steps past the last frame
+    (``..., 1.2, 1.2000000476837158``) must not become a repeated key once written."""
+    q = np.array([[0.0, 0.0, 0.0, 1.0]] * 2)
+    for frames in (1, 7, 36, 113):
+        grid_end = frames / fps
+        step = float(np.spacing(np.float32(grid_end)))
+        for gap in (0.0, 0.3 * step, step, 2 * step, 1e-3 / fps, 0.5 / fps):
+            end = grid_end + gap
+            clip = Clip("c", (Track(0, "rotation", np.array([0.0, end]), q),))
+            t = clip_times(clip, fps)
+            t32 = t.astype(np.float32)
+            assert np.all(np.diff(t32) > 0), (fps, frames, gap, t[-3:])
+            assert t[0] == 0.0 and t[-1] == end  # the final pose is always sampled
+            assert np.all(np.diff(t) <= 1.0 / fps + 16 * step)  # a snapped end moves a few float32 steps

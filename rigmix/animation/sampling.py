@@ -144,18 +144,22 @@ def clip_times(clip: Clip, fps: float = 30.0) -> np.ndarray:
     """Sample times every ``1/fps`` seconds from ``clip.start`` to ``clip.end``, end included.
 
     When the duration is not a whole number of frames, the end time is appended, so the last
-    interval is shorter than ``1/fps`` (the clip's final pose is always sampled).
+    interval is shorter than ``1/fps`` (the clip's final pose is always sampled). An end closer
+    to the last frame than float32 can tell apart (glTF stores key times as float32) replaces
+    that frame instead, so the times stay strictly increasing once written.
 
     Returns
     -------
-    (F,) float64, strictly increasing, ``F >= 1``.
+    (F,) float64, strictly increasing, also after a cast to float32, ``F >= 1``.
     """
     if fps <= 0:
         raise ValueError(f"animation: fps must be positive, got {fps}")
     start, end = clip.start, clip.end
     n = int(np.floor((end - start) * fps + 1e-6))
     t = start + np.arange(n + 1) / fps
-    if end - t[-1] > 1e-6 / fps:
+    # a few float32 steps: two times this close may cast to one float32 key
+    distinct = max(1e-6 / fps, 8.0 * float(np.spacing(np.float32(max(abs(end), abs(t[-1]))))))
+    if end - t[-1] > distinct:
         t = np.append(t, end)
     elif n:
         t[-1] = end  # on the grid up to rounding: sample the end key exactly
