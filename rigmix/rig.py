@@ -1,18 +1,21 @@
-"""Rig operators that several stages and file formats share: parents-first order, unique names.
+"""Rig operators that several stages and file formats share: parents-first order, unique names,
+left/right side swap.
 
 Both are written once here, beside no stage in particular: the glTF reader orders the joints
 of a skin and the operations order the output skeleton with :func:`topological_order`
 (:mod:`rigmix.character`'s convention ``parents[j] < j``); the glTF reader, the operations, the
 USD writer and the clip completion make names unique with :func:`unique_names`, each with the
-suffix its format allows.
+suffix its format allows; the mirror operation and the weights' joint mirror pair left and
+right joints with :func:`swap_side`.
 """
 
 from __future__ import annotations
 
 import heapq
+import re
 from collections.abc import Callable, Hashable, Iterable, Sequence
 
-__all__ = ["topological_order", "unique_names"]
+__all__ = ["topological_order", "unique_names", "swap_side"]
 
 
 def topological_order(nodes: Iterable[int], parent: Callable[[int], int],
@@ -101,3 +104,28 @@ def unique_names(names: Sequence[str], *, suffix: str = ".{:03d}", start: int = 
             out[o] = new
         used.add(out[o])
     return out
+
+
+# Side tokens: a single letter L/R (either case) between separators or at either end of the name
+# (".L", "_L", "_L_", "L_", "-l", "leg_L1"), and the words Left/Right (any of three cases, not
+# inside a lower-case word: "upright" is not a side).
+_SIDE = re.compile(
+    r"(?<![A-Za-z0-9])[LlRr](?![A-Za-z])"             # .L, _R, _L_, L_Hand, leg_L1, arm_joint_L__4_
+    r"|(?<![a-z])(?:Left|Right|LEFT|RIGHT)"           # b_LeftUpperArm_09, mixamorig:RightHand
+    r"|(?<![A-Za-z])(?:left|right)"                   # hand_left (not upright)
+)
+_SWAP = {"L": "R", "R": "L", "l": "r", "r": "l", "Left": "Right", "Right": "Left", "LEFT": "RIGHT",
+         "RIGHT": "LEFT", "left": "right", "right": "left"}
+
+
+def swap_side(name: str) -> str:
+    """``name`` with every side token swapped (``.L`` <-> ``.R``, ``Left`` <-> ``Right``, ...).
+
+    Tokens: a single ``L``/``R``/``l``/``r`` with no letter or digit before it and no letter after
+    it (``UpperArm.L``, ``arm_joint_L__4_``, ``L_Hand``, ``leg_L1``),
+    and ``Left``/``Right``/``LEFT``/``RIGHT``/``left``/``right`` not inside a word
+    (``b_LeftUpperArm_09``, ``mixamorig:RightHand``, ``hand_left``; not ``upright``). Every token
+    is swapped at once, so ``swap_side(swap_side(n)) == n``. A name without a token is returned
+    unchanged.
+    """
+    return _SIDE.sub(lambda m: _SWAP[m.group(0)], name)

@@ -44,7 +44,6 @@ surface: lettering reads backwards). Mirroring twice across the same plane gives
 from __future__ import annotations
 
 import logging
-import re
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -52,6 +51,7 @@ from scipy.spatial import cKDTree
 
 from ..character import Anchor, Character, Clip, Mesh, Prop, Skeleton, Track
 from ..errors import InputError
+from ..rig import swap_side
 
 __all__ = ["MirrorPlane", "mirror_plane", "mirror_character", "swap_side", "AXES"]
 
@@ -178,31 +178,6 @@ def mirror_plane(character: Character, axis=None, *, tol=0.02, iterations=3) -> 
                  character.name, AXES[best.axis], best.error)
         return planes[0]
     return best
-
-
-# Side tokens: a single letter L/R (either case) between separators or at either end of the name
-# (".L", "_L", "_L_", "L_", "-l", "leg_L1"), and the words Left/Right (any of three cases, not
-# inside a lower-case word: "upright" is not a side).
-_SIDE = re.compile(
-    r"(?<![A-Za-z0-9])[LlRr](?![A-Za-z])"             # .L, _R, _L_, L_Hand, leg_L1, arm_joint_L__4_
-    r"|(?<![a-z])(?:Left|Right|LEFT|RIGHT)"           # b_LeftUpperArm_09, mixamorig:RightHand
-    r"|(?<![A-Za-z])(?:left|right)"                   # hand_left (not upright)
-)
-_SWAP = {"L": "R", "R": "L", "l": "r", "r": "l", "Left": "Right", "Right": "Left", "LEFT": "RIGHT",
-         "RIGHT": "LEFT", "left": "right", "right": "left"}
-
-
-def swap_side(name: str) -> str:
-    """``name`` with every side token swapped (``.L`` <-> ``.R``, ``Left`` <-> ``Right``, ...).
-
-    Tokens: a single ``L``/``R``/``l``/``r`` with no letter or digit before it and no letter after
-    it (``UpperArm.L``, ``arm_joint_L__4_``, ``L_Hand``, ``leg_L1``),
-    and ``Left``/``Right``/``LEFT``/``RIGHT``/``left``/``right`` not inside a word
-    (``b_LeftUpperArm_09``, ``mixamorig:RightHand``, ``hand_left``; not ``upright``). Every token
-    is swapped at once, so ``swap_side(swap_side(n)) == n``. A name without a token is returned
-    unchanged.
-    """
-    return _SIDE.sub(lambda m: _SWAP[m.group(0)], name)
 
 
 def _swapped_names(names) -> tuple[str, ...]:

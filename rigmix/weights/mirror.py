@@ -19,7 +19,7 @@ from dfd.mesh import face_areas, surface_samples
 
 from ..errors import InputError
 from ..geometry import bounding_box_diagonal
-from ..operations.mirror import swap_side
+from ..rig import swap_side
 from .locality import geodesic_locality
 from .mesh import (
     WeldedMesh,
