@@ -52,6 +52,7 @@ import dataclasses
 import difflib
 import inspect
 import json
+import math
 import os
 import re
 import tomllib
@@ -61,11 +62,12 @@ from pathlib import Path
 from typing import Annotated, ClassVar, Literal, Union
 
 from pydantic import (BaseModel, ConfigDict, Field, PrivateAttr, Strict, StrictBool, ValidationError, create_model,
-                      model_validator)
+                      field_validator, model_validator)
 
 from .animation.completion import CompletionOptions
 from .errors import InputError
 from .fusion import FusionParams
+from .geometry import MAX_COORDINATE, MAX_GRID_VOXELS
 from .weights.params import WeightParams
 
 __all__ = [
@@ -94,12 +96,33 @@ __all__ = [
     "closest_names",
     "default_assets_dir",
     "BUILTIN_PREFIX",
+    "MIN_SCALE",
+    "MAX_SCALE",
+    "MAX_EULER_DEGREES",
+    "MAX_QUATERNION_COMPONENT",
 ]
 
 #: Prefix of a path that names a procedural character of :mod:`rigmix.examples`.
 BUILTIN_PREFIX = "builtin:"
 
 _STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # TOML has nan and inf
+
+#: Bounds of a character's scale (an override, or the one chosen by ``"auto"``): four orders of
+#: magnitude either way hold every unit conversion (millimetres, centimetres, inches to metres
+#: and back: 1e-3 to 1e3) with a factor 10 to spare. Beyond them the two characters differ in
+#: size by more than a fusion grid resolves (at most 250 voxels across), and a 1e9 scale
+#: overflows the grid's voxel count.
+MIN_SCALE, MAX_SCALE = 1e-4, 1e4
+
+#: Largest Euler angle, in degrees: one turn either way expresses every rotation.
+MAX_EULER_DEGREES = 360.0
+
+#: Largest quaternion component (normalized on use): keeps the squared length finite.
+MAX_QUATERNION_COMPONENT = 1e6
+
+_Degrees = Annotated[float, Field(ge=-MAX_EULER_DEGREES, le=MAX_EULER_DEGREES)]
+_QuaternionComponent = Annotated[float, Field(ge=-MAX_QUATERNION_COMPONENT, le=MAX_QUATERNION_COMPONENT)]
+_Coordinate = Annotated[float, Field(ge=-MAX_COORDINATE, le=MAX_COORDINATE)]  # metres (rigmix.geometry)
 
 
 class JointRotation(BaseModel):
@@ -111,13 +134,14 @@ class JointRotation(BaseModel):
 
     model_config = _STRICT
 
-    euler: tuple[float, float, float] | None = Field(
-        None, description="Euler angles in degrees, applied in `order`.")
+    euler: tuple[_Degrees, _Degrees, _Degrees] | None = Field(
+        None, description="Euler angles in degrees (within +-360), applied in `order`.")
     order: str = Field(
         "XYZ", pattern=r"^([XYZ]{3}|[xyz]{3})$",
         description="scipy Euler order: upper case intrinsic (e.g. XYZ), lower case extrinsic.")
-    quaternion: tuple[float, float, float, float] | None = Field(
-        None, description="Unit quaternion x, y, z, w (normalized on use).")
+    quaternion: tuple[_QuaternionComponent, _QuaternionComponent, _QuaternionComponent,
+                      _QuaternionComponent] | None = Field(
+        None, description="Unit quaternion x, y, z, w (normalized on use; components within +-1e6).")
 
     @model_validator(mode="before")
     @classmethod
@@ -154,8 +178,9 @@ class Placement(BaseModel):
 
     model_config = _STRICT
 
-    translation: tuple[float, float, float] = Field(
-        (0.0, 0.0, 0.0), description="World translation, in the output's units (after scaling).")
+    translation: tuple[_Coordinate, _Coordinate, _Coordinate] = Field(
+        (0.0, 0.0, 0.0), description="World translation, in the output's units (after scaling), each "
+                                     "component within +-1e6 (rigmix.geometry.MAX_COORDINATE).")
     rotation: JointRotation | None = Field(
         None, description="World rotation about the origin, applied before the translation.")
 
@@ -169,9 +194,9 @@ class CharacterConfig(BaseModel):
         description="glTF/GLB file, relative to the config file, `${VAR}` expanded "
                     "(RIGMIX_ASSETS defaults to ../shared/data/characters beside the repository), "
                     "or `builtin:NAME` for a procedural character of rigmix.examples.")
-    scale: Literal["auto"] | Annotated[float, Field(gt=0)] = Field(
-        "auto", description="Uniform scale applied before composing: a number (override) or "
-                            "'auto' (matched to the character it is fused with; 1 for a body).")
+    scale: Literal["auto"] | float = Field(
+        "auto", description="Uniform scale applied before composing: a number in [1e-4, 1e4] (override) "
+                            "or 'auto' (matched to the character it is fused with; 1 for a body).")
     rotations: dict[str, JointRotation] = Field(
         default_factory=dict,
         description="Rest-pose rotations per joint name, about the joint, in world axes, applied "
@@ -186,6 +211,14 @@ class CharacterConfig(BaseModel):
                            "plane through its centre of symmetry. Joint names swap sides (.L <-> .R, "
                            "Left <-> Right, ...): actions and rotations name the mirrored joints, so "
                            "the original right arm is the mirrored character's left arm.")
+
+    @field_validator("scale")
+    @classmethod
+    def _scale_range(cls, value):
+        if value != "auto" and not MIN_SCALE <= value <= MAX_SCALE:
+            raise ValueError(f"the scale must be 'auto' or a number in [{MIN_SCALE:g}, {MAX_SCALE:g}], "
+                             f"got {value:g}")
+        return value
 
 
 class _ActionBase(BaseModel):
@@ -269,7 +302,7 @@ FUSION_RANGES: dict[str, dict] = {
     "max_voxel_diagonal": {"ge": 0},
     "margin_voxels": {"ge": 0},
     "band_voxels": {"gt": 0},
-    "max_voxels": {"ge": 1},
+    "max_voxels": {"ge": 1, "le": MAX_GRID_VOXELS},
     "cut_voxels": {"ge": 0},
     "attach_conflict_voxels": {"ge": 0},
     "remesh_iterations": {"ge": 0},
@@ -469,6 +502,18 @@ class Config(BaseModel):
                     raise ValueError(
                         f"actions[{i}].{key}: unknown character {cid!r}; "
                         f"known: {', '.join(ids)}{_closest_hint(cid, ids)}")
+        return self
+
+    @model_validator(mode="after")
+    def _grid_fits(self):
+        # cluster_grid reaches max(margin_voxels, cut_voxels + 4) voxels beyond the junction on
+        # each side, whatever the voxel size: that many samples must fit in max_voxels
+        f = self.fusion
+        side = 2 * math.ceil(max(f.margin_voxels, f.cut_voxels + 4)) + 1
+        if side ** 3 > f.max_voxels:
+            raise ValueError(f"fusion: margin_voxels = {f.margin_voxels:g} and cut_voxels = {f.cut_voxels:g} need "
+                             f"at least {side ** 3} voxels per junction grid, more than max_voxels = {f.max_voxels}; "
+                             f"lower margin_voxels or cut_voxels")
         return self
 
     def with_options(self, **sections: dict) -> "Config":

@@ -4,15 +4,50 @@ glTF meshes are split at every UV, normal and material seam, and flat-shaded ass
 face. Every topological operation (Laplacians, components, boundary loops, geodesics) runs on
 the mesh welded by position, with the map back to the split vertices: :func:`weld` is
 :func:`dfd.mesh.weld`, named here for the rigmix modules.
+
+The input guards live here too: the native kernels (libigl, gpytoolbox, embree, SuperLU) may
+crash the process on non-finite or astronomically large coordinates, and the writers must not
+put NaN or infinity in a file, so every stage that hands numbers on checks them first with
+:func:`check_coordinates`, :func:`check_transforms` and :func:`check_float32`, vectorized, and
+raises :class:`rigmix.errors.InputError` naming the object and the fix.
 """
 
 from __future__ import annotations
+
+import math
+from collections.abc import Mapping
 
 import numpy as np
 
 from dfd.mesh import weld
 
-__all__ = ["bounding_box_diagonal", "neighbour_roughness", "weld"]
+from .errors import InputError
+
+__all__ = ["bounding_box_diagonal", "neighbour_roughness", "weld", "MAX_COORDINATE", "MAX_COORDINATE_RATIO",
+           "MAX_GRID_VOXELS", "FLOAT32_MAX", "check_coordinates", "check_transforms", "check_float32",
+           "check_grid_voxels"]
+
+#: Largest coordinate, in metres from the origin, that the geometry kernels are given: 1000 km,
+#: beyond any character; float32 output positions there are still spaced 6 cm apart, and squared
+#: distances (1e12) stay far from overflow in the native kernels.
+MAX_COORDINATE = 1e6
+
+#: Largest coordinate, in multiples of the characters' combined bounding-box diagonal: float32
+#: output positions at that distance are spaced about 1e-3 of the characters' size apart, and a
+#: signed distance field or a closest-point query still resolves the characters.
+MAX_COORDINATE_RATIO = 1e4
+
+#: Most samples one fusion grid may hold (:func:`rigmix.fusion.seams.cluster_grid`): 16M float64
+#: samples are 128 MiB per field, four times the default ``[fusion] max_voxels``; a few fields
+#: are alive at once, which keeps the fusion well under 2 GB.
+MAX_GRID_VOXELS = 16_000_000
+
+#: Largest finite float32 (glTF accessors and JSON numbers, USD float arrays).
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+#: A linear part whose smallest singular value is below this fraction of its largest is singular
+#: (zero scale, zero matrix, a projection).
+_SINGULAR = 1e-9
 
 
 def bounding_box_diagonal(V) -> float:
@@ -45,3 +80,134 @@ def neighbour_roughness(A, X):
     deg = np.asarray(A.sum(axis=1)).ravel()
     mean = (A @ X) / np.maximum(deg, 1)[:, None]
     return np.where(deg > 0, 0.5 * np.abs(X - mean).sum(axis=1), 0.0), deg > 0
+
+
+def check_coordinates(points: Mapping, *, where: str, fix: str) -> float:
+    """Check points before they reach a native geometry kernel.
+
+    Every coordinate must be finite, within :data:`MAX_COORDINATE` of the origin, and within
+    :data:`MAX_COORDINATE_RATIO` times the diagonal of the bounding box of all the points (when
+    that diagonal is not 0).
+
+    Parameters
+    ----------
+    points : mapping of str -> (n, 3) float array
+        Points by the object they belong to (``"character 'donor' mesh vertices"``); empty
+        arrays are skipped.
+    where : str
+        Start of the message (stage and file).
+    fix : str
+        What to change, appended to the message.
+
+    Returns
+    -------
+    diagonal : float
+        The bounding-box diagonal of all the points (0 without points).
+
+    Raises
+    ------
+    InputError
+        Naming the first object out of range.
+    """
+    boxes = {}
+    for name, P in points.items():
+        P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
+        if len(P) == 0:
+            continue
+        lo, hi = P.min(axis=0), P.max(axis=0)  # NaN propagates through min and max
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+            raise InputError(f"{where}: {name} has non-finite coordinates (NaN or infinity); {fix}")
+        far = float(max(np.abs(lo).max(), np.abs(hi).max()))
+        if far > MAX_COORDINATE:
+            raise InputError(f"{where}: {name} reaches {far:.3g} m from the origin, beyond the limit of "
+                             f"{MAX_COORDINATE:.0e} m; {fix}")
+        boxes[name] = (lo, hi, far)
+    if not boxes:
+        return 0.0
+    lo = np.min([b[0] for b in boxes.values()], axis=0)
+    hi = np.max([b[1] for b in boxes.values()], axis=0)
+    diagonal = float(np.linalg.norm(hi - lo))
+    for name, (_, _, far) in boxes.items():
+        if diagonal > 0 and far > MAX_COORDINATE_RATIO * diagonal:  # points all at one place: no size
+            raise InputError(f"{where}: {name} lies {far:.3g} from the origin, more than {MAX_COORDINATE_RATIO:.0e} "
+                             f"times the size of everything composed ({diagonal:.3g}); {fix}")
+    return diagonal
+
+
+def check_transforms(M, names, *, where: str, what: str, fix: str) -> None:
+    """Check affine matrices that will be inverted: finite and not singular.
+
+    Parameters
+    ----------
+    M : (J, 4, 4) float array
+        Column-vector affine matrices (rest world or inverse bind matrices).
+    names : sequence of str
+        The name of each matrix's joint, for the message.
+    where, what, fix : str
+        Message parts: ``"{where}: joint 'X' {what} is singular ...; {fix}"``.
+
+    Raises
+    ------
+    InputError
+        Naming the first joint whose matrix has a non-finite entry or a linear part whose
+        smallest singular value is below 1e-9 of its largest (a zero scale, a zero matrix).
+    """
+    M = np.asarray(M, dtype=np.float64).reshape(-1, 4, 4)
+    if len(M) == 0:
+        return
+    finite = np.isfinite(M).all(axis=(1, 2))
+    bad = np.flatnonzero(~finite)
+    if len(bad):
+        raise InputError(f"{where}: joint {names[bad[0]]!r} {what} has NaN or infinite entries; {fix}")
+    sv = np.linalg.svd(M[:, :3, :3], compute_uv=False)  # (J, 3), largest first
+    with np.errstate(invalid="ignore", over="ignore"):
+        singular = ~(sv[:, 2] > _SINGULAR * sv[:, 0])
+    bad = np.flatnonzero(singular)
+    if len(bad):
+        raise InputError(f"{where}: joint {names[bad[0]]!r} {what} is singular (a zero scale or a zero "
+                         f"matrix) and cannot be inverted; {fix}")
+
+
+def check_float32(values, what: str, *, dtype=np.float32) -> np.ndarray:
+    """``values`` cast to ``dtype``, checked finite there (no NaN, nothing beyond its range).
+
+    Parameters
+    ----------
+    values : float array, any shape
+    what : str
+        The message, naming the file and the object (``"write_gltf: out.glb: mesh 'Body'
+        POSITION"``).
+    dtype : numpy float dtype
+        float32 (glTF, USD float arrays) or float16 (USD half scales).
+
+    Returns
+    -------
+    array of ``dtype``
+
+    Raises
+    ------
+    InputError
+        A NaN, an infinity, or a value beyond the largest finite ``dtype`` (``|x| > 3.4e38`` for
+        float32), with the first offending value.
+    """
+    a = np.asarray(values)
+    with np.errstate(over="ignore", invalid="ignore"):
+        out = a.astype(dtype)
+    ok = np.isfinite(out)
+    if not ok.all():
+        first = np.asarray(a).reshape(-1)[np.flatnonzero(~ok.reshape(-1))[0]]
+        limit = float(np.finfo(dtype).max)
+        raise InputError(f"{what} holds {float(first):.4g}, not a finite {np.dtype(dtype).name} "
+                         f"(|x| <= {limit:.4g}, no NaN): the value that produced it is out of range")
+    return out
+
+
+def check_grid_voxels(shape, *, where: str, limit: int) -> None:
+    """Refuse a sampling grid of ``shape`` with more than ``min(limit, MAX_GRID_VOXELS)`` samples,
+    before anything is allocated (the count is exact, in Python integers)."""
+    cap = min(int(limit), MAX_GRID_VOXELS)
+    count = math.prod(int(n) for n in shape)
+    if count > cap or min(int(n) for n in shape) <= 0:
+        raise InputError(f"{where}: the grid would hold {count:.3g} voxels ({' x '.join(map(str, shape))}), more "
+                         f"than the limit of {cap}; lower [fusion] margin_voxels, cut_voxels or min_voxels_across, "
+                         f"or raise voxel_factor ([fusion] max_voxels is at most {MAX_GRID_VOXELS})")

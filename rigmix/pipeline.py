@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Callable
 from .character import Character, Clip, Skeleton
 from .config import BUILTIN_PREFIX, Config, check_files, load_config
 from .errors import InputError
+from .geometry import check_coordinates
 from .mapping import map_bones
 from .operations import Plan, plan_operations
 
@@ -121,6 +122,8 @@ def weights_stage(composition: Composition, progress: Progress | None = None) ->
     from .weights import blend_weights
 
     maps = [composition.maps[cid] for cid in composition.fusion_ids]
+    check_coordinates({"fused surface": composition.surface.V}, where=f"weights: config {composition.config.source}",
+                      fix="the fusion produced vertices out of range; check the characters' placement and scale")
     skin = blend_weights(composition.surface, composition.fusion_inputs, maps, composition.skeleton.num_joints,
                          skeleton=composition.skeleton, params=composition.config.weights.to_params())
     return replace(composition, weights=skin,

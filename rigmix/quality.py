@@ -35,6 +35,7 @@ import numpy as np
 from dfd.mesh import face_areas, welded_graph
 
 from .animation.sampling import clip_times, sample_clip
+from .geometry import check_transforms
 from .skinning import linear_blend_skinning, rest_skinning_matrices, skinning_matrices
 
 __all__ = ["face_stretch", "vertex_stretch", "band_stretch", "junction_stretch_ratio", "weight_roughness",
@@ -362,6 +363,8 @@ def self_composition_errors(composition, skin, *, fps=30.0, max_frames=None, tru
     V = np.asarray(surface.V)
     diag = float(np.linalg.norm(np.ptp(V, axis=0)))
     sk = original.skeleton
+    check_transforms(sk.rest_worlds(), sk.names, where=f"quality: character {original.name!r}",
+                     what="rest world matrix", fix="give the joint a non-zero scale in the file")
     rest_inv = np.linalg.inv(sk.rest_worlds())
     D = W - G  # skinned error = sum_o D_o T_src(o) u
     worst, total, count, per_frame = 0.0, 0.0, 0, []

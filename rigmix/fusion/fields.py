@@ -24,6 +24,8 @@ from typing import Protocol
 
 import numpy as np
 
+from ..errors import InputError
+from ..geometry import MAX_GRID_VOXELS, check_coordinates, check_grid_voxels
 from .meshutil import nondegenerate
 
 log = logging.getLogger(__name__)
@@ -244,6 +246,7 @@ class NumpyIglBackend:
     def signed_distance(self, grid: Grid, V, F, values, *, band: float):
         import igl
 
+        _check_field_inputs(grid, V, band)
         V = np.ascontiguousarray(V, dtype=np.float64)
         F = np.ascontiguousarray(F, dtype=np.int64)
         values = np.asarray(values, dtype=np.float64).reshape(len(V), -1)
@@ -292,6 +295,15 @@ class NumpyIglBackend:
         return d, val
 
 
+def _check_field_inputs(grid: Grid, V, band) -> None:
+    """Guard before the native distance kernels: finite points and grid, a bounded sample count."""
+    check_coordinates({"field surface": V, "field grid": np.stack([grid.origin, grid.upper])},
+                      where="fusion", fix="position the inputs within range (rigmix.operations)")
+    check_grid_voxels(grid.shape, where="fusion", limit=MAX_GRID_VOXELS)
+    if not (np.isfinite(grid.voxel) and grid.voxel > 0 and np.isfinite(band)):
+        raise InputError(f"fusion: field grid voxel {grid.voxel!r} and band {band!r} must be finite and positive")
+
+
 def import_openvdb():
     """The OpenVDB Python module (``pyopenvdb`` or ``openvdb``), or None when neither imports."""
     for name in ("pyopenvdb", "openvdb"):
@@ -327,6 +339,7 @@ class OpenVDBBackend:
     def signed_distance(self, grid: Grid, V, F, values, *, band: float):
         from scipy.spatial import cKDTree
 
+        _check_field_inputs(grid, V, band)
         vdb = self.vdb
         V = np.asarray(V, dtype=np.float64)
         F = np.asarray(F, dtype=np.int64)

@@ -27,7 +27,7 @@ from typing import Literal, Sequence
 import numpy as np
 
 from ..errors import InputError
-from ..geometry import bounding_box_diagonal
+from ..geometry import bounding_box_diagonal, check_coordinates
 from .fields import get_backend, prepare_surface
 from .meshutil import average_edge_length
 from .presence import compute_presence
@@ -711,6 +711,8 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     inputs = list(inputs)
     actions = list(actions)
     _check_inputs(inputs, actions)
+    check_coordinates({f"input {i} ({x.name!r})": x.V for i, x in enumerate(inputs)}, where="fusion",
+                      fix="position the inputs within range (rigmix.operations)")
     t0 = time.perf_counter()
     part = _partition(inputs, actions, params)
     timings = {"presence": time.perf_counter() - t0}

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..geometry import check_grid_voxels
 from .fields import Grid, prepare_surface
 from .junction import boundary_loops
 from .meshutil import boundary_halfedges, corner_angles, edge_counts, face_adjacency
@@ -362,6 +363,7 @@ def cluster_grid(lo, hi, h0, params, diagonal=0.0):
         if np.prod(shape) <= params.max_voxels:
             break
         h *= (np.prod(shape) / params.max_voxels) ** (1 / 3) * 1.02
+    check_grid_voxels(shape, where="fusion", limit=params.max_voxels)
     return Grid(glo, float(h), shape)
 
 

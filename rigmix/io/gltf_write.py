@@ -3,7 +3,10 @@ data-URI buffer). The layout written is described in :mod:`rigmix.io.gltf`.
 
 Every file written has 0 errors in the Khronos glTF-Validator (checked by the tests on every
 shared character): float32 data, POSITION and animation-input min/max, unit normals and
-rotations, at most 4 influences per vertex with float32 sums of exactly 1.
+rotations, at most 4 influences per vertex with float32 sums of exactly 1. Every number written
+(accessor data and JSON) is checked finite in float32 first: a NaN or a value beyond 3.4e38 is
+an :class:`~rigmix.errors.InputError` naming the mesh, accessor, joint or clip, never a
+``NaN``/``Infinity`` literal in the file.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from dfd.mesh import vertex_normals
 
 from ..character import Character, Material, Mesh
 from ..errors import InputError, UnsupportedError
+from ..geometry import check_float32
 from ..safety import atomic_write_bytes
 from ..transforms import quat_normalize
 
@@ -88,7 +92,8 @@ def _sum32(W32: np.ndarray) -> np.ndarray:
 class _Blob:
     """The binary buffer under construction: buffer views and accessors."""
 
-    def __init__(self):
+    def __init__(self, where: str = "write_gltf"):
+        self.where = where  # start of error messages: the writer and the file
         self.data = bytearray()
         self.views: list[dict] = []
         self.accessors: list[dict] = []
@@ -102,9 +107,12 @@ class _Blob:
         self.views.append(v)
         return len(self.views) - 1
 
-    def accessor(self, a: np.ndarray, ctype: int, *, target=None, minmax=False) -> int:
-        """Append ``a`` (count, n) (or (count,)) as one tightly packed accessor."""
+    def accessor(self, a: np.ndarray, ctype: int, *, target=None, minmax=False, what: str = "") -> int:
+        """Append ``a`` (count, n) (or (count,)) as one tightly packed accessor; FLOAT data is
+        checked finite in float32 (``what`` names it in the error)."""
         dtype = {FLOAT: "<f4", UNSIGNED_BYTE: "u1", UNSIGNED_SHORT: "<u2", UNSIGNED_INT: "<u4"}[ctype]
+        if ctype == FLOAT:
+            a = check_float32(a, f"{self.where}: {what or f'accessor {len(self.accessors)}'}")
         a = np.ascontiguousarray(a, dtype=dtype)
         a2 = a.reshape(len(a), -1)
         acc = {
@@ -136,20 +144,24 @@ def _unit_normals(N: np.ndarray, V: np.ndarray, F: np.ndarray) -> np.ndarray:
 def _primitive(blob: _Blob, mesh: Mesh, num_materials: int, num_joints: int) -> dict:
     V = np.asarray(mesh.positions)
     F = np.asarray(mesh.faces)
-    attrs = {"POSITION": blob.accessor(V, FLOAT, target=ARRAY_BUFFER, minmax=True)}
+    name = f"mesh {mesh.name!r}"
+    attrs = {"POSITION": blob.accessor(V, FLOAT, target=ARRAY_BUFFER, minmax=True, what=f"{name} POSITION")}
     if mesh.normals is not None:
-        attrs["NORMAL"] = blob.accessor(_unit_normals(mesh.normals, V, F), FLOAT, target=ARRAY_BUFFER)
+        check_float32(mesh.normals, f"{blob.where}: {name} NORMAL")
+        attrs["NORMAL"] = blob.accessor(_unit_normals(mesh.normals, V, F), FLOAT, target=ARRAY_BUFFER,
+                                        what=f"{name} NORMAL")
     for i, uv in enumerate(mesh.uvs):
-        attrs[f"TEXCOORD_{i}"] = blob.accessor(uv, FLOAT, target=ARRAY_BUFFER)
+        attrs[f"TEXCOORD_{i}"] = blob.accessor(uv, FLOAT, target=ARRAY_BUFFER, what=f"{name} TEXCOORD_{i}")
     if mesh.colors is not None:
-        attrs["COLOR_0"] = blob.accessor(np.clip(mesh.colors, 0.0, 1.0), FLOAT, target=ARRAY_BUFFER)
+        attrs["COLOR_0"] = blob.accessor(np.clip(mesh.colors, 0.0, 1.0), FLOAT, target=ARRAY_BUFFER,
+                                         what=f"{name} COLOR_0")
     if mesh.joints is not None and num_joints > 0:
         J, W = sparsify_weights(mesh.joints, mesh.weights)
         if J.max() >= num_joints:
             raise InputError(f"write_gltf: mesh '{mesh.name}' refers to joint {int(J.max())}, the skeleton has {num_joints}")
         jt = UNSIGNED_BYTE if num_joints <= 256 else UNSIGNED_SHORT
         attrs["JOINTS_0"] = blob.accessor(J, jt, target=ARRAY_BUFFER)
-        attrs["WEIGHTS_0"] = blob.accessor(W, FLOAT, target=ARRAY_BUFFER)
+        attrs["WEIGHTS_0"] = blob.accessor(W, FLOAT, target=ARRAY_BUFFER, what=f"{name} WEIGHTS_0")
     it = UNSIGNED_SHORT if len(V) < 65535 else UNSIGNED_INT
     prim = {
         "attributes": attrs,
@@ -174,6 +186,8 @@ def _materials(blob: _Blob, materials: tuple[Material, ...], gl: dict) -> None:
     tex_index: dict[int, int] = {}
     out = []
     for m in materials:
+        for key in ("base_color", "metallic", "roughness", "emissive", "alpha_cutoff"):
+            check_float32(getattr(m, key), f"{blob.where}: material {m.name!r} {key}")
         pbr = {
             "baseColorFactor": np.clip(m.base_color, 0.0, 1.0).tolist(),
             "metallicFactor": float(np.clip(m.metallic, 0.0, 1.0)),
@@ -228,16 +242,18 @@ def _animations(blob: _Blob, character: Character, joint_nodes: list[int]) -> li
             if not 0 <= tr.joint < len(joint_nodes):
                 raise InputError(f"write_gltf: clip '{clip.name}' has a track on joint {tr.joint}, "
                                  f"the skeleton has {len(joint_nodes)} joints")
-            times = np.asarray(tr.times, dtype=np.float32)
+            what = f"clip {clip.name!r} {tr.path} track of joint {character.skeleton.names[tr.joint]!r}"
+            times = check_float32(tr.times, f"{blob.where}: {what} times")
             key = times.tobytes()
             if key not in times_cache:
-                times_cache[key] = blob.accessor(times, FLOAT, minmax=True)
+                times_cache[key] = blob.accessor(times, FLOAT, minmax=True, what=f"{what} times")
             vals = np.asarray(tr.values, dtype=np.float64)
+            check_float32(vals, f"{blob.where}: {what} values")
             if tr.interpolation == "CUBICSPLINE":
                 vals = vals.reshape(-1, vals.shape[-1])  # (k, 3, C) -> (3k, C): in, value, out
             elif tr.path == "rotation":
                 vals = quat_normalize(vals)
-            samplers.append({"input": times_cache[key], "output": blob.accessor(vals, FLOAT),
+            samplers.append({"input": times_cache[key], "output": blob.accessor(vals, FLOAT, what=f"{what} values"),
                              "interpolation": tr.interpolation})
             channels.append({"sampler": len(samplers) - 1,
                              "target": {"node": joint_nodes[tr.joint], "path": tr.path}})
@@ -248,11 +264,27 @@ def _animations(blob: _Blob, character: Character, joint_nodes: list[int]) -> li
     return out
 
 
-def _document(character: Character) -> tuple[dict, bytes]:
-    """The glTF JSON (without buffers) and the binary blob."""
+def _check_skeleton(sk, where: str) -> None:
+    """The skeleton's JSON numbers and matrices, finite in float32 (vectorized), by joint."""
+    for key in ("translations", "rotations", "scales", "inverse_binds"):
+        values = np.asarray(getattr(sk, key), dtype=np.float64).reshape(sk.num_joints, -1)
+        with np.errstate(over="ignore", invalid="ignore"):
+            bad = ~np.isfinite(values.astype(np.float32)).all(axis=1)
+        if bad.any():
+            j = int(np.flatnonzero(bad)[0])
+            label = {"translations": "translation", "rotations": "rotation", "scales": "scale",
+                     "inverse_binds": "inverse bind matrix"}[key]
+            check_float32(values[j], f"{where}: joint {sk.names[j]!r} {label}")
+    for a in sk.anchors:
+        check_float32(a.matrix, f"{where}: node {a.name!r} matrix")
+
+
+def _document(character: Character, where: str = "write_gltf") -> tuple[dict, bytes]:
+    """The glTF JSON (without buffers) and the binary blob; ``where`` starts error messages."""
     sk = character.skeleton
     J = sk.num_joints
-    blob = _Blob()
+    _check_skeleton(sk, where)
+    blob = _Blob(where)
     gl: dict = {"asset": {"version": "2.0", "generator": "rigmix"}}
     nodes: list[dict] = []
     roots: list[int] = []
@@ -289,7 +321,8 @@ def _document(character: Character) -> tuple[dict, bytes]:
     if any(m.joints is not None for m in character.meshes) and J == 0:
         raise UnsupportedError(f"write_gltf: {character.name}: skinned meshes but a skeleton without joints")
     if J:
-        ibm = blob.accessor(np.asarray(sk.inverse_binds).transpose(0, 2, 1).reshape(J, 16), FLOAT)
+        ibm = blob.accessor(np.asarray(sk.inverse_binds).transpose(0, 2, 1).reshape(J, 16), FLOAT,
+                            what="skin inverseBindMatrices")
         gl["skins"] = [{"joints": joint_nodes, "inverseBindMatrices": ibm}]
     if skinned:
         meshes.append({"name": character.name or "mesh",
@@ -299,6 +332,7 @@ def _document(character: Character) -> tuple[dict, bytes]:
         (p.mesh, p.joint, p.matrix) for p in character.props if _writable(p.mesh)
     ]
     for mesh, joint, matrix in statics:
+        check_float32(matrix, f"{where}: node {mesh.name!r} matrix")
         meshes.append({"name": mesh.name, "primitives": [_primitive(blob, mesh, nmat, 0)]})
         node = {"name": mesh.name, "mesh": len(meshes) - 1}
         if not np.allclose(matrix, np.eye(4), atol=0, rtol=0):
@@ -326,7 +360,7 @@ def _document(character: Character) -> tuple[dict, bytes]:
 def _glb(gl: dict, data: bytes) -> bytes:
     if data:
         gl = dict(gl, buffers=[{"byteLength": len(data)}])
-    text = json.dumps(gl, separators=(",", ":")).encode("utf-8")
+    text = json.dumps(gl, separators=(",", ":"), allow_nan=False).encode("utf-8")
     text += b" " * (-len(text) % 4)
     chunks = struct.pack("<II", len(text), 0x4E4F534A) + text
     if data:
@@ -338,7 +372,7 @@ def _gltf(gl: dict, data: bytes) -> bytes:
     if data:
         uri = "data:application/octet-stream;base64," + base64.b64encode(data).decode("ascii")
         gl = dict(gl, buffers=[{"byteLength": len(data), "uri": uri}])
-    return json.dumps(gl, indent=1).encode("utf-8")
+    return json.dumps(gl, indent=1, allow_nan=False).encode("utf-8")
 
 
 def write_gltf(character: Character, path) -> None:
@@ -354,7 +388,8 @@ def write_gltf(character: Character, path) -> None:
     Raises
     ------
     InputError
-        Unknown suffix, or meshes referring to joints the skeleton lacks.
+        Unknown suffix, meshes referring to joints the skeleton lacks, or a number that is NaN
+        or beyond float32 (naming the mesh, accessor, joint or clip).
     UnsupportedError
         Skinned meshes with a skeleton of zero joints.
     """
@@ -362,6 +397,9 @@ def write_gltf(character: Character, path) -> None:
     suffix = path.suffix.lower()
     if suffix not in (".glb", ".gltf"):
         raise InputError(f"write_gltf: {path.name}: unknown suffix {path.suffix!r}, expected .glb or .gltf")
-    gl, data = _document(character)
-    payload = _glb(gl, data) if suffix == ".glb" else _gltf(gl, data)
+    gl, data = _document(character, f"write_gltf: {path.name}")
+    try:
+        payload = _glb(gl, data) if suffix == ".glb" else _gltf(gl, data)
+    except ValueError as e:  # json's allow_nan=False: a NaN or infinity left in extras
+        raise InputError(f"write_gltf: {path.name}: {e} (NaN or infinity in the glTF JSON, e.g. in extras)") from None
     atomic_write_bytes(path, payload)  # temporary file beside path, renamed over it

@@ -68,6 +68,7 @@ import numpy as np
 
 from ..animation.sampling import clip_times, sample_clip
 from ..errors import InputError
+from ..geometry import check_float32, check_transforms
 from ..rig import unique_names
 from ..safety import atomic_output
 from ..transforms import matrix_to_trs, trs_to_matrix
@@ -153,6 +154,18 @@ def _root_frames(skeleton):
     return np.eye(4), fold
 
 
+class _OutOfRange(InputError):
+    """A value that USD would store as NaN or infinity (re-raised by :func:`write_usd` with the file)."""
+
+
+def _finite(values, what: str, dtype=np.float32):
+    """``values`` as ``dtype``, finite there (:func:`rigmix.geometry.check_float32`)."""
+    try:
+        return check_float32(values, what, dtype=dtype)
+    except InputError as e:
+        raise _OutOfRange(str(e)) from None
+
+
 def _where(character):
     return character.source or character.name or "character"
 
@@ -206,7 +219,9 @@ def write_usd(character, path, *, clips=None, default_clip=None, fps=30.0):
     Raises
     ------
     InputError
-        Unknown suffix or clip, or a file that cannot be written (no partial file is left).
+        Unknown suffix or clip, a file that cannot be written (no partial file is left), a
+        singular or non-finite joint matrix, or a value that is NaN or beyond float32 (float16
+        for joint scales), naming the mesh, joint or clip.
     """
     path = Path(path)
     _check_suffix(path)
@@ -223,7 +238,17 @@ def write_usd(character, path, *, clips=None, default_clip=None, fps=30.0):
 
     root_ident = _unique_identifiers([character.name or "Character"])[0]
     tex_names, tex_files = texture_files(character.materials, root_ident, _unique_identifiers)
-    stage = _build_stage(character, root_ident, chosen, selected, tex_names, fps)
+    sk = character.skeleton
+    if sk.num_joints:
+        roots = sk.roots  # USD stores bind worlds and the roots' anchor frame inverted
+        for what, M, names in (("inverse bind matrix", sk.inverse_binds, sk.names),
+                               ("anchor matrix", sk.root_parent_worlds()[roots], [sk.names[r] for r in roots])):
+            check_transforms(M, names, where=f"usd: {path.name}", what=what,
+                             fix="fix the character's skeleton before writing it")
+    try:
+        stage = _build_stage(character, root_ident, chosen, selected, tex_names, fps)
+    except _OutOfRange as e:
+        raise InputError(f"usd: {path.name}: {e}") from None
 
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
@@ -326,8 +351,9 @@ def _define_skeleton(stage, root_path, sk, base_inv, fold):
     skel.CreateJointsAttr(Vt.TokenArray(joint_paths(sk)))
     skel.CreateJointNamesAttr(Vt.TokenArray(list(sk.names)))
     skel.GetPrim().SetCustomDataByKey("rigmix:jointNames", Vt.StringArray(list(sk.names)))
-    skel.CreateBindTransformsAttr(_gf_matrices(base_inv @ np.linalg.inv(sk.inverse_binds)))
-    rest = sk.rest_locals()
+    skel.CreateBindTransformsAttr(_gf_matrices(_finite(base_inv @ np.linalg.inv(sk.inverse_binds),
+                                                       "skeleton bindTransforms", np.float64)))
+    rest = _finite(sk.rest_locals(), "skeleton restTransforms", np.float64)
     roots = sk.roots
     rest[roots] = fold[roots] @ rest[roots]
     skel.CreateRestTransformsAttr(_gf_matrices(rest))
@@ -350,6 +376,9 @@ def _define_animations(stage, root_path, skel, sk, clips, selected, fold, fps):
         anim.CreateJointsAttr(joints)
         prim = anim.GetPrim()
         prim.SetCustomDataByKey("rigmix:clipName", clip.name)
+        for tr in clip.tracks:  # a NaN key would be sampled silently as identity
+            _finite(tr.times, f"clip {clip.name!r} {tr.path} track of joint {sk.names[tr.joint]!r} times")
+            _finite(tr.values, f"clip {clip.name!r} {tr.path} track of joint {sk.names[tr.joint]!r} values")
         times = clip_times(clip, fps)
         prim.SetCustomDataByKey("rigmix:startTime", float(times[0]))
         prim.SetCustomDataByKey("rigmix:endTime", float(times[-1]))
@@ -357,6 +386,9 @@ def _define_animations(stage, root_path, skel, sk, clips, selected, fold, fps):
         if folded:
             L = trs_to_matrix(T[:, folded], R[:, folded], S[:, folded])
             T[:, folded], R[:, folded], S[:, folded] = matrix_to_trs(fold[folded] @ L)
+        _finite(T, f"clip {clip.name!r} translations")
+        _finite(R, f"clip {clip.name!r} rotations")
+        _finite(S, f"clip {clip.name!r} scales (half floats)", np.float16)
         t_attr = anim.CreateTranslationsAttr()
         r_attr = anim.CreateRotationsAttr()
         s_attr = anim.CreateScalesAttr()
@@ -390,7 +422,9 @@ def _define_mesh(stage, path, mesh, to_skel, materials, character):
     if mesh.name:
         prim.GetPrim().SetCustomDataByKey("rigmix:name", mesh.name)
     lin = to_skel[:3, :3]
-    P = mesh.positions @ lin.T + to_skel[:3, 3]
+    if not (np.isfinite(to_skel).all() and abs(np.linalg.det(lin)) > 0):
+        raise _OutOfRange(f"mesh {mesh.name!r} has a singular or non-finite transform")
+    P = _finite(mesh.positions @ lin.T + to_skel[:3, 3], f"mesh {mesh.name!r} points")
     prim.CreatePointsAttr(_vec3f(P))
     prim.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(mesh.faces), 3, dtype=np.int32)))
     prim.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(mesh.faces.ravel(), dtype=np.int32)))
@@ -402,15 +436,17 @@ def _define_mesh(stage, path, mesh, to_skel, materials, character):
     if mesh.normals is not None:
         N = mesh.normals @ np.linalg.inv(lin)  # rows: (inverse transpose @ n) transposed
         N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
+        _finite(N, f"mesh {mesh.name!r} normals")
         prim.CreateNormalsAttr(_vec3f(N))
         prim.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
     for i, uv in enumerate(mesh.uvs):
-        st = np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1)  # glTF v down -> USD t up
+        st = _finite(np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1), f"mesh {mesh.name!r} st{i or ''}")
         var = pv.CreatePrimvar("st" if i == 0 else f"st{i}", Sdf.ValueTypeNames.TexCoord2fArray,
                                UsdGeom.Tokens.vertex)
         var.Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(st, dtype=np.float32)))
     material = character.materials[mesh.material] if 0 <= mesh.material < len(materials) else None
     if mesh.colors is not None:
+        _finite(mesh.colors, f"mesh {mesh.name!r} displayColor")
         prim.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex).Set(_vec3f(mesh.colors[:, :3]))
         if np.any(mesh.colors[:, 3] < 1):
             prim.CreateDisplayOpacityPrimvar(UsdGeom.Tokens.vertex).Set(
@@ -426,6 +462,7 @@ def _define_mesh(stage, path, mesh, to_skel, materials, character):
 def _bind(prim, skel, joints, weights, *, constant):
     """UsdSkel binding: jointIndices/jointWeights (elementSize K), geomBindTransform identity."""
     Gf, _, _, _, _, UsdSkel, Vt = _pxr()
+    _finite(weights, f"mesh {prim.GetPath().name!r} jointWeights")
     binding = UsdSkel.BindingAPI.Apply(prim.GetPrim())
     binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
     K = joints.shape[1]

@@ -203,7 +203,28 @@ def resolve_actions(inputs, config: Config) -> tuple[ResolvedAction, ...]:
                     f"{a.source_joint!r} onto {a.target_joint!r} of the same character {a.source!r}: "
                     f"the target is inside the subtree (a subtree cannot be grafted onto itself)")
         out.append(r)
+    _check_one_replacement(out, inputs, config)
     return tuple(out)
+
+
+def _check_one_replacement(actions, inputs, config: Config) -> None:
+    """A target joint is replaced or removed by one action at most: two replacements of one
+    shoulder would fuse three arms into one joint, and a replaced joint that is also removed
+    has no meaning (``InputError`` naming both actions)."""
+    seen = {}
+    for a in actions:
+        if a.identity:
+            continue
+        key = (a.target, a.target_joint)
+        if key in seen and (a.op != "attach" or seen[key].op != "attach"):
+            b = seen[key]
+            name = inputs[a.target].skeleton.names[a.target_joint]
+            raise InputError(
+                f"config {config.source}: actions[{b.index}] ({b.op}) and actions[{a.index}] ({a.op}) both act on "
+                f"joint {name!r} of {a.target!r}: a joint can be replaced or removed by one action only; "
+                f"keep one of them (or attach the other part to another joint)")
+        if key not in seen or a.op != "attach":
+            seen[key] = a
 
 
 def resolve_rotations(inputs, config: Config) -> dict:
@@ -581,6 +602,10 @@ def plan_operations(inputs, config: Config) -> Plan:
     actions = resolve_actions(inputs, config)
     rotations = resolve_rotations(inputs, config)
     structure = _structure(inputs, actions, config)
+    if len(structure.order) == 0:
+        removes = [f"actions[{a.index}]" for a in actions if a.op == "remove"]
+        raise InputError(f"config {config.source}: the actions remove every joint ({', '.join(removes)}): nothing "
+                         "is left to compose; remove a subtree below the root instead")
     positioned, scales, translations, info = position_inputs(
         inputs, actions, config, body=structure.body, part=structure.part, rotations=rotations)
     skeleton, out_of_node, renamed = _build_skeleton(structure, positioned, config)

@@ -29,12 +29,15 @@ from __future__ import annotations
 
 import logging
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from ..config import MAX_SCALE, MIN_SCALE
 from ..errors import InputError
+from ..geometry import check_coordinates, check_transforms
 from ..skinning import linear_blend_skinning
 from ..transforms import matrix_to_trs, quat_multiply, quat_to_matrix
 
@@ -51,6 +54,8 @@ __all__ = [
     "position_character",
     "positioning_order",
     "position_inputs",
+    "check_rig",
+    "check_positioned",
 ]
 
 logger = logging.getLogger(__name__)
@@ -437,6 +442,66 @@ def position_character(character, *, scale=1.0, placement=None, rotations=None, 
 # --------------------------------------------------------------------------------------------
 
 
+def _label(character, cid) -> str:
+    """``'cid' (file name)`` for messages: the file's name only, never its folders."""
+    src = Path(character.source).name if character.source else character.name
+    return f"character {cid!r} ({src})" if src else f"character {cid!r}"
+
+
+def check_rig(character, cid: str = "") -> None:
+    """Refuse a character that cannot be positioned: a rest world or inverse bind matrix that is
+    not finite or cannot be inverted (a zero scale, a zero matrix), or a vertex or joint beyond
+    :data:`rigmix.geometry.MAX_COORDINATE` (native kernels crash on such values).
+
+    Raises
+    ------
+    InputError
+        Naming the character, its file, the joint or the object, and the fix.
+    """
+    sk = character.skeleton
+    where = f"operations: {_label(character, cid or character.name)}"
+    W = sk.rest_worlds()
+    check_transforms(W, sk.names, where=where, what="rest world matrix",
+                     fix="give the joint and its parents a non-zero scale (or matrix) in the file")
+    check_transforms(sk.inverse_binds, sk.names, where=where, what="inverse bind matrix",
+                     fix="re-export the skin with invertible inverse bind matrices")
+    M = W @ sk.inverse_binds
+    points = {"skeleton": W[:, :3, 3]}
+    for k, mesh in enumerate(character.meshes):
+        P = (linear_blend_skinning(mesh.positions, mesh.joints, mesh.weights, M) if mesh.skinned
+             else np.asarray(mesh.positions))
+        points[f"mesh {mesh.name or k!r} at rest"] = P
+    check_coordinates(points, where=where, fix="the file's transforms or vertices are out of range")
+
+
+def check_positioned(positioned, config) -> None:
+    """Refuse positioned characters whose vertices or joints are out of range together
+    (:func:`rigmix.geometry.check_coordinates`): a placement or scale that pushes one character
+    far beyond the size of the composition.
+
+    Raises
+    ------
+    InputError
+        Naming the config, the character and its placement and scale keys.
+    """
+    points = {}
+    for cid, ch in positioned.items():
+        points[f"{_label(ch, cid)} skeleton"] = ch.skeleton.rest_worlds()[:, :3, 3]
+        for k, mesh in enumerate(ch.meshes):
+            points[f"{_label(ch, cid)} mesh {mesh.name or k!r}"] = mesh.positions
+    check_coordinates(points, where=f"operations: config {config.source}",
+                      fix="bring the characters' placement translations and scales closer to the origin "
+                          "and to 1 ([characters.ID] placement, scale)")
+
+
+def _check_scale(s, cid, method, config):
+    if not MIN_SCALE <= s <= MAX_SCALE:
+        raise InputError(
+            f"operations: config {config.source}: the automatic scale of character {cid!r} ({method}) is {s:.3g}, "
+            f"outside [{MIN_SCALE:g}, {MAX_SCALE:g}]: the fused joints' sizes disagree; set "
+            f"characters.{cid}.scale to a number")
+
+
 def _placement_matrix(placement):
     if placement is None:
         return None
@@ -494,6 +559,8 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
         ``info`` holds the report entry (scale, how it was chosen, the pair ratios, role).
     """
     positioned, scales, translations, info = {}, {}, {}, {}
+    for cid in config.characters:
+        check_rig(inputs[cid], cid)
     for cid in positioning_order(actions, config):
         ch = inputs[cid]
         cc = config.characters[cid]
@@ -506,6 +573,7 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
             ratios = [pair_scale(a.op, positioned[a.target], a.target_joint, ch, a.source_joint) for a in moved]
             s = float(np.exp(np.mean(np.log([r for r, _ in ratios]))))
             method = "+".join(sorted({m for _, m in ratios}))
+            _check_scale(s, cid, method, config)
         else:
             s, method, ratios = 1.0, "body", []
         rot = rotations.get(cid, {})
@@ -538,6 +606,7 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
         }
         if method != "override" and s != 1.0:
             logger.info("positioning: %s scaled by %.4g (%s)", cid, s, method)
+    check_positioned(positioned, config)
     ids = list(config.characters)  # report in the config's order
     return ({c: positioned[c] for c in ids}, {c: scales[c] for c in ids},
             {c: translations[c] for c in ids}, {c: info[c] for c in ids})
