@@ -6,7 +6,7 @@ Usage::
     rigmix inspect FILE [--json]
     rigmix convert IN OUT
     rigmix render FILE [--clip NAME] [--gif OUT.gif] [--mp4 OUT.mp4] [--sheet OUT.png]
-    rigmix preview FILE.glb [--out DIR] [--port N] [--no-serve]
+    rigmix preview FILE.glb [--out DIR] [--port N] [--no-serve] [--force]
     rigmix map CONFIG [--json]
     rigmix schema
 
@@ -181,21 +181,26 @@ def _run_render(args) -> int:
 def _add_preview(parser):
     parser.add_argument("file", type=Path, help="a character file (.glb, or a .gltf with embedded buffers)")
     parser.add_argument("--out", type=Path, help="the viewer folder (default: <name>_preview beside the file)")
-    parser.add_argument("--port", type=int, default=0, help="port on 127.0.0.1 (default: a free one)")
+    parser.add_argument("--port", type=int, help="port on 127.0.0.1, 1-65535 (default: a free one)")
     parser.add_argument("--no-serve", action="store_true", help="only write the viewer folder")
+    parser.add_argument("--force", action="store_true",
+                        help="write into an --out folder that holds other files (only the viewer's are served)")
 
 
 def _run_preview(args) -> int:
     import threading
 
+    from .errors import InputError
     from .preview.viewer import serve, write_viewer
 
+    if args.port is not None and not 1 <= args.port <= 65535:
+        raise InputError(f"preview: --port {args.port} is not a TCP port; give 1-65535, or leave it out for a free one")
     out = args.out or args.file.with_name(args.file.stem + "_preview")
-    index = write_viewer(args.file, out)
+    index = write_viewer(args.file, out, force=args.force)
     if args.no_serve:
         print(f"{index}: open it through a web server (ES modules do not load from file://)")
         return 0
-    server, url = serve(out, port=args.port)
+    server, url = serve(out, port=args.port or 0)
     print(f"rigmix preview: {url} (serving {out}; Ctrl+C to stop)", flush=True)
     try:
         threading.Event().wait()

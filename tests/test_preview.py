@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import require
+from conftest import asset, require
 from rigmix.errors import InputError
 from rigmix.cli import main
 from rigmix.preview.viewer import find_three, preview, relative_imports, serve, write_viewer
@@ -117,16 +117,16 @@ def test_server_serves_modules_and_model(composed_glb, tmp_path):
 
 
 def test_clear_errors(tmp_path):
-    with pytest.raises(InputError, match="does not exist"):
+    with pytest.raises(InputError, match="no such file"):
         write_viewer(tmp_path / "none.glb", tmp_path / "v")
     (tmp_path / "x.obj").write_text("")
     with pytest.raises(InputError, match="expected a .glb"):
         write_viewer(tmp_path / "x.obj", tmp_path / "v")
-    (tmp_path / "x.glb").write_bytes(b"glTF")
     with pytest.raises(InputError, match="three.js file"):
-        write_viewer(tmp_path / "x.glb", tmp_path / "v", three_dir=tmp_path)
+        write_viewer(asset("Fox"), tmp_path / "v", three_dir=tmp_path)
+    assert not (tmp_path / "v").exists()  # nothing written
     assert main(["preview", str(tmp_path / "none.glb"), "--no-serve"]) == 2
-    assert main(["preview", str(tmp_path / "x.glb"), "--no-serve", "--out", str(tmp_path / "w")]) == 0
+    assert main(["preview", str(asset("Fox")), "--no-serve", "--out", str(tmp_path / "w")]) == 0
     assert (tmp_path / "w" / "index.html").is_file()
 
 
@@ -202,3 +202,248 @@ def test_composed_clips_round_trip_through_gltf(composed_glb):
     require("the Khronos glTF-Validator (npm ci)", validator_available())
     report = validate_gltf(glb)
     assert report["issues"]["numErrors"] == 0, [m for m in report["issues"]["messages"] if m["severity"] == 0][:5]
+
+
+# --------------------------------------------------------------------------------------------
+# Hostile and careless use of the server and of `rigmix preview` (issue 23, finding 9). The
+# server runs on 127.0.0.1, on a free port; requests are raw (http.client, sockets) with
+# timeouts, a few each.
+# --------------------------------------------------------------------------------------------
+
+def _request(url, path, *, host=None, method="GET"):
+    """``(status, body)`` of one raw request (``path`` sent as is); ``host=False``: no Host
+    header; ``(None, error)`` if the server closes the connection without an answer."""
+    import http.client
+    from urllib.parse import urlsplit
+
+    u = urlsplit(url)
+    conn = http.client.HTTPConnection(u.hostname, u.port, timeout=10)
+    try:
+        conn.putrequest(method, path, skip_host=True, skip_accept_encoding=True)
+        if host is not False:
+            conn.putheader("Host", u.netloc if host is None else host)
+        conn.endheaders()
+        r = conn.getresponse()
+        return r.status, r.read()
+    except (http.client.HTTPException, ConnectionError) as exc:
+        return None, repr(exc)
+    finally:
+        conn.close()
+
+
+def _raw(url, data: bytes) -> bytes:
+    """The status line of the answer to ``data`` sent as is on a socket."""
+    import socket
+    from urllib.parse import urlsplit
+
+    u = urlsplit(url)
+    with socket.create_connection((u.hostname, u.port), timeout=10) as s:
+        s.sendall(data)
+        answer = b""
+        while b"\r\n" not in answer:
+            chunk = s.recv(4096)
+            if not chunk:
+                break
+            answer += chunk
+    return answer.split(b"\r\n", 1)[0]
+
+
+@pytest.fixture
+def served(tmp_path):
+    """A preview of the Fox being served, with a secret file, a folder and links beside it;
+    yields ``(url, folder, outside sentinel)``."""
+    sentinel = tmp_path / "outside" / "sentinel.txt"
+    sentinel.parent.mkdir()
+    sentinel.write_text("SENTINEL outside the preview folder")
+    out = tmp_path / "v"
+    write_viewer(asset("Fox"), out)
+    (out / "secret.txt").write_text("SENTINEL secret in the folder")
+    (out / "link.txt").symlink_to(sentinel)
+    (out / "sub").mkdir()
+    (out / "sub" / "a.txt").write_text("SENTINEL in a sub-folder")
+    server, url = serve(out)
+    try:
+        yield url, out, sentinel
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_server_answers_only_the_viewer_files(served):
+    """No directory listing, nothing but the files the viewer needs, no traversal, no links."""
+    url, out, sentinel = served
+    for path in ("/", "/index.html", "/viewer.js", "/model.glb", "/vendor/three.module.js"):
+        assert _request(url, path)[0] == 200, path
+    status, body = _request(url, "/")
+    assert b'<select id="clip"' in body and b"secret.txt" not in body
+    assert _request(url, "/model.glb")[1] == asset("Fox").read_bytes()
+    for path in ("/secret.txt", "/link.txt", "/sub/", "/sub/a.txt", "/vendor/", "/vendor", "/vendor/addons/",
+                 "/.rigmix-preview.json", "/vendor/../secret.txt", "/%2e%2e/outside/sentinel.txt",
+                 "/..%2foutside/sentinel.txt", "/../outside/sentinel.txt", "//etc/passwd", "/%2Fetc%2Fpasswd",
+                 "/index.html/", "/INDEX.HTML", "/model.glb%20", "/index.html;x", "/viewer.js\\..\\secret.txt"):
+        status, body = _request(url, path)
+        assert status == 404, (path, status)
+        assert b"SENTINEL" not in body and b"Directory listing" not in body
+    assert _request(url, "/", method="POST")[0] == 501
+    assert _request(url, "/viewer.js", method="HEAD") == (200, b"")
+    # a served file replaced by a link to the outside after the folder was written: not followed
+    (out / "viewer.js").unlink()
+    (out / "viewer.js").symlink_to(sentinel)
+    assert _request(url, "/viewer.js")[0] == 404
+    vendor = out / "vendor"
+    vendor.rename(out / "vendor_real")
+    vendor.symlink_to(out / "vendor_real")
+    assert _request(url, "/vendor/three.module.js")[0] == 404
+
+
+def test_server_checks_the_host_header(served):
+    """DNS rebinding: a page on another name that resolves to 127.0.0.1 gets 403."""
+    url, _, _ = served
+    port = url.rsplit(":", 1)[1].strip("/")
+    for host in (f"127.0.0.1:{port}", f"localhost:{port}", f"LOCALHOST:{port}", f"[::1]:{port}"):
+        assert _request(url, "/", host=host)[0] == 200, host
+    for host in ("evil.example", f"evil.example:{port}", f"127.0.0.1.evil.example:{port}", "127.0.0.1",
+                 f"localhost:{int(port) + 1}", f"0.0.0.0:{port}", ""):
+        status, body = _request(url, "/model.glb", host=host)
+        assert status == 403 and b"glTF" not in body, (host, status)
+    assert _request(url, "/", host=False)[0] == 403
+    two_hosts = f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nHost: evil.example\r\n\r\n".encode()
+    assert b" 403 " in _raw(url, two_hosts)
+
+
+def test_server_listens_on_loopback_only(served):
+    """The address cannot be chosen: 127.0.0.1 whatever the caller."""
+    import inspect
+
+    url, _, _ = served
+    assert url.startswith("http://127.0.0.1:")
+    assert "host" not in inspect.signature(serve).parameters
+    assert "host" not in inspect.signature(preview).parameters
+
+
+def test_cli_bad_request_paths_are_400_without_traceback(tmp_path):
+    """`GET /%00` and other bad encodings: 400, and nothing but the address on the terminal."""
+    import re
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "rigmix.cli", "preview", str(asset("Fox")), "--out",
+                             str(tmp_path / "v")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=ROOT)
+    try:
+        line = proc.stdout.readline()
+        m = re.search(r"http://127\.0\.0\.1:\d+/", line)
+        assert m, (line, proc.poll())
+        url = m.group(0)
+        statuses = {path: _request(url, path)[0] for path in
+                    ("/%00", "/index.html%00", "/%00/../secret", "/%ff", "/%c0%ae%c0%ae/", "/%", "/%zz", "/%0a",
+                     "/model.glb%0d%0aX-Injected:%201", "/%7f")}
+        assert all(status == 400 for status in statuses.values()), statuses
+        assert b" 400 " in _raw(url, b"GET /\x00 HTTP/1.0\r\nHost: " + url[7:-1].encode() + b"\r\n\r\n")
+        assert b" 400 " in _raw(url, b"GET /\xff\xfe HTTP/1.0\r\nHost: " + url[7:-1].encode() + b"\r\n\r\n")
+        assert _request(url, "/")[0] == 200  # still serving
+    finally:
+        proc.terminate()
+        _, err = proc.communicate(timeout=30)
+    assert "Traceback" not in err and "Exception" not in err, err[-2000:]
+
+
+def test_out_refuses_a_folder_that_is_not_a_preview(tmp_path, capsys):
+    """`--out` to a folder of other files: exit 2, nothing written, unless --force (whose extra
+    files are then not served); a previous preview is rewritten without --force."""
+    glb = str(asset("Fox"))
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "index.html").write_text("my own page")
+    (site / "notes.txt").write_text("SENTINEL")
+    before = sorted(p.name for p in site.iterdir())
+    assert main(["preview", glb, "--no-serve", "--out", str(site)]) == 2
+    err = capsys.readouterr().err
+    assert "not a rigmix preview" in err and "--force" in err and len(err.strip().splitlines()) == 1
+    assert sorted(p.name for p in site.iterdir()) == before
+    assert (site / "index.html").read_text() == "my own page"
+    with pytest.raises(InputError, match="not a rigmix preview"):
+        write_viewer(glb, site)
+    (tmp_path / "file").write_text("x")
+    assert main(["preview", glb, "--no-serve", "--out", str(tmp_path / "file")]) == 2
+    # --force writes the viewer there; the other files stay and are not served
+    assert main(["preview", glb, "--no-serve", "--out", str(site), "--force"]) == 0
+    assert (site / "notes.txt").read_text() == "SENTINEL" and (site / "model.glb").is_file()
+    server, url = serve(site)
+    try:
+        assert _request(url, "/notes.txt")[0] == 404 and _request(url, "/model.glb")[0] == 200
+    finally:
+        server.shutdown()
+        server.server_close()
+    # a previous preview (it holds the marker) is rewritten; an empty folder is fine
+    assert main(["preview", glb, "--no-serve", "--out", str(tmp_path / "v")]) == 0
+    assert main(["preview", str(asset("SimpleSkin")), "--no-serve", "--out", str(tmp_path / "v")]) == 0
+    assert (tmp_path / "v" / "model.glb").read_bytes() == asset("SimpleSkin").read_bytes()
+    (tmp_path / "empty").mkdir()
+    assert main(["preview", glb, "--no-serve", "--out", str(tmp_path / "empty")]) == 0
+    # rewriting a previous preview never writes through a link left in it
+    target = tmp_path / "target.txt"
+    target.write_text("SENTINEL")
+    (tmp_path / "v" / "viewer.js").unlink()
+    (tmp_path / "v" / "viewer.js").symlink_to(target)
+    assert main(["preview", glb, "--no-serve", "--out", str(tmp_path / "v")]) == 0
+    assert target.read_text() == "SENTINEL" and not (tmp_path / "v" / "viewer.js").is_symlink()
+    shutil.move(tmp_path / "v" / "vendor", tmp_path / "elsewhere")
+    (tmp_path / "v" / "vendor").symlink_to(tmp_path / "elsewhere")
+    before = sorted(p.stat().st_mtime_ns for p in (tmp_path / "elsewhere").rglob("*"))
+    assert main(["preview", glb, "--no-serve", "--out", str(tmp_path / "v")]) == 2
+    assert "not a folder" in capsys.readouterr().err
+    assert sorted(p.stat().st_mtime_ns for p in (tmp_path / "elsewhere").rglob("*")) == before
+    # a folder that is not a preview is not served at all
+    with pytest.raises(InputError, match="not a complete rigmix preview"):
+        serve(tmp_path)
+
+
+@pytest.mark.parametrize("port", ["99999", "65536", "0", "-1"])
+def test_cli_refuses_a_bad_port(tmp_path, capsys, port):
+    # --no-serve: checked all the same (and a test of the old code does not serve for ever)
+    assert main(["preview", str(asset("Fox")), "--no-serve", "--out", str(tmp_path / "v"), "--port", port]) == 2
+    err = capsys.readouterr().err
+    assert "--port" in err and "1-65535" in err and "internal error" not in err
+    assert not (tmp_path / "v").exists()
+
+
+def test_serve_port_checks(served):
+    import socket
+
+    url, out, _ = served
+    with pytest.raises(InputError, match="not a TCP port"):
+        serve(out, port=70000)
+    busy = int(url.rsplit(":", 1)[1].strip("/"))
+    with pytest.raises(InputError, match="cannot listen on 127.0.0.1 port"):
+        serve(out, port=busy)
+    with socket.socket() as s:  # sanity: the fixture's server really holds that port
+        assert s.connect_ex(("127.0.0.1", busy)) == 0
+
+
+def test_invalid_glb_is_refused_before_anything_is_written(tmp_path, capsys):
+    """An invalid GLB is one exit-2 line, and no viewer folder."""
+    good = asset("Fox").read_bytes()
+    cases = {
+        "magic.glb": b"glTF",
+        "truncated.glb": good[: len(good) // 2],
+        "text.glb": b"hello, not a model",
+        "flipped.glb": good[:20] + b"\x00" * 40 + good[60:],
+        "empty.gltf": b"{}",
+        "external.gltf": json.dumps({"asset": {"version": "2.0"}, "buffers": [{"uri": "data.bin", "byteLength": 4}]
+                                     }).encode(),
+    }
+    (tmp_path / "data.bin").write_bytes(b"\0" * 4)
+    for name, data in cases.items():
+        (tmp_path / name).write_bytes(data)
+        out = tmp_path / (name + "_v")
+        assert main(["preview", str(tmp_path / name), "--no-serve", "--out", str(out)]) == 2, name
+        err = capsys.readouterr().err
+        assert err.startswith("rigmix: error: ") and len(err.strip().splitlines()) == 1, (name, err)
+        assert "internal error" not in err and not out.exists(), name
+    assert main(["preview", str(tmp_path / "external.gltf"), "--no-serve"]) == 2
+    assert "separate file" in capsys.readouterr().err
+    (tmp_path / "dir.glb").mkdir()
+    assert main(["preview", str(tmp_path / "dir.glb"), "--no-serve"]) == 2
+    if os.path.exists("/dev/zero"):
+        (tmp_path / "zero.glb").symlink_to("/dev/zero")
+        assert main(["preview", str(tmp_path / "zero.glb"), "--no-serve"]) == 2
