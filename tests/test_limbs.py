@@ -5,12 +5,11 @@ from __future__ import annotations
 import logging
 
 import pytest
+from conftest import CHARACTERS, CORPUS_CHARACTERS, asset, corpus
 
 from benchmarks.self_composition import LIMBS
 from rigmix.io import load_character
 from rigmix.limbs import classify_limbs, limbs_summary
-
-from conftest import CHARACTERS, CORPUS_CHARACTERS, asset, corpus
 
 logging.getLogger("rigmix").setLevel(logging.ERROR)
 
