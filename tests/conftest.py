@@ -1,4 +1,5 @@
-"""Shared fixtures: the real characters in ../shared/data/characters (or $RIGMIX_ASSETS).
+"""Shared fixtures: the real characters in ../shared/data/characters (or $RIGMIX_ASSETS) and the
+corpus in ../shared/data/corpus (or $RIGMIX_CORPUS).
 
 With CI=true a missing asset is a failure, not a skip.
 """
@@ -12,6 +13,30 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 ASSETS = Path(os.environ.get("RIGMIX_ASSETS", ROOT.parent / "shared" / "data" / "characters"))
+CORPUS = Path(os.environ.get("RIGMIX_CORPUS", ROOT.parent / "shared" / "data" / "corpus"))
+
+#: name -> path relative to CORPUS, the 19 corpus characters (../shared/data/corpus/README.md)
+CORPUS_CHARACTERS = {
+    "Adventurer": "Adventurer/Adventurer.glb",
+    "Apatosaurus": "Apatosaurus/Apatosaurus.glb",
+    "Bee": "Bee/Bee.glb",
+    "Bull": "Bull/Bull.glb",
+    "Crab": "Crab/Crab.glb",
+    "CyberpunkCharacter": "CyberpunkCharacter/Character.glb",
+    "Deer": "Deer/Deer.glb",
+    "EnemyLarge": "EnemyLarge/Enemy_Large.glb",
+    "EnemyTwoLegs": "EnemyTwoLegs/Enemy_2Legs.glb",
+    "Frog": "Frog/Frog.glb",
+    "Leela": "Leela/Leela.glb",
+    "PlatformerCharacter": "PlatformerCharacter/Character.glb",
+    "Rat": "Rat/Rat.glb",
+    "Snake": "Snake/Snake.glb",
+    "Stegosaurus": "Stegosaurus/Stegosaurus.glb",
+    "Trex": "Trex/Trex.glb",
+    "Triceratops": "Triceratops/Triceratops.glb",
+    "Witch": "Witch/Witch.glb",
+    "Wolf": "Wolf/Wolf.glb",
+}
 
 #: name -> path relative to ASSETS, every shared character.
 CHARACTERS = {
@@ -41,6 +66,17 @@ def asset(name: str) -> Path:
     path = ASSETS / CHARACTERS.get(name, name)
     if not path.exists():
         msg = f"missing test asset {path} (set RIGMIX_ASSETS to the characters folder)"
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(msg)
+        pytest.skip(msg)
+    return path
+
+
+def corpus(name: str) -> Path:
+    """Path of a corpus character; fails under CI=true, skips elsewhere, when it is missing."""
+    path = CORPUS / CORPUS_CHARACTERS.get(name, name)
+    if not path.exists():
+        msg = f"missing corpus character {path} (set RIGMIX_CORPUS to the corpus folder)"
         if os.environ.get("CI", "").lower() == "true":
             pytest.fail(msg)
         pytest.skip(msg)
