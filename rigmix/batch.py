@@ -18,13 +18,28 @@ finished job appends one JSON line to ``DIR/manifest.jsonl``::
     {"config": "/abs/path/centaur.toml", "config_sha256": "...", "stem": "centaur",
      "status": "ok" | "failed", "outputs": {"glb": "centaur.glb", "report": "centaur.report.json"},
      "timings": {"compose": 3.2, "write": 0.1, "total": 3.3, "stages": {...}},
-     "error": null | "one-line message", "finished": "2026-11-22T01:02:03Z"}
+     "error": null | "one-line message", "error_kind": null | "input" | "internal",
+     "finished": "2026-11-22T01:02:03Z"}
+
+``error_kind`` is ``"input"`` for a :class:`RigmixError` (a bad config or input file) and
+``"internal"`` for anything else (a bug, a worker process that died); :func:`exit_status`
+turns the entries into the exit status of ``rigmix batch`` (0, 2 or 1, as ``rigmix compose``).
 
 Outputs are named relative to ``DIR``. The batch is resumable: a config whose latest manifest
 entry is ``ok``, whose file has not changed since (same SHA-256) and whose outputs all exist is
 skipped; failed jobs are run again. A job's outputs are written by
 :func:`rigmix.export.write_outputs`, all or none, so an interrupted or failed job leaves no
-partial file.
+partial file. No output (nor the manifest) may be a config or an input file of any job:
+:func:`plan_batch` refuses the whole batch before running anything.
+
+Process pool: each worker is a pool of one process (a slot), so a worker that dies (a crash
+in native code, the out-of-memory killer, SIGKILL) fails its own job only, with an internal
+error; its slot gets a new process and the other jobs go on. The workers ignore SIGINT and
+turn SIGTERM into :class:`rigmix.safety.Interrupted`, so a stopped job removes its temporary
+files. When the calling process is interrupted (``KeyboardInterrupt``, or SIGTERM through
+:func:`rigmix.safety.signals_raise` in the command line), the jobs not started are cancelled,
+the workers are sent SIGTERM (SIGKILL after :data:`STOP_TIMEOUT` seconds) and waited for, and
+the exception propagates: no worker outlives the batch.
 """
 
 from __future__ import annotations
@@ -32,18 +47,21 @@ from __future__ import annotations
 import json
 import logging
 import os
+import signal
 import time
 import traceback
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Callable, Iterable
 
 from .errors import InputError, RigmixError, UnsupportedError
-from .export import json_default, write_outputs
-from .safety import file_digest
+from .export import config_inputs, json_default, write_outputs
+from .safety import Interrupted, check_outputs, file_digest
 
-__all__ = ["MANIFEST", "LOCAL_DASK", "run_one", "run_batch", "read_manifest", "plan_batch"]
+__all__ = ["MANIFEST", "LOCAL_DASK", "STOP_TIMEOUT", "run_one", "run_batch", "read_manifest", "plan_batch",
+           "exit_status"]
 
 logger = logging.getLogger(__name__)
 
@@ -51,6 +69,8 @@ logger = logging.getLogger(__name__)
 MANIFEST = "manifest.jsonl"
 #: ``scheduler`` value that starts a local Dask cluster.
 LOCAL_DASK = "local-dask"
+#: Seconds a worker has to remove its temporary files after SIGTERM before it is killed.
+STOP_TIMEOUT = 20.0
 
 #: ``progress(done, total, entry)``: called in the calling process as each job ends (skipped
 #: jobs included); the CLI turns it into a progress bar.
@@ -93,7 +113,7 @@ def run_one(config_path, out_dir) -> dict:
     stem = config_path.stem
     outputs = _outputs(stem)
     entry = {"config": str(config_path), "config_sha256": None, "stem": stem, "status": "failed",
-             "outputs": outputs, "timings": {}, "error": None, "finished": None}
+             "outputs": outputs, "timings": {}, "error": None, "error_kind": None, "finished": None}
     t_start = time.perf_counter()
     try:
         try:
@@ -114,10 +134,11 @@ def run_one(config_path, out_dir) -> dict:
         entry["timings"]["write"] = round(time.perf_counter() - t0, 4)
         entry["status"] = "ok"
     except RigmixError as exc:
-        entry["error"] = _one_line(exc)
+        entry["error"], entry["error_kind"] = _one_line(exc), "input"
     except Exception as exc:  # a bug in a stage: recorded, the batch goes on
         logger.debug("batch: %s failed:\n%s", config_path, traceback.format_exc())
         entry["error"] = _one_line(f"internal error ({type(exc).__name__}: {exc})")
+        entry["error_kind"] = "internal"
     entry["timings"]["total"] = round(time.perf_counter() - t_start, 4)
     entry["finished"] = _now()
     return entry
@@ -176,8 +197,9 @@ def plan_batch(configs: Iterable, out_dir) -> tuple[list[Path], list[dict]]:
     Raises
     ------
     InputError
-        No configs, a config listed twice, or two configs with the same file name (their
-        outputs would collide).
+        No configs, a config listed twice, two configs with the same file name (their
+        outputs would collide), or an output (or the manifest) that is a config or an input
+        file of one of the jobs.
     """
     out_dir = Path(out_dir)
     paths = [Path(c).resolve() for c in configs]
@@ -190,6 +212,7 @@ def plan_batch(configs: Iterable, out_dir) -> tuple[list[Path], list[dict]]:
             raise InputError(f"batch: {p} {what}: outputs are named after the config file "
                              f"({p.stem}.glb); rename one")
         seen[p.stem] = p
+    _check_outputs(paths, out_dir)
     manifest = read_manifest(out_dir)
     todo, skipped = [], []
     for p in paths:
@@ -200,6 +223,31 @@ def plan_batch(configs: Iterable, out_dir) -> tuple[list[Path], list[dict]]:
         else:
             todo.append(p)
     return todo, skipped
+
+
+def _check_outputs(paths: list[Path], out_dir: Path) -> None:
+    """Refuse a batch whose outputs would overwrite a config or an input file of any job."""
+    from .config import load_config
+
+    inputs = []
+    for p in paths:
+        inputs.append((f"the config {p.name}", p))
+        try:
+            inputs += [(f"{what} of {p.name}", f) for what, f in config_inputs(load_config(p)) if f != p]
+        except Exception:  # noqa: BLE001 - that job fails with this error when it runs
+            pass
+    outputs = [("the manifest", out_dir / MANIFEST)]
+    outputs += [(f"the output of {p.name}", out_dir / name) for p in paths for name in _outputs(p.stem).values()]
+    check_outputs(outputs, inputs, stage=f"batch --out {out_dir}")
+
+
+def exit_status(entries: list[dict]) -> int:
+    """The exit status of a batch, as ``rigmix compose``'s: 0 if every job succeeded (or was
+    done before), 2 if every failure is a bad input, 1 if any failure is internal."""
+    failed = [e for e in entries if e.get("status") != "ok"]
+    if not failed:
+        return 0
+    return 2 if all(e.get("error_kind") == "input" for e in failed) else 1
 
 
 class _Manifest:
@@ -217,8 +265,10 @@ class _Manifest:
 
 
 def _failed_entry(config: Path, message: str) -> dict:
+    """The entry of a job that failed outside :func:`run_one` (its worker died): internal."""
     return {"config": str(config), "config_sha256": None, "stem": config.stem, "status": "failed",
-            "outputs": _outputs(config.stem), "timings": {}, "error": _one_line(message), "finished": _now()}
+            "outputs": _outputs(config.stem), "timings": {}, "error": _one_line(message),
+            "error_kind": "internal", "finished": _now()}
 
 
 def run_batch(configs, out_dir, *, workers: int | None = None, scheduler: str | None = None,
@@ -296,22 +346,104 @@ def run_batch(configs, out_dir, *, workers: int | None = None, scheduler: str | 
     return [results[c] for c in order]
 
 
-def _run_pool(todo: list[Path], out_dir: Path, workers: int | None, finish) -> None:
+def _init_worker() -> None:
+    """Worker start-up: SIGINT is the calling process's business (it stops the workers); SIGTERM
+    raises :class:`Interrupted`, so that the job's temporary files are removed (:func:`_job`)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def stop(signum, frame):
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # one clean-up, not two
+        if not _in_job:  # waiting for work: nothing to clean
+            os._exit(128 + signum)
+        raise Interrupted(signum)
+
+    signal.signal(signal.SIGTERM, stop)
+
+
+_in_job = False
+
+
+def _job(config: str, out_dir: str) -> dict:
+    """:func:`run_one` in a pool worker; a worker stopped by SIGTERM exits once its job has
+    cleaned up, instead of going back to the pool for the next job."""
+    global _in_job
+    _in_job = True
+    try:
+        return run_one(config, out_dir)
+    except Interrupted as exc:
+        logging.shutdown()
+        os._exit(128 + exc.signum)
+    finally:
+        _in_job = False
+
+
+def _new_slot(ctx) -> ProcessPoolExecutor:
+    return ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_init_worker)
+
+
+def _run_pool(todo: list[Path], out_dir: Path, workers: int | None, finish, *, job=_job) -> None:
+    """Run ``job(config, out_dir)`` for each config on ``workers`` one-process pools (slots).
+
+    One job at a time per slot, so the job of a worker that dies is known: it alone fails, with
+    an internal error, and its slot is rebuilt. ``job`` must be a module-level function (it is
+    pickled by name into the workers).
+    """
     import multiprocessing
 
     n = max(1, min(workers or os.cpu_count() or 1, len(todo)))
     ctx = multiprocessing.get_context("spawn")  # no fork of a threaded parent
-    with ProcessPoolExecutor(max_workers=n, mp_context=ctx) as pool:
-        futures = {pool.submit(run_one, str(p), str(out_dir)): p for p in todo}
-        pending = set(futures)
-        while pending:
-            finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+    queue = list(reversed(todo))
+    slots: list[ProcessPoolExecutor | None] = [None] * n
+    running: dict = {}  # future -> (slot index, config)
+    try:
+        while queue or running:
+            for i in range(n):
+                if queue and i not in {k for k, _ in running.values()}:
+                    if slots[i] is None:
+                        slots[i] = _new_slot(ctx)
+                    p = queue.pop()
+                    running[slots[i].submit(job, str(p), str(out_dir))] = (i, p)
+            finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
             for f in finished:
+                i, p = running.pop(f)
                 try:
                     entry = f.result()
-                except Exception as exc:  # the worker died (killed, out of memory...)
-                    entry = _failed_entry(futures[f], f"batch: worker process failed ({type(exc).__name__}: {exc})")
+                except BrokenProcessPool:
+                    entry = _failed_entry(p, f"batch: {p.name}: the worker process died while composing it (a crash "
+                                             "in native code, out of memory, or killed); the other jobs went on")
+                    slots[i].shutdown(wait=True)
+                    slots[i] = None
+                except Exception as exc:  # e.g. a result that cannot be unpickled
+                    entry = _failed_entry(p, f"batch: worker process failed ({type(exc).__name__}: {exc})")
                 finish(entry)
+    except BaseException:
+        _stop_slots([s for s in slots if s is not None])
+        raise
+    for s in slots:
+        if s is not None:
+            s.shutdown(wait=True)
+
+
+def _stop_slots(pools: list) -> None:
+    """Cancel what has not started, SIGTERM the workers (SIGKILL after :data:`STOP_TIMEOUT`),
+    wait for them: no worker outlives an interrupted batch."""
+    procs = []
+    for pool in pools:
+        procs += list((getattr(pool, "_processes", None) or {}).values())  # the stdlib keeps no public list
+        pool.shutdown(wait=False, cancel_futures=True)
+    for proc in procs:
+        if proc.is_alive():
+            proc.terminate()
+    deadline = time.monotonic() + STOP_TIMEOUT
+    for proc in procs:
+        proc.join(max(0.0, deadline - time.monotonic()))
+        if proc.is_alive():
+            logger.warning("batch: worker %d did not stop within %.0f s of SIGTERM: killed", proc.pid, STOP_TIMEOUT)
+            proc.kill()
+            proc.join(5)
+    for pool in pools:
+        pool.shutdown(wait=True)
+    logger.info("batch: interrupted; %d worker process(es) stopped", len(procs))
 
 
 def _run_dask(todo: list[Path], out_dir: Path, scheduler: str, workers: int | None, finish) -> None:
@@ -335,12 +467,16 @@ def _run_dask(todo: list[Path], out_dir: Path, scheduler: str, workers: int | No
         with client:
             futures = {client.submit(run_one, str(p), str(out_dir), pure=False, key=f"rigmix-{p.stem}-{i}"): p
                        for i, p in enumerate(todo)}
-            for f in as_completed(list(futures)):
-                try:
-                    entry = f.result()
-                except Exception as exc:  # a worker lost mid-job
-                    entry = _failed_entry(futures[f], f"batch: Dask job failed ({type(exc).__name__}: {exc})")
-                finish(entry)
+            try:
+                for f in as_completed(list(futures)):
+                    try:
+                        entry = f.result()
+                    except Exception as exc:  # a worker lost mid-job
+                        entry = _failed_entry(futures[f], f"batch: Dask job failed ({type(exc).__name__}: {exc})")
+                    finish(entry)
+            except BaseException:  # interrupted: nothing keeps running on the cluster
+                client.cancel(list(futures), force=True)
+                raise
     finally:
         if cluster is not None:
             cluster.close()

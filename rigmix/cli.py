@@ -22,7 +22,19 @@ Errors
 A :class:`rigmix.errors.RigmixError` (or an ``OSError`` such as a missing file) is printed as
 one line ``rigmix: error: <message>`` on stderr, exit status 2, no traceback; any other
 exception is reported the same way as an internal error, exit status 1. ``--debug`` re-raises
-instead (full traceback). Library code never prints: it logs through
+instead (full traceback). Error lines are cut at :data:`MAX_ERROR_CHARS` characters, and control
+and bidirectional-override characters in them (from names and paths) are shown escaped
+(:func:`rigmix.describe.printable`), as in every logged line.
+
+Outputs that are inputs or each other (``compose -o IN.glb``, ``--report CONFIG.toml``, ``-o X
+--report X``, a ``batch --out`` folder where an output would land on an input) are refused with
+exit status 2 before anything is composed. ``batch`` exits 0 when every job succeeded (or was
+done before), 2 when every failure is a bad input (a :class:`RigmixError`), 1 when any failure
+is internal (a bug, or a worker process that died).
+
+Signals: SIGTERM and SIGINT raise :class:`rigmix.safety.Interrupted` in the running command, so
+temporary files and folders are removed and ``batch`` stops its workers; the exit status is then
+``128 + signal`` (143 for SIGTERM, 130 for SIGINT). Library code never prints: it logs through
 ``logging.getLogger(__name__)``; warnings go to stderr, ``-v`` adds info, ``-vv`` debug.
 
 The keys of ``rigmix inspect --json`` are those of :func:`rigmix.describe.describe`; the
@@ -35,6 +47,7 @@ import argparse
 import json
 import logging
 import os
+import signal
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,10 +55,17 @@ from typing import Callable
 
 from . import __version__
 from .errors import RigmixError
+from .safety import received_signal, signals_raise
 
-__all__ = ["main", "build_parser", "Command", "COMMANDS"]
+__all__ = ["main", "build_parser", "Command", "COMMANDS", "MAX_ERROR_CHARS"]
 
 logger = logging.getLogger(__name__)
+
+#: Longest error line printed (an ellipsis marks the cut): a message quoting a huge value must
+#: not flood the terminal.
+MAX_ERROR_CHARS = 500
+#: Longest warning (or error) line logged; info and debug lines are not cut.
+MAX_LOG_CHARS = 2000
 
 
 # --------------------------------------------------------------------------------------------
@@ -233,7 +253,7 @@ def _run_compose(args) -> int:
     from .config import load_config
     from .describe import format_composition
     from .errors import InputError
-    from .export import write_outputs
+    from .export import check_targets, config_inputs, write_outputs
     from .pipeline import STAGE_NAMES, compose
 
     if args.output.suffix.lower() not in (".glb", ".gltf"):
@@ -243,7 +263,10 @@ def _run_compose(args) -> int:
     for p in (args.output, args.report, args.usd):
         if p is not None and not p.parent.is_dir():
             raise InputError(f"compose: the folder of {p} does not exist")
+    outputs = dict(glb=args.output, usd=args.usd, report=args.report, fields_dir=args.dump_fields)
+    check_targets([("the config", args.config)], stage="compose", **outputs)  # before reading it
     config = load_config(args.config)
+    check_targets(config_inputs(config), stage="compose", **outputs)
     weights, fusion = {}, {}
     if args.weights:
         weights["method"] = args.weights
@@ -300,13 +323,16 @@ def _run_batch(args) -> int:
 
         entries = run_batch(args.configs, args.out, workers=args.workers, scheduler=args.scheduler,
                             progress=progress)
+    from .batch import exit_status
+    from .describe import printable
+
     failed = [e for e in entries if e["status"] != "ok"]
     skipped = sum(bool(e.get("skipped")) for e in entries)
     for e in failed:
         _error(f"{Path(e['config']).name}: {e['error']}")
-    print(f"{args.out}: {len(entries) - len(failed) - skipped} composed, {skipped} skipped (done before), "
-          f"{len(failed)} failed; manifest {args.out / 'manifest.jsonl'}")
-    return 1 if failed else 0
+    print(f"{printable(args.out)}: {len(entries) - len(failed) - skipped} composed, {skipped} skipped "
+          f"(done before), {len(failed)} failed; manifest {printable(args.out / 'manifest.jsonl')}")
+    return exit_status(entries)
 
 
 #: The sub-commands, in the order ``rigmix --help`` lists them. Append here.
@@ -364,7 +390,17 @@ def _add_common_options(parser, *, default: bool) -> None:
 
 class _OneLine(logging.Formatter):
     def format(self, record):
-        return " ".join(super().format(record).split("\n"))
+        return _one_line(super().format(record), MAX_LOG_CHARS if record.levelno >= logging.WARNING else None)
+
+
+def _one_line(text: str, limit: int | None) -> str:
+    """``text`` on one line, control characters escaped, cut at ``limit`` characters."""
+    from .describe import printable
+
+    text = " ".join(str(text).split())
+    if limit is not None and len(text) > limit:
+        text = text[: limit - 1] + "\u2026"
+    return printable(text)
 
 
 def _configure_logging(verbosity: int) -> None:
@@ -384,17 +420,29 @@ def _configure_logging(verbosity: int) -> None:
 
 
 def _error(message: str) -> None:
-    print("rigmix: error: " + " ".join(str(message).split()), file=sys.stderr)
+    print("rigmix: error: " + _one_line(message, MAX_ERROR_CHARS - len("rigmix: error: ")), file=sys.stderr)
 
 
 def main(argv=None) -> int:
-    """Run the command line; returns the exit status (0 ok, 2 user error, 1 internal error)."""
+    """Run the command line; returns the exit status (0 ok, 2 user error, 1 internal error,
+    128 + signal after SIGTERM or SIGINT)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help(sys.stderr)
         return 2
     _configure_logging(args.verbose)
+    with signals_raise():
+        try:
+            status = _run(args)
+        except KeyboardInterrupt:  # a signal in the instant after the command returned
+            status = 130
+        signum = received_signal()
+    # a signal caught by a command that then returned normally (preview) still ends as a signal
+    return 128 + signum if signum is not None else status
+
+
+def _run(args) -> int:
     try:
         return int(args.run(args) or 0)
     except RigmixError as exc:
@@ -411,8 +459,9 @@ def main(argv=None) -> int:
         _error(f"{exc.filename}: {exc.strerror}" if exc.filename else str(exc))
         return 2
     except KeyboardInterrupt:
-        _error("interrupted")
-        return 130
+        signum = received_signal()
+        _error("interrupted" + (f" ({signal.Signals(signum).name})" if signum is not None else ""))
+        return 128 + (signum or signal.SIGINT)
     except Exception as exc:  # a bug: still one line, the traceback with --debug
         if args.debug:
             raise

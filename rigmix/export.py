@@ -9,7 +9,15 @@ of them are written is each one renamed into place through
 :func:`rigmix.safety.atomic_output`. A failure while writing (an unwritable folder, a value
 the JSON encoder refuses, an exception in a writer) leaves every target as it was and no
 temporary file behind; a failure while renaming removes the outputs this call already put in
-place, so a run never leaves a partial set of files.
+place, so a run never leaves a partial set of files. A signal turned into an exception
+(:func:`rigmix.safety.signals_raise`) takes the same way out.
+
+No output may be one of the composition's inputs (:func:`config_inputs`: the config, the
+character files and the files a ``.gltf`` refers to) or another output: :func:`check_targets`
+refuses it before anything is written (the command line calls it before composing, and
+:func:`write_outputs` again on every file it is about to put in place). An ``OSError`` while
+writing (a full disk, no permission) becomes an :class:`rigmix.errors.InputError` naming the
+output and the fix.
 
 :func:`json_default` is the one JSON encoder of rigmix's reports and manifests.
 """
@@ -19,13 +27,16 @@ from __future__ import annotations
 import json
 import logging
 import tempfile
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePath
 from typing import NamedTuple
+from urllib.parse import unquote
 
-from .safety import atomic_output
+from .errors import InputError
+from .safety import atomic_output, check_outputs, write_error_hint
 
-__all__ = ["ExportResult", "write_outputs", "report_json", "json_default"]
+__all__ = ["ExportResult", "write_outputs", "report_json", "json_default", "config_inputs", "check_targets"]
 
 logger = logging.getLogger(__name__)
 
@@ -118,13 +129,99 @@ def write_outputs(composition, *, glb=None, usd=None, report=None, fields_dir=No
     TypeError
         A report value that is not JSON serializable.
     """
+    config = getattr(composition, "config", None)
+    inputs = config_inputs(config) if config is not None else []
+    check_targets(inputs, glb=glb, usd=usd, report=report, fields_dir=fields_dir, stage="export")
     targets = [Path(p) for p in (glb, usd, report) if p is not None]
     staging = next((p.parent for p in targets), None)
-    with tempfile.TemporaryDirectory(dir=staging, prefix=".rigmix-export-") as tmp:
+    with _writing(staging, "a temporary folder in"):
+        tmp_dir = tempfile.TemporaryDirectory(dir=staging, prefix=".rigmix-export-")
+    with tmp_dir as tmp:
         staged = _stage(composition, Path(tmp), glb=glb, usd=usd, report=report, fields_dir=fields_dir,
                         report_extra=report_extra, sort_keys=sort_keys)
+        # USD textures and field files are only known now: none may land on an input either
+        check_outputs([("the output", s.dest) for s in staged], inputs, stage="export")
         files = _commit(staged, fields_dir)
     return ExportResult(files=files, fields=tuple(s.dest for s in staged if s.is_field))
+
+
+def config_inputs(config) -> list:
+    """The files a composition reads, as ``(what, path)`` for :func:`rigmix.safety.check_outputs`.
+
+    Parameters
+    ----------
+    config : rigmix.config.Config
+
+    Returns
+    -------
+    list of (str, Path)
+        The config file (when it was read from one), each character file (built-in characters
+        have none) and, for a ``.gltf``, the buffer and image files its JSON names (best
+        effort: a file that cannot be read here is reported by the loader).
+    """
+    out = []
+    source = Path(config.source)
+    if source.is_file():
+        out.append(("the config", source))
+    for cid in config.characters:
+        try:
+            path = config.character_path(cid)
+        except InputError:
+            continue  # reported when the characters are loaded
+        if not isinstance(path, Path):
+            continue
+        what = f"the input character '{cid}'"
+        out.append((what, path))
+        if path.suffix.lower() == ".gltf":
+            out += [(f"a file of {what}", f) for f in _gltf_resources(path)]
+    return out
+
+
+def _gltf_resources(path: Path) -> list:
+    """The external buffer and image files of a ``.gltf`` (relative URIs, percent-decoded)."""
+    try:
+        if path.stat().st_size > 64 << 20:  # not a JSON document rigmix would read anyway
+            return []
+        doc = json.loads(path.read_bytes())
+        uris = [item.get("uri") for key in ("buffers", "images") for item in doc.get(key) or []
+                if isinstance(item, dict)]
+    except (OSError, ValueError, AttributeError, TypeError):
+        return []
+    return [path.parent / unquote(u) for u in uris
+            if isinstance(u, str) and u and not u.startswith("data:") and "://" not in u]
+
+
+def check_targets(inputs, *, glb=None, usd=None, report=None, fields_dir=None, stage="export") -> None:
+    """Refuse outputs that are inputs or each other (see :func:`rigmix.safety.check_outputs`).
+
+    Parameters
+    ----------
+    inputs : list of (str, path)
+        From :func:`config_inputs`.
+    glb, usd, report, fields_dir : str or Path, optional
+        The outputs, as given to :func:`write_outputs`.
+    stage : str
+        Prefix of the message.
+    """
+    outputs = [("-o", glb), ("--usd", usd), ("--report", report), ("--dump-fields", fields_dir)]
+    check_outputs([(w, p) for w, p in outputs if p is not None], inputs, stage=stage)
+
+
+@contextmanager
+def _writing(dest, what: str = ""):
+    """Turn an ``OSError`` (or the safety helpers' ``InputError`` caused by one) into one line
+    naming ``dest`` and the fix."""
+    try:
+        yield
+    except OSError as exc:
+        raise InputError(f"export: cannot write {what + ' ' if what else ''}{dest}: "
+                         f"{exc.strerror or type(exc).__name__} ({write_error_hint(exc)})") from None
+    except InputError as exc:
+        cause = exc.__cause__
+        if not isinstance(cause, OSError):
+            raise
+        raise InputError(f"export: cannot write {what + ' ' if what else ''}{dest}: "
+                         f"{cause.strerror or type(cause).__name__} ({write_error_hint(cause)})") from None
 
 
 class _Staged(NamedTuple):
@@ -143,29 +240,34 @@ def _stage(composition, tmp: Path, *, glb, usd, report, fields_dir, report_extra
 
         glb = Path(glb)
         path = tmp / ("character" + glb.suffix.lower())
-        write_gltf(composition.character, path)
+        with _writing(glb):
+            write_gltf(composition.character, path)
         staged.append(_Staged(path, glb))
     if usd is not None:
         from .io.usd import write_usd
 
         usd = Path(usd)
         usd_dir = tmp / "usd"
-        usd_dir.mkdir()
-        write_usd(composition.character, usd_dir / usd.name)
+        with _writing(usd):
+            usd_dir.mkdir()
+            write_usd(composition.character, usd_dir / usd.name)
         staged += [_Staged(f, usd.parent / f.relative_to(usd_dir))
                    for f in sorted(usd_dir.rglob("*")) if f.is_file()]
     if fields_dir is not None:
         from .fusion import dump_fields
 
         fdir = tmp / "fields"
-        fdir.mkdir()
-        dump_fields(fdir, composition.surface.fields)
+        with _writing(fields_dir):
+            fdir.mkdir()
+            dump_fields(fdir, composition.surface.fields)
         staged += [_Staged(f, Path(fields_dir) / f.name, is_field=True) for f in sorted(fdir.iterdir())]
     if report is not None:
         data = dict(composition.report)
         data.update(report_extra or {})
         path = tmp / "report.json"
-        path.write_bytes(report_json(data, sort_keys=sort_keys).encode("utf-8"))
+        text = report_json(data, sort_keys=sort_keys).encode("utf-8")
+        with _writing(report):
+            path.write_bytes(text)
         staged.append(_Staged(path, Path(report)))
     return staged
 
@@ -175,11 +277,13 @@ def _commit(staged: list, fields_dir) -> tuple:
     placed = []
     try:
         if fields_dir is not None:
-            Path(fields_dir).mkdir(parents=True, exist_ok=True)
+            with _writing(fields_dir, "the folder"):
+                Path(fields_dir).mkdir(parents=True, exist_ok=True)
         for src, dest, _ in staged:
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            with atomic_output(dest, suffix=dest.suffix) as out:
-                out.write_bytes(src.read_bytes())
+            with _writing(dest):
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                with atomic_output(dest, suffix=dest.suffix) as out:
+                    out.write_bytes(src.read_bytes())
             placed.append(dest)
     except BaseException:
         for dest in placed:

@@ -184,13 +184,13 @@ def test_manifest_with_a_cut_last_line(tmp_path):
 
 
 def test_batch_cli_reports_failures(tmp_path):
-    """The CLI: one broken config, exit status 1 (some jobs failed), no traceback."""
+    """The CLI: one broken config, exit status 2 (every failure is a bad input), no traceback."""
     cfg = tmp_path / "broken.toml"
     cfg.write_text(_BROKEN)
     out = tmp_path / "out"
     r = subprocess.run([sys.executable, "-m", "rigmix.cli", "batch", str(cfg), "--out", str(out), "--workers", "0"],
                        capture_output=True, text=True, cwd=ROOT, timeout=600)
-    assert r.returncode == 1, r.stderr
+    assert r.returncode == 2, r.stderr
     assert "Traceback" not in r.stderr and "NoSuchJoint" in r.stderr
     assert "1 failed" in r.stdout + r.stderr
     assert read_manifest(out)[str(cfg.resolve())]["status"] == "failed"
