@@ -44,8 +44,8 @@ Three protocols (PIPELINE.md section 7):
     :func:`rigmix.weights.fill_weights`' ``nearest`` fill (the closest preserved vertex's
     weights): the paper's closest-point rule has nothing to read from.
 
-Each method is run with its defaults; ``dfd_no_field`` is ``dfd`` with ``feature_field=False``
-(no distilled DFD field), to measure what the field does.
+``dfd`` is run with the DFD feature field (``feature_field=True``), ``dfd_no_field`` without it (the
+pipeline's default), to measure what the field does; the other methods with their defaults.
 
 Writes ``benchmarks/results/self_composition.json`` and ``self_composition.md``.
 Usage: ``python -m benchmarks.self_composition [--protocol identity|mirrored|hidden|all] [CHARACTER ...]``.
@@ -73,7 +73,8 @@ from rigmix.quality import self_composition_errors  # noqa: E402
 from rigmix.weights import WeightParams, blend_weights  # noqa: E402
 
 #: (label, blend_weights options): every method with its defaults, and dfd without the DFD field.
-METHODS = (("nearest", {"method": "nearest"}), ("inpaint", {"method": "inpaint"}), ("dfd", {"method": "dfd"}),
+METHODS = (("nearest", {"method": "nearest"}), ("inpaint", {"method": "inpaint"}),
+           ("dfd", {"method": "dfd", "feature_field": True}),
            ("dfd_no_field", {"method": "dfd", "feature_field": False}))
 LABELS = tuple(label for label, _ in METHODS)
 PROTOCOLS = ("identity", "mirrored", "hidden")

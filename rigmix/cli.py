@@ -241,9 +241,12 @@ def _add_compose(parser):
                         help="write the blended signed distance fields (.vdb with OpenVDB, else .npz) to DIR")
     parser.add_argument("--weights", choices=("nearest", "inpaint", "dfd"),
                         help="junction weight method (default: the config's [weights] method, else dfd)")
-    parser.add_argument("--no-feature-field", action="store_true",
-                        help="dfd without the distilled DFD feature field of the fused surface (saves a few "
-                             "seconds; same as [weights] feature_field = false)")
+    field = parser.add_mutually_exclusive_group()
+    field.add_argument("--feature-field", action="store_true",
+                       help="dfd with the distilled DFD feature field of the fused surface judging the mirror "
+                            "prior (a few seconds more; same as [weights] feature_field = true)")
+    field.add_argument("--no-feature-field", action="store_true",
+                       help="dfd without the feature field (the default; same as [weights] feature_field = false)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -270,8 +273,8 @@ def _run_compose(args) -> int:
     weights, fusion = {}, {}
     if args.weights:
         weights["method"] = args.weights
-    if args.no_feature_field:
-        weights["feature_field"] = False
+    if args.feature_field or args.no_feature_field:
+        weights["feature_field"] = bool(args.feature_field)
     if args.dump_fields:
         fusion["keep_fields"] = True
     config = config.with_options(weights=weights, fusion=fusion)

@@ -443,9 +443,9 @@ def test_face_stretch_matches_the_svd_reference_and_is_zero_for_rigid_motion():
 # ------------------------------------------------------------------------------------------
 
 
-def test_default_dfd_distills_the_feature_field_of_the_fused_surface(tmp_path):
-    """The default dfd distills a field on the fused surface (with :data:`FIELD_DISTILL`) and the
-    field changes the filled weights; ``feature_field=False`` distills nothing."""
+def test_dfd_with_feature_field_distills_the_field_of_the_fused_surface(tmp_path):
+    """dfd with ``feature_field=True`` distills a field on the fused surface (with
+    :data:`FIELD_DISTILL`) and the field changes the filled weights; the default distills nothing."""
     from dfd.field import load_field
     from rigmix.pipeline import compose
     from rigmix.weights.blend import FIELD_DISTILL
@@ -455,9 +455,9 @@ def test_default_dfd_distills_the_feature_field_of_the_fused_surface(tmp_path):
     ids = comp.fusion_ids
     args = (comp.surface, comp.fusion_inputs, [comp.maps[c] for c in ids],
             comp.skeleton.num_joints)
-    off = blend_weights(*args, params=WeightParams(method="dfd", feature_field=False, field_cache=tmp_path / "off"))
+    off = blend_weights(*args, params=WeightParams(method="dfd", field_cache=tmp_path / "off"))
     assert not (tmp_path / "off").exists() and off.report["feature_field"] is False
-    on = blend_weights(*args, params=WeightParams(method="dfd", field_cache=tmp_path / "on"))
+    on = blend_weights(*args, params=WeightParams(method="dfd", feature_field=True, field_cache=tmp_path / "on"))
     assert on.report["feature_field"] is True and on.report["feature_field_distilled"] is True
     assert on.report["feature_field_s"] > 0 and off.report["feature_field_distilled"] is False
     fields = sorted((tmp_path / "on").glob("field-*.pt"))
@@ -477,16 +477,17 @@ def test_default_dfd_distills_the_feature_field_of_the_fused_surface(tmp_path):
     assert np.abs(on.W - off.W).sum(axis=1).max() > 1e-6
 
 
-def test_cli_no_feature_field_option(tmp_path):
-    """``rigmix compose --no-feature-field`` reaches the weight stage (and the config key does too)."""
+def test_cli_feature_field_options(tmp_path):
+    """``rigmix compose --feature-field`` / ``--no-feature-field`` reach the weight stage; the
+    default is without the field."""
     import json
 
     from rigmix.cli import main
 
     asset("CesiumMan"), asset("Velociraptor")
     cfg = ROOT / "tests" / "configs" / "tail_graft.toml"
-    for extra, expected in (([], True), (["--no-feature-field"], False)):
-        report = tmp_path / f"report{len(extra)}.json"
+    for k, (extra, expected) in enumerate((([], False), (["--feature-field"], True), (["--no-feature-field"], False))):
+        report = tmp_path / f"report{k}.json"
         assert main(["compose", str(cfg), "-o", str(tmp_path / "out.glb"), "--report", str(report),
                      "--no-progress", *extra]) == 0
         weights = json.loads(report.read_text())["weights"]
@@ -625,7 +626,7 @@ def test_hidden_junction_with_a_field_that_tells_the_sides_apart():
 
     comp = compose(self_config(asset("Knight"), "UpperLeg.R", fusion=REBUILT), until="fusion")
     figs = {}
-    for label, options in (("field", {}), ("no_field", {"feature_field": False})):
+    for label, options in (("field", {"feature_field": True}), ("no_field", {"feature_field": False})):
         skin, _ = hidden_weights(comp, {"method": "dfd", **options})
         figs[label] = self_composition_errors(comp, skin, max_frames=20)
     assert skin.report["feature_field"] is False

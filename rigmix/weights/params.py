@@ -42,7 +42,8 @@ class WeightParams:
     locality_power : float
         ``dfd``: exponent of the locality's attenuation, > 0.
     feature_field : bool
-        ``dfd``: distill the DFD feature field of the fused surface to judge the mirror prior.
+        ``dfd``: distill the DFD feature field of the fused surface to judge the mirror prior
+        (off by default: a few seconds for no measured gain; see :mod:`rigmix.weights.blend`).
     blend : {"paper", "harmonic"} or None
         Blend factors of the inputs' closest-point weights; ``None``: ``"harmonic"`` for
         ``dfd``, ``"paper"`` otherwise.
@@ -76,7 +77,7 @@ class WeightParams:
     min_confidence: float = 0.5
     locality: float = 0.1
     locality_power: float = 1.0
-    feature_field: bool = True
+    feature_field: bool = False
     blend: Literal["paper", "harmonic"] | None = None
     smoothing: int = 0
     seam_spread: float = 0.1
