@@ -215,10 +215,12 @@ class _Rig:
         return [c for c in self.children[j] if self.deforms[c]]
 
     def subtree(self, j: int) -> list[int]:
-        out = [j]
+        """The deforming joints of ``j``'s subtree (``j`` first), parents before children."""
+        out, seen = [j], {j}
         for k in range(j + 1, self.J):
-            if self.parents[k] >= 0 and self.parents[k] in out and self.deforms[k]:
+            if self.parents[k] in seen and self.deforms[k]:
                 out.append(k)
+                seen.add(k)
         return out
 
     def offset(self, j: int) -> float:
@@ -401,12 +403,15 @@ def classify_limbs(character: Character) -> BodyPlan:
     # and the part must lie beyond the host (a thigh touching a hanging hand is no detached part).
     detached_of: dict[int, int] = {}  # detached top -> start of the paired subtree it joins
     unpaired_detached: dict[int, int] = {}  # detached top -> unpaired host joint
+    start_set = set(starts)
     loose_top = {}
     for x in loose:
         for k in rig.subtree(x):
             loose_top[k] = x
     for x in loose:
         own = rig.subtree(x)
+        if any(s != x and s in start_set for s in own):
+            continue  # it has limbs of its own: a body, not a part
         top = next((k for k in own if rig.mass[k] > 0), x)
         t = _contact(rig, set(own), top)
         if t < 0 or loose_top.get(t) == t:
@@ -513,9 +518,6 @@ def classify_limbs(character: Character) -> BodyPlan:
         mass = rig.subtree_mass[c] + sum(rig.subtree_mass[d] for d in det_of(rig.subtree(c)) if d in unpaired_detached)
         chains.append((c, path, mass))
     if any(m >= 0.05 * total for _, _, m in chains):
-        for c, path, m in chains:
-            if m < 0.05 * total:
-                trunk_set.update(rig.subtree(c))
         chains = [t for t in chains if t[2] >= 0.05 * total]
 
     def chain_root(path, tail_like):
@@ -546,8 +548,9 @@ def classify_limbs(character: Character) -> BodyPlan:
         pts = rig.region(joints)
         return pts if len(pts) else rig.P[joints]
 
-    # 5. the head: the unpaired chain whose tip's skin reaches highest; a chain holding a joint
-    #    named head wins within 10 % of the height (the name only breaks a near tie)
+    # 5. the head: the unpaired chain whose tip's skin reaches highest (a fraction of the height)
+    #    plus its tip's size (a fraction of the largest tip's); a chain holding a joint named head
+    #    wins within HEAD_TIE (the name only breaks a near tie)
     tops = [float(tip_region(path)[:, 1].max() - rig.lo[1]) / rig.height for _, path, _ in chains]
     vols = [_hull_volume(tip_region(path)) ** (1 / 3) for _, path, _ in chains]
     score = [t + v / (max(vols) or 1.0) for t, v in zip(tops, vols)]
@@ -568,7 +571,7 @@ def classify_limbs(character: Character) -> BodyPlan:
     ground = rig.lo[1]
     raw = []
     absorbed = set()
-    for i, (c, path, _) in enumerate(chains):
+    for c, path, _ in chains:
         root, _ = chain_root(path, False)
         for s in starts:
             if s in rig.subtree(root) or s in det_of(rig.subtree(root)):
@@ -622,8 +625,8 @@ def classify_limbs(character: Character) -> BodyPlan:
                 x["kind"], x["conf"] = sure["kind"], min(r["conf"], o["conf"])
 
     # 7. facing: the horizontal axis across the mirror plane's normal; its sign by the head (its
-    #    tip ahead of where it leaves the body), the tails (behind) and the feet (toes ahead of
-    #    the hip); glTF's +Z breaks a tie
+    #    tip ahead of where it leaves the body) and the feet (toes ahead of the hips); glTF's +Z
+    #    breaks a tie
     vote = 0.02 if f == 2 else 0.0
 
     def centroid(pts):
@@ -668,8 +671,6 @@ def classify_limbs(character: Character) -> BodyPlan:
             else:
                 kind, conf = "other", 0.5
         root, _ = chain_root(path, kind == "tail")
-        for k in path[:path.index(root)]:
-            trunk_set.add(k)
         joints = rig.subtree(root)
         det = det_of(joints)
         limbs.append(Limb(kind, None, names[root], tuple(names[k] for k in joints), None,
@@ -677,14 +678,9 @@ def classify_limbs(character: Character) -> BodyPlan:
     for r in raw:
         root = r["root"]
         side = "L" if (rig.P[root, rig.axis] - rig.plane.offset) * left[rig.axis] > 0 else "R"
-        partner = rig.partner[root]
-        partner_name = names[partner] if partner >= 0 else None
-        if partner < 0:
-            # the partner limb's root: the limb whose start pairs with this one's start
-            ps = rig.partner[r["s"]]
-            for o in raw:
-                if o["s"] == ps:
-                    partner_name = names[o["root"]]
+        # the partner limb: the one whose start pairs with this one's start
+        o = by_start.get(rig.partner[r["s"]])
+        partner_name = names[o["root"]] if o is not None else None
         limbs.append(Limb(r["kind"], side, names[root], tuple(names[k] for k in r["joints"]), partner_name,
                           tuple(names[k] for k in r["det"]), round(r["conf"], 2)))
     # everything deforming that no limb holds is trunk
