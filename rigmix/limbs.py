@@ -644,7 +644,11 @@ def classify_limbs(character: Character) -> BodyPlan:
         if r["kind"] == "leg" and r in reach:
             foot = r["pts"][r["pts"][:, 1] <= ground + 0.03 * rig.height]
             if len(foot):
-                toes.append((centroid(foot)[f] - rig.P[r["root"], f]) / rig.height)
+                # the toes lie ahead of the leg's lowest joint (the ankle, or a foot bone at the
+                # heel) and of the hip (an IK foot bone at the toes hides the first)
+                ankle = min(r["joints"] + r["det"], key=lambda k: rig.P[k, 1])
+                toe = centroid(foot)[f]
+                toes.append((2 * toe - rig.P[ankle, f] - rig.P[r["root"], f]) / rig.height)
     # the feet count when at least two stand on the ground and all point the same way (a stride
     # pose puts one foot ahead and one behind)
     if len(toes) >= 2 and (all(t > 0 for t in toes) or all(t < 0 for t in toes)):

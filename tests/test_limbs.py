@@ -166,3 +166,30 @@ def test_every_corpus_character_loads_through_the_helper():
     assert len(CORPUS_CHARACTERS) == 19
     for name in CORPUS_CHARACTERS:
         assert corpus(name).exists()
+
+
+def _labels(plan):
+    return sorted((lb.kind, lb.side or "", lb.root) for lb in plan.limbs)
+
+
+@pytest.mark.parametrize("name", ["Knight", "Fox", "Wasp", "Leela", "Frog", "CesiumMan"])
+def test_sides_come_from_the_geometry(name):
+    """Reflected without swapping the names, every paired limb changes side: its name says ``.L``
+    but it now lies on the character's right."""
+    from rigmix.operations.mirror import mirror_character
+
+    flipped = classify_limbs(mirror_character(_load(name), swap_names=False))
+    swap = {"L": "R", "R": "L", "": ""}
+    assert _labels(flipped) == sorted((k, swap[s], r) for k, s, r in _labels(_plan(name)))
+
+
+@pytest.mark.parametrize("name", ["Knight", "Horse", "Velociraptor", "Stegosaurus", "Leela", "Wasp", "Witch"])
+def test_facing_comes_from_the_head_and_feet(name):
+    """Turned half a turn about +Y (two reflections), the character faces -Z: its head and feet,
+    not glTF's +Z convention, tell its left from its right. (A biped in a stride with no foot
+    bones, like CyberpunkCharacter, still falls back on +Z.)"""
+    from rigmix.operations.mirror import MirrorPlane, mirror_character
+
+    turned = mirror_character(mirror_character(_load(name), MirrorPlane(0, 0.0), swap_names=False),
+                              MirrorPlane(2, 0.0), swap_names=False)
+    assert _labels(classify_limbs(turned)) == _labels(_plan(name))
