@@ -41,6 +41,8 @@ How it works
      ``WING_FLATNESS`` of the largest, the middle one over ``WING_WIDTH`` of it); a name holding
      ``wing`` settles a borderline case.
    * *arm*: any other paired limb. Both limbs of a pair get the kind of the surer side.
+   * a pair whose skin stays inside the bounding box of the skin it hangs from (eyebrows on a
+     shell) is a feature of the body, no limb.
    * *head*: the unpaired chain whose tip skin reaches highest plus the largest tip volume
      (relative to the other chains'); a chain holding a joint named ``head`` wins within
      ``HEAD_TIE``. *tail*: a chain whose skin lies behind where the head leaves the body and
@@ -576,8 +578,16 @@ def classify_limbs(character: Character) -> BodyPlan:
         for s in starts:
             if s in rig.subtree(root) or s in det_of(rig.subtree(root)):
                 absorbed.add(s)
+    # a paired subtree whose skin stays inside the skin it hangs from (its bounding box) is a
+    # feature of the body (eyebrows on the Crab's shell), no limb; so is its mirror
+    feature = set()
     for s, root in limbs_raw:
-        if s in absorbed:
+        region = rig.region(rig.subtree(root))
+        body = rig.region([attach[s]]) if attach[s] >= 0 else np.zeros((0, 3))
+        if len(region) and len(body) and np.all(region >= body.min(axis=0)) and np.all(region <= body.max(axis=0)):
+            feature.update((s, rig.partner[s]))
+    for s, root in limbs_raw:
+        if s in absorbed or s in feature:
             continue
         joints = rig.subtree(root)
         det = [k for d, host in detached_of.items() if host == s for k in rig.subtree(d)]

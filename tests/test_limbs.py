@@ -82,10 +82,14 @@ def test_counts_per_kind(name):
 
 def test_odd_bodies():
     """The Bee and the Crab are round bodies with a face: what is head and what is body is a matter
-    of taste, so only what is not: the Bee's two wings, no legs or arms on it, one head each."""
+    of taste, so only what is not: the Bee's two wings, no legs or arms on it, one head each. The
+    Crab's claws and legs are skinned to its shell and body bones: it has no limb joints, and its
+    eyebrows (a mirror pair whose skin stays inside the shell's) are no arms."""
     bee = _plan("Bee")
     assert bee.counts["wing"] == 2 and bee.counts["leg"] == bee.counts["arm"] == 0
     assert {lb.root for lb in bee.of_kind("wing")} == {"Wing1.L", "Wing1.R"}
+    crab = _plan("Crab")
+    assert not any(lb.side for lb in crab.limbs) and {"Eyebrow.L", "Eyebrow.R"} <= set(crab.trunk)
     for name in ("Bee", "Crab", "SimpleSkin"):
         assert _plan(name).counts["head"] <= 1
 
