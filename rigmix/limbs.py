@@ -658,13 +658,16 @@ def classify_limbs(character: Character) -> BodyPlan:
                 # heel) and of the hip (an IK foot bone at the toes hides the first)
                 ankle = min(r["joints"] + r["det"], key=lambda k: rig.P[k, 1])
                 toe = centroid(foot)[f]
-                toes.append((2 * toe - rig.P[ankle, f] - rig.P[r["root"], f]) / rig.height)
+                toes.append(float((2 * toe - rig.P[ankle, f] - rig.P[r["root"], f]) / rig.height))
     # the feet count when at least two stand on the ground and all point the same way (a stride
     # pose puts one foot ahead and one behind)
     if len(toes) >= 2 and (all(t > 0 for t in toes) or all(t < 0 for t in toes)):
         vote += 0.5 * sum(toes)
     forward = np.zeros(3)
     forward[f] = 1.0 if vote >= 0 else -1.0
+    log.debug("limbs: head scores %s, facing vote %.3f (toes %s): forward %s",
+              {names[c]: round(s_, 3) for (c, _, _), s_ in zip(chains, score)}, vote,
+              [round(t, 3) for t in toes], forward)
     up = np.array([0.0, 1.0, 0.0])
     left = np.cross(up, forward)
 
