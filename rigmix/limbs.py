@@ -10,35 +10,47 @@ How it works
 1. **Deforming joints.** A joint deforms when it or a descendant carries vertex weight (or holds
    a rigid prop). The others (IK targets, pole targets, a weightless ``Gun`` socket) are
    reported in ``BodyPlan.excluded`` and take no part.
-2. **Mirror pairs.** Two joints pair when one's rest position reflected across the character's
-   symmetry plane (:func:`rigmix.operations.mirror.mirror_plane`) lands on the other, or when
-   their names differ only by side (:func:`rigmix.rig.swap_side`) and both lie off the plane.
-   A joint on the plane pairs with nothing.
-3. **Chains.** The topmost paired joints below unpaired ones start the paired limbs. A paired
-   subtree that hangs from a root (or from a root's direct child) and starts beside the tip of
-   another limb is a *detached* part of that limb (the IK feet of the Quaternius rigs, which carry
-   the foot's skin but hang from the armature root): it is reported under that limb's
-   ``detached``. The unpaired joints form the trunk, the head chain and tail chains: the trunk is
-   the part from the main root to the last unpaired branch point; each unpaired chain beyond it
-   is a head, tail or other candidate.
-4. **Where a limb starts.** Along a paired chain, clavicle, shoulder and hip joints whose skin
-   stays blended with the body (less than ``SEPARATION`` of their own weight on vertices that
-   their subtree owns) are part of the body: the limb starts at the first joint whose skin
-   separates. Along an unpaired chain the head starts after the last joint where a paired limb
-   attaches; a joint named like a neck (or ``tail`` for a tail) moves the start there when it is on
-   the chain (a tie-breaker: the geometry decides where there is no such name).
+2. **Mirror pairs.** Two deforming joints off the symmetry plane
+   (:func:`rigmix.operations.mirror.mirror_plane`), on opposite sides, are candidates when one's
+   reflected rest position lands near the other (within ``2 * PAIR_TOL`` of the width) or when
+   their names differ only by side (:func:`rigmix.rig.swap_side`; a posed rig's feet). A
+   candidate costs the reflection distance plus that of the two parents (whole chains pair with
+   the chain whose shape mirrors theirs), plus a little when the names do not pair: pairs are
+   taken by increasing cost, each joint once. Positions win over names; names break ties.
+3. **Detached parts.** Subtrees hanging from a skinless armature root (or roots of their own)
+   whose skin touches the tip of another chain, beyond that chain's end, belong to that chain's
+   limb (``Limb.detached``): the Quaternius IK feet, the Snake's head mesh on a ``Mouth`` bone.
+   "Touches" is the joint owning most of the skin next to the part's top joint
+   (:func:`_contact`, within ``CONTACT`` of the diagonal).
+4. **Trunk and chains.** The trunk runs from the main root to the last unpaired joint with two
+   heavy unpaired branches. Each unpaired chain beyond it (following its heaviest unpaired child)
+   is a head, tail or other candidate; a chain holding under 5 % of the skin is body (a belly
+   bone) unless nothing heavier leaves the trunk. The topmost paired joints start the paired
+   limbs; along a paired chain, clavicle and hip joints still blended with the body are skipped
+   (the same number of joints on both sides of a pair). An unpaired chain starts after the last
+   joint a paired limb hangs from; small paired parts starting inside the skin of the chain's
+   heaviest joint (ears on a head) belong to the chain. A joint named like a neck (``tail`` for
+   a tail) settles where it starts when the chain holds one.
 5. **Kinds**, by geometry first (+Y up, glTF's convention):
 
-   * *leg*: a paired limb whose skin reaches the ground (within ``GROUND`` of the character's
-     height above its lowest rest point). When no limb reaches the ground (a flying wasp), the
-     paired limbs that hang below the trunk are legs. A ground-reaching front pair of a
-     four-legged body is a leg unless its joint names say ``arm`` (the Fox's forelegs).
+   * *leg*: a paired limb whose skin reaches the ground (within ``GROUND`` of the height). A
+     ground-reaching pair hanging from well above the lowest-hanging pair, and above rather than
+     ahead of it, is a pair of long arms. When no limb reaches the ground (a flying wasp), the
+     paired limbs that hang down from where they start are legs.
    * *wing*: a paired limb whose skin is a thin, wide plate (smallest principal extent under
      ``WING_FLATNESS`` of the largest, the middle one over ``WING_WIDTH`` of it); a name holding
      ``wing`` settles a borderline case.
-   * *arm*: any other paired limb that hangs from the upper body.
-   * *head*: the unpaired chain with the largest skinned volume at its tip; *tail*: an unpaired
-     chain leaving the trunk away from the head; other unpaired chains are *other*.
+   * *arm*: any other paired limb. Both limbs of a pair get the kind of the surer side.
+   * a pair whose skin stays inside the bounding box of the skin it hangs from (eyebrows on a
+     shell) is a feature of the body, no limb.
+   * *head*: the unpaired chain whose tip skin reaches highest plus the largest tip volume
+     (relative to the other chains'); a chain holding a joint named ``head`` wins within
+     ``HEAD_TIE``. *tail*: a chain whose skin lies behind where the head leaves the body and
+     which does not rise more than it goes back; other chains are *other*.
+6. **Facing and sides.** Forward is the horizontal axis across the mirror plane's normal, its
+   sign voted by the head (its tip ahead of where it leaves the body, when clearly so) and the
+   feet (toes ahead of the hips, when at least two stand and agree), glTF's +Z breaking a tie.
+   A limb's side is the side of the plane its root lies on, seen facing forward.
 
 Names are only ever a tie-breaker: a rig whose bones are called ``Bone.012`` classifies the same
 way, with a lower confidence where a name would have settled a borderline case.
@@ -72,6 +84,10 @@ WING_FLATNESS = 0.12
 WING_WIDTH = 0.35
 #: two joints pair when one's reflection lands within this fraction of the character's width
 PAIR_TOL = 0.08
+#: a detached part's skin touches its host's within this fraction of the bounding-box diagonal
+CONTACT = 0.05
+#: a chain holding a joint named head wins the head over one scoring at most this much more
+HEAD_TIE = 0.3
 
 
 @dataclass(frozen=True)
@@ -201,43 +217,57 @@ class _Rig:
         return [c for c in self.children[j] if self.deforms[c]]
 
     def subtree(self, j: int) -> list[int]:
-        out = [j]
+        """The deforming joints of ``j``'s subtree (``j`` first), parents before children."""
+        out, seen = [j], {j}
         for k in range(j + 1, self.J):
-            if self.parents[k] >= 0 and self.parents[k] in out and self.deforms[k]:
+            if self.parents[k] in seen and self.deforms[k]:
                 out.append(k)
+                seen.add(k)
         return out
 
     def offset(self, j: int) -> float:
         return float(self.P[j, self.axis] - self.plane.offset)
 
     def _pairs(self) -> np.ndarray:
-        """``(J,)`` mirror partner of each deforming joint, ``-1`` for none."""
+        """``(J,)`` mirror partner of each deforming joint, ``-1`` for none.
+
+        Every two deforming joints off the plane, on opposite sides, whose reflected rest positions
+        land within ``2 * PAIR_TOL`` of the width are candidates. The cost of a candidate is the
+        distance between one joint's reflection and the other, plus the same distance for their
+        parents (so a chain pairs with the chain whose whole shape mirrors it, and a joint at the
+        same place as another, like an IK foot beside the foot bone, pairs with the joint of the
+        mirrored chain), plus a small term when the names do not differ by side only (names break
+        ties, never override positions). Pairs are taken greedily by increasing cost, each joint
+        once: a mutual-best assignment.
+        """
         partner = np.full(self.J, -1)
         tol = PAIR_TOL * self.width
-        dj = np.flatnonzero(self.deforms)
-        if not len(dj):
+        a = self.axis
+        off = self.P[:, a] - self.plane.offset
+        dj = [j for j in np.flatnonzero(self.deforms) if abs(off[j]) > tol / 4]
+        if len(dj) < 2:
             return partner
-        R = self.P[dj].copy()
-        R[:, self.axis] = 2 * self.plane.offset - R[:, self.axis]
+        R = self.P.copy()
+        R[:, a] = 2 * self.plane.offset - R[:, a]
         index = {n: i for i, n in enumerate(self.names)}
-        # by name: the side-swapped name, on the other side of the joint (not at the same place)
-        for j in dj:
-            other = index.get(swap_side(self.names[j]), -1)
-            if other >= 0 and other != j and self.deforms[other] \
-                    and abs(self.P[j, self.axis] - self.P[other, self.axis]) > tol / 2:
-                partner[j] = other
-        # by position: mutual nearest reflections, off the plane
-        free = [i for i, j in enumerate(dj) if partner[j] < 0 and abs(self.offset(j)) > tol / 4]
-        near = {}
-        for i in free:
-            d = np.linalg.norm(self.P[dj] - R[i], axis=1)
-            d[i] = np.inf
-            k = int(np.argmin(d))
-            if d[k] <= 2 * tol:
-                near[dj[i]] = dj[k]
-        for j, k in near.items():
-            if near.get(k) == j and partner[k] < 0:
-                partner[j] = k
+        dj = np.asarray(dj)
+        D = np.linalg.norm(R[dj][:, None, :] - self.P[dj][None, :, :], axis=2)
+        cands = []
+        for x, i in enumerate(dj):
+            named = index.get(swap_side(self.names[i]), -1)
+            for y in np.flatnonzero((D[x] <= 2 * tol) | (dj == named)):
+                k = int(dj[y])
+                if k <= i or off[i] * off[k] >= 0:
+                    continue
+                pi, pk = self.parents[i], self.parents[k]
+                if pi >= 0 and pk >= 0:
+                    dp = 0.0 if pi == pk else float(np.linalg.norm(R[pi] - self.P[pk]))
+                else:
+                    dp = 0.0 if pi == pk else tol
+                cands.append((float(D[x, y]) + min(dp, 2 * tol) + (0.0 if named == k else 0.05 * tol), int(i), k))
+        for _, i, k in sorted(cands):
+            if partner[i] < 0 and partner[k] < 0:
+                partner[i], partner[k] = k, i
         return partner
 
     def region(self, joints) -> np.ndarray:
@@ -253,6 +283,31 @@ class _Rig:
         sub = self.subtree(j)
         w = self.W[:, j]
         return float((w * self.W[:, sub].sum(axis=1)).sum() / w.sum())
+
+
+def _contact(rig: _Rig, own: set, top: int) -> int:
+    """The joint outside ``own`` that owns most of the skin next to ``top``'s skin (``-1``: none).
+
+    Each vertex owned by ``top`` (a joint of ``own``) votes for the owner of its nearest vertex owned elsewhere, when
+    that vertex lies within ``CONTACT`` of the bounding-box diagonal; a subtree with no skin, or
+    touching nothing, falls back to the joint nearest its top joint.
+    """
+    mine = np.isin(rig.owner, list(own)) if len(rig.V) else np.zeros(0, dtype=bool)
+    voters = rig.owner == top if len(rig.V) else mine
+    if voters.any() and (~mine).any():
+        from scipy.spatial import cKDTree
+
+        others = np.flatnonzero(~mine)
+        d, i = cKDTree(rig.V[others]).query(rig.V[voters])
+        near = d <= CONTACT * float(np.linalg.norm(rig.hi - rig.lo))
+        if near.any():
+            votes = np.bincount(rig.owner[others[i[near]]], minlength=rig.J)
+            return int(np.argmax(votes))
+    cand = [k for k in np.flatnonzero(rig.deforms) if k not in own]
+    if not cand:
+        return -1
+    return int(cand[int(np.argmin(np.linalg.norm(rig.P[cand] - rig.P[top], axis=1)))])
+
 
 
 def _main_chain(rig: _Rig, j: int) -> list[int]:
@@ -272,14 +327,14 @@ def _lateral(rig: _Rig, j: int, k: int) -> bool:
 
 
 def _limb_root(rig: _Rig, chain: list[int]) -> int:
-    """Where a paired chain leaves the body: past a clavicle (a bone across the body before the
-    chain turns) and past a hip whose skin stays blended with the body behind it."""
+    """How many joints along a paired chain the limb starts: past a clavicle (a bone across the
+    body before the chain turns) and past a hip whose skin stays blended with the body behind it."""
     i = 0
     if len(chain) >= 3 and _lateral(rig, chain[0], chain[1]) and not _lateral(rig, chain[1], chain[2]):
         i = 1
         if len(chain) >= 4 and rig.separation(chain[1]) < 0.7 <= rig.separation(chain[2]):
             i = 2
-    return chain[i]
+    return i
 
 
 def _flat_wide(pts: np.ndarray) -> tuple[bool, float]:
@@ -332,41 +387,50 @@ def classify_limbs(character: Character) -> BodyPlan:
         for k in rig.subtree(s):
             in_start[k] = s
 
-    def leaves_of(s):
-        return [k for k in rig.subtree(s) if not rig.dchildren(k)]
-
-    # 2. detached parts: a paired subtree hanging from a root (or a root's child) that starts
-    #    beside a leaf of another paired subtree
-    detached_of: dict[int, int] = {}
-    rootish = [s for s in starts if rig.parents[s] < 0 or rig.parents[rig.parents[s]] < 0]
-    loose = {k for s in rootish for k in rig.subtree(s)}
-    for s in starts:
-        p = rig.parents[s]
-        if p >= 0 and rig.parents[p] >= 0:
-            continue
-        ancestors = set()
-        a = p
-        while a >= 0:
-            ancestors.add(a)
-            a = rig.parents[a]
-        own = set(rig.subtree(s))
-        cand = [k for k in range(rig.J) if rig.deforms[k] and k not in own and k not in ancestors
-                and (k not in loose or in_start.get(k) in detached_of.values())]
-        if not cand:
-            continue
-        d = np.linalg.norm(rig.P[cand] - rig.P[s], axis=1)
-        k = cand[int(np.argmin(d))]
-        host = in_start.get(k)
-        if host is not None and host != s and k in leaves_of(host) and host not in detached_of:
-            detached_of[s] = host
-    # unpaired detached parts: an unpaired subtree hanging from a root that starts beside the tip of
-    # the deepest unpaired chain (the Snake's head mesh on a Mouth bone under the root)
-    unpaired_detached: dict[int, int] = {}
-
-    # 3. unpaired structure
-    unp = [j for j in range(rig.J) if rig.deforms[j] and not paired[j]]
+    # 2. the main root, its hub (the joints below it that carry no skin and hold one branch) and
+    #    the loose subtrees: the hub's other branches and the other roots
     main_root = max(roots, key=lambda r: rig.subtree_mass[r])
     total = rig.subtree_mass[main_root]
+    hub = main_root
+    while rig.mass[hub] <= 0.01 * total and len(rig.dchildren(hub)) == 1:
+        hub = rig.dchildren(hub)[0]
+    loose = [r for r in roots if r != main_root]
+    if rig.mass[hub] <= 0.01 * total:
+        loose += rig.dchildren(hub)
+    # a loose subtree is a detached part of the chain whose tip its skin touches: the IK feet of
+    # the Quaternius rigs that carry the foot's skin but hang from the armature root, the Snake's
+    # head mesh on a Mouth bone under the root. Its host is the joint outside it owning most of
+    # the skin next to its own; the host must be a tip (a leaf, or a joint whose children are all
+    # leaves) below the top of its own subtree (so a body never hangs from the feet it touches),
+    # and the part must lie beyond the host (a thigh touching a hanging hand is no detached part).
+    detached_of: dict[int, int] = {}  # detached top -> start of the paired subtree it joins
+    unpaired_detached: dict[int, int] = {}  # detached top -> unpaired host joint
+    start_set = set(starts)
+    loose_top = {}
+    for x in loose:
+        for k in rig.subtree(x):
+            loose_top[k] = x
+    for x in loose:
+        own = rig.subtree(x)
+        if any(s != x and s in start_set for s in own):
+            continue  # it has limbs of its own: a body, not a part
+        top = next((k for k in own if rig.mass[k] > 0), x)
+        t = _contact(rig, set(own), top)
+        if t < 0 or loose_top.get(t) == t:
+            continue
+        kids = rig.dchildren(t)
+        if any(rig.dchildren(c) for c in kids):
+            continue
+        # and it lies beyond the host, seen from where the host's chain starts
+        origin = rig.P[in_start.get(t, main_root)]
+        if np.linalg.norm(rig.P[top] - origin) < 0.8 * np.linalg.norm(rig.P[t] - origin):
+            continue
+        if t in in_start and in_start[t] != x:
+            detached_of[x] = in_start[t]
+        else:
+            unpaired_detached[x] = t
+
+    # 3. unpaired structure
 
     def unp_children(j):
         return [c for c in rig.dchildren(j) if not paired[c]]
@@ -374,30 +438,19 @@ def classify_limbs(character: Character) -> BodyPlan:
     def heavy(c):
         return rig.subtree_mass[c] >= 0.05 * total
 
-    for r in roots:
-        for c in [r] + unp_children(r):
-            if paired[c] or c == main_root or (c != r and heavy(c) and r != main_root):
-                continue
-            if c != r and c in unp_children(main_root):
-                own = set(rig.subtree(c))
-                cand = [k for k in unp if k not in own and k != r and rig.parents[k] >= 0]
-                if not cand:
-                    continue
-                d = np.linalg.norm(rig.P[cand] - rig.P[c], axis=1)
-                k = cand[int(np.argmin(d))]
-                if not unp_children(k) and k not in own:
-                    unpaired_detached[c] = k
+    skip = set(detached_of) | set(unpaired_detached)
+
     # trunk: from the main root to its last unpaired branch point with two heavy unpaired branches
     trunk = [main_root]
     j = main_root
     while True:
-        kids = [c for c in unp_children(j) if c not in unpaired_detached]
+        kids = [c for c in unp_children(j) if c not in skip]
         heavy_kids = [c for c in kids if heavy(c)]
         if len(heavy_kids) >= 2 or not kids:
             break
         # descend only while something further down branches
         below = [k for k in rig.subtree(kids[0])
-                 if len([c for c in unp_children(k) if heavy(c)]) >= 2]
+                 if len([c for c in unp_children(k) if heavy(c) and c not in skip]) >= 2]
         if not below:
             break
         j = max(kids, key=lambda c: rig.subtree_mass[c])
@@ -405,7 +458,7 @@ def classify_limbs(character: Character) -> BodyPlan:
     # walk the heavy branch points below too: the trunk is every unpaired joint with >= 2 heavy
     # unpaired branches below the main root, and the path to it
     branch = [k for k in rig.subtree(main_root) if not paired[k]
-              and len([c for c in unp_children(k) if heavy(c) and c not in unpaired_detached]) >= 2]
+              and len([c for c in unp_children(k) if heavy(c) and c not in skip]) >= 2]
     trunk_set = set(trunk)
     for b in branch:
         a = b
@@ -416,164 +469,235 @@ def classify_limbs(character: Character) -> BodyPlan:
     chain_starts = []
     for t in sorted(trunk_set):
         for c in unp_children(t):
-            if c not in trunk_set and c not in unpaired_detached:
+            if c not in trunk_set and c not in skip:
                 chain_starts.append(c)
     for r in roots:
-        if r != main_root and not paired[r] and r not in unpaired_detached:
+        if r != main_root and not paired[r] and r not in skip:
             chain_starts.append(r)
 
     # 4. limb roots of paired subtrees: skip clavicle/hip joints still blended with the body
     attach = {}  # paired start -> joint it hangs from
     limbs_raw = []  # (start, root)
+    depth = {}
     for s in starts:
-        if s in detached_of:
+        if s not in skip:
+            depth[s] = _limb_root(rig, _main_chain(rig, s))
+    for s in starts:
+        if s in skip:
             continue
         chain = _main_chain(rig, s)
-        root = _limb_root(rig, chain)
+        # a mirror pair starts at the same depth along its chains (the shallower of the two)
+        i = min(depth[s], depth.get(rig.partner[s], depth[s]))
         attach[s] = rig.parents[s]
-        limbs_raw.append((s, root))
+        limbs_raw.append((s, chain[min(i, len(chain) - 1)]))
+    attach_points = {a for a in attach.values() if a >= 0}
+    hanging = {a: sum(rig.subtree_mass[s] for s, p in attach.items() if p == a) for a in attach_points}
 
-    # which paired subtrees hang inside an unpaired chain's tip part: decided after the chain roots
+    def det_of(joints):
+        """The detached parts hanging from ``joints`` (and from the parts themselves)."""
+        out, todo = [], set(joints)
+        grew = True
+        while grew:
+            grew = False
+            for d, host in unpaired_detached.items():
+                if host in todo and d not in todo:
+                    sub = rig.subtree(d)
+                    out += sub
+                    todo.update(sub)
+                    grew = True
+        return out
+
+    # unpaired chains: the path follows the heaviest unpaired child. A chain carrying little skin
+    # (under 5 % of the body: a belly or rump bone) is body, unless the body has no heavier chain.
     chains = []
     for c in chain_starts:
-        path = _main_chain(rig, c)
-        path = [k for k in path if not paired[k]]
-        chains.append((c, path))
-
-    # paired limbs attached along each unpaired chain
-    attach_points = {a for a in attach.values() if a >= 0}
+        path = [c]
+        while True:
+            kids = [k for k in unp_children(path[-1]) if k not in skip]
+            if not kids:
+                break
+            path.append(max(kids, key=lambda k: rig.subtree_mass[k]))
+        mass = rig.subtree_mass[c] + sum(rig.subtree_mass[d] for d in det_of(rig.subtree(c)) if d in unpaired_detached)
+        chains.append((c, path, mass))
+    if any(m >= 0.05 * total for _, _, m in chains):
+        chains = [t for t in chains if t[2] >= 0.05 * total]
 
     def chain_root(path, tail_like):
+        """Where an unpaired chain leaves the body: after the last joint a paired limb hangs from
+        (paired parts starting inside the skin of the chain's heaviest joint and lighter than it,
+        ears on a head, belong to the chain); a joint named like a neck (a tail) settles it when
+        the chain holds one."""
+        bulk = path[int(np.argmax(rig.mass[path]))]
+        box = rig.region([bulk])
+        lo, hi = (box.min(axis=0), box.max(axis=0)) if len(box) else (rig.P[bulk], rig.P[bulk])
+
+        def accessory(a):
+            inside = all(np.all((rig.P[s] >= lo) & (rig.P[s] <= hi)) for s, p in attach.items() if p == a)
+            return inside and hanging[a] < rig.mass[bulk]
+
         last = -1
         for i, k in enumerate(path):
-            if k in attach_points:
+            if k in attach_points and not accessory(k):
                 last = i
         geo = path[min(last + 1, len(path) - 1)]
         pat = _TAIL if tail_like else _NECK
         named = [k for k in path if pat.search(names[k])]
-        if named:
-            return named[0], True
-        return geo, False
+        return (named[0], True) if named else (geo, False)
 
-    # forward: from the trunk centre towards the heaviest-tipped chain, decided below
-    def tip_volume(path, c):
-        tip = path[-1]
-        joints = [k for k in rig.subtree(path[-1])]
-        for d, host in unpaired_detached.items():
-            if host in path or host in joints:
-                joints += rig.subtree(d)
-        vol = _hull_volume(rig.region(joints))
-        return vol if vol > 0 else float(rig.subtree_mass[tip])
+    def tip_region(path):
+        joints = rig.subtree(path[-1])
+        joints = joints + det_of(joints)
+        pts = rig.region(joints)
+        return pts if len(pts) else rig.P[joints]
 
-    trunk_centre = rig.P[sorted(trunk_set)].mean(axis=0)
-    up = np.array([0.0, 1.0, 0.0])
-    scored = [(tip_volume(path, c), c, path) for c, path in chains]
+    # 5. the head: the unpaired chain whose tip's skin reaches highest (a fraction of the height)
+    #    plus its tip's size (a fraction of the largest tip's); a chain holding a joint named head
+    #    wins within HEAD_TIE (the name only breaks a near tie)
+    tops = [float(tip_region(path)[:, 1].max() - rig.lo[1]) / rig.height for _, path, _ in chains]
+    vols = [_hull_volume(tip_region(path)) ** (1 / 3) for _, path, _ in chains]
+    score = [t + v / (max(vols) or 1.0) for t, v in zip(tops, vols)]
     head = None
-    if scored:
-        vols = sorted((v for v, _, _ in scored), reverse=True)
-        best = max(scored, key=lambda t: (t[0], any(re.search("head", names[k], re.I) for k in t[2])))
-        # name tie-breaker: a chain holding a joint named head wins when within 30 %
-        for v, c, path in scored:
-            if v >= 0.7 * best[0] and any(re.search("head", names[k], re.I) for k in path) \
-                    and not any(re.search("head", names[k], re.I) for k in best[2]):
-                best = (v, c, path)
+    head_conf = 0.5
+    if chains:
+        order_ = sorted(range(len(chains)), key=lambda i: -score[i])
+        best = order_[0]
+        for i in order_[1:]:
+            if score[i] >= score[best] - HEAD_TIE and any(re.search("head", names[k], re.I) for k in chains[i][1]) \
+                    and not any(re.search("head", names[k], re.I) for k in chains[best][1]):
+                best = i
         head = best
-        second = vols[1] if len(vols) > 1 else 0.0
-        head_conf = float(np.clip(0.5 + 0.5 * (1 - second / best[0]) if best[0] > 0 else 0.5, 0.5, 1.0))
-    forward = np.array([0.0, 0.0, 1.0])
-    if head is not None:
-        hp = rig.P[head[2][-1]] - trunk_centre
-        hp[1] = 0.0
-        hp[rig.axis] = 0.0
-        if np.linalg.norm(hp) > 0.1 * rig.height:
-            forward = hp / np.linalg.norm(hp)
-    left = np.cross(up, forward)
-    if np.linalg.norm(left) < 1e-9:
-        left = np.eye(3)[rig.axis]
-    left = left / np.linalg.norm(left)
+        second = max((score[i] for i in order_ if i != best), default=0.0)
+        head_conf = float(np.clip(0.5 + (score[best] - second) / 2, 0.5, 1.0))
 
-    limbs: list[Limb] = []
-    absorbed_starts = set()
-    # unpaired chains -> head / tail / other
-    head_region_joints = set()
-    for v, c, path in scored:
-        tip = path[-1]
-        direction = rig.P[tip] - rig.P[c]
-        if head is not None and c == head[1]:
-            kind, conf = "head", head_conf
-        elif head is not None and np.dot(direction, forward) < 0 and np.dot(rig.P[tip] - trunk_centre, forward) < 0:
-            kind = "tail"
-            conf = 0.9 if any(_TAIL.search(names[k]) for k in path) else 0.7
-        else:
-            kind, conf = "other", 0.5
-        root, named = chain_root(path, kind == "tail")
-        if root not in path:
-            root = c
-        # the chain joints before the root are body
-        for k in path[:path.index(root)]:
-            trunk_set.add(k)
-        joints = rig.subtree(root)
-        det = []
-        for d, host in unpaired_detached.items():
-            if host in joints:
-                det += rig.subtree(d)
-        if kind in ("head", "tail", "other"):
-            head_region_joints.update(joints)
-        # paired subtrees inside the chain (ears on a head) belong to it
-        for s in starts:
-            if s in joints:
-                absorbed_starts.add(s)
-        limbs.append(Limb(kind, None, names[root], tuple(names[k] for k in joints), None,
-                          tuple(names[k] for k in det), round(conf, 2)))
-
-    # paired limbs
+    # 6. paired limbs: reach the ground, flat and wide, hang below
     ground = rig.lo[1]
     raw = []
+    absorbed = set()
+    for c, path, _ in chains:
+        root, _ = chain_root(path, False)
+        for s in starts:
+            if s in rig.subtree(root) or s in det_of(rig.subtree(root)):
+                absorbed.add(s)
+    # a paired subtree whose skin stays inside the skin it hangs from (its bounding box) is a
+    # feature of the body (eyebrows on the Crab's shell), no limb; so is its mirror
+    feature = set()
     for s, root in limbs_raw:
-        if s in absorbed_starts:
+        region = rig.region(rig.subtree(root))
+        body = rig.region([attach[s]]) if attach[s] >= 0 else np.zeros((0, 3))
+        if len(region) and len(body) and np.all(region >= body.min(axis=0)) and np.all(region <= body.max(axis=0)):
+            feature.update((s, rig.partner[s]))
+    for s, root in limbs_raw:
+        if s in absorbed or s in feature:
             continue
         joints = rig.subtree(root)
         det = [k for d, host in detached_of.items() if host == s for k in rig.subtree(d)]
-        pts = np.concatenate([rig.region(joints + det), rig.P[joints + det]])
+        det += det_of(joints + det)
+        region = rig.region(joints + det)
+        pts = np.concatenate([region, rig.P[joints + det]])
         low = float(pts[:, 1].min())
-        flat, flatness = _flat_wide(rig.region(joints + det))
+        flat, flatness = _flat_wide(region)
         raw.append(dict(s=s, root=root, joints=joints, det=det, low=low, flat=flat, flatness=flatness,
-                        pos=rig.P[root]))
+                        region=region, pts=pts))
     reach = [r for r in raw if r["low"] - ground <= GROUND * rig.height]
-    trunk_y = float(rig.P[sorted(trunk_set)][:, 1].mean())
     for r in raw:
         nm = " ".join(names[k] for k in r["joints"] + r["det"])
         winged = bool(_WING.search(nm))
         above = (r["low"] - ground) / rig.height
+        hangs = r["low"] < rig.P[r["s"], 1] - 0.05 * rig.height
         if r in reach:
             kind = "leg"
             conf = float(np.clip(1 - above / GROUND * 0.5, 0.5, 1.0))
         elif r["flat"] or (winged and r["flatness"] < 2 * WING_FLATNESS):
             kind, conf = "wing", (0.9 if winged or r["flat"] else 0.6)
-        elif not reach and r["low"] < trunk_y and not _ARM.search(nm):
+        elif not reach and hangs and not _ARM.search(nm):
             kind, conf = "leg", 0.6  # hangs below a body that stands on nothing (flying)
         else:
             kind, conf = "arm", 0.8 if _ARM.search(nm) or not _LEG.search(nm) else 0.6
         r["kind"], r["conf"] = kind, conf
-    # a four-legged body: its front ground pair is a leg unless its names say arm
-    legs = [r for r in raw if r["kind"] == "leg" and r in reach]
-    if len(legs) >= 4:
-        for r in legs:
-            nm = " ".join(names[k] for k in r["joints"])
-            if _ARM.search(nm) and not _LEG.search(nm):
+    # of the limbs on the ground, a pair hanging from well above the lowest-hanging pair (by half
+    # the hip height), and above it rather than ahead of it, is a pair of long arms (a chibi's),
+    # not a second pair of legs
+    f = 2 if rig.axis != 2 else 0
+    if reach:
+        base = min(reach, key=lambda r: rig.P[r["s"], 1])
+        for r in reach:
+            gap = rig.P[r["s"], 1] - rig.P[base["s"], 1]
+            if gap > 0.5 * (rig.P[base["s"], 1] - ground) and gap > abs(rig.P[r["s"], f] - rig.P[base["s"], f]):
                 r["kind"], r["conf"] = "arm", 0.6
+
+    # a mirror pair is one kind: where the two sides disagree, the surer side decides
+    by_start = {r["s"]: r for r in raw}
+    for r in raw:
+        o = by_start.get(rig.partner[r["s"]])
+        if o is not None and o["kind"] != r["kind"]:
+            sure = max((r, o), key=lambda x: (x["conf"], -x["s"]))
+            for x in (r, o):
+                x["kind"], x["conf"] = sure["kind"], min(r["conf"], o["conf"])
+
+    # 7. facing: the horizontal axis across the mirror plane's normal; its sign by the head (its
+    #    tip ahead of where it leaves the body) and the feet (toes ahead of the hips); glTF's +Z
+    #    breaks a tie
+    vote = 0.02 if f == 2 else 0.0
+
+    def centroid(pts):
+        return pts.mean(axis=0)
+
+    head_base = -1
+    if head is not None:
+        c, path, _ = chains[head]
+        base = head_base = rig.parents[c] if rig.parents[c] >= 0 else c
+        ahead = (centroid(tip_region(path))[f] - rig.P[base, f]) / rig.height
+        if abs(ahead) > 0.1:  # a head above its neck (a biped's) says nothing
+            vote += ahead
+    toes = []
+    for r in raw:
+        if r["kind"] == "leg" and r in reach:
+            foot = r["pts"][r["pts"][:, 1] <= ground + 0.03 * rig.height]
+            if len(foot):
+                # the toes lie ahead of the leg's lowest joint (the ankle, or a foot bone at the
+                # heel) and of the hip (an IK foot bone at the toes hides the first)
+                ankle = min(r["joints"] + r["det"], key=lambda k: rig.P[k, 1])
+                toe = centroid(foot)[f]
+                toes.append(float((2 * toe - rig.P[ankle, f] - rig.P[r["root"], f]) / rig.height))
+    # the feet count when at least two stand on the ground and all point the same way (a stride
+    # pose puts one foot ahead and one behind)
+    if len(toes) >= 2 and (all(t > 0 for t in toes) or all(t < 0 for t in toes)):
+        vote += 0.5 * sum(toes)
+    forward = np.zeros(3)
+    forward[f] = 1.0 if vote >= 0 else -1.0
+    log.debug("limbs: head scores %s, facing vote %.3f (toes %s): forward %s",
+              {names[c]: round(s_, 3) for (c, _, _), s_ in zip(chains, score)}, vote,
+              [round(t, 3) for t in toes], forward)
+    up = np.array([0.0, 1.0, 0.0])
+    left = np.cross(up, forward)
+
+    limbs: list[Limb] = []
+    for i, (c, path, _) in enumerate(chains):
+        if i == head:
+            kind, conf = "head", head_conf
+        else:
+            # a tail: its skin lies behind where the head leaves the body, and it does not rise
+            # more than it goes back (the Wasp's abdomen hangs down, behind the neck)
+            region = rig.region(rig.subtree(c))
+            mid = centroid(region if len(region) else rig.P[path])
+            d = mid - rig.P[c]
+            behind = head is not None and np.dot(mid - rig.P[head_base], forward) < 0
+            if behind and -np.dot(d, forward) > d[1]:
+                kind = "tail"
+                conf = 0.9 if any(_TAIL.search(names[k]) for k in path) else 0.7
+            else:
+                kind, conf = "other", 0.5
+        root, _ = chain_root(path, kind == "tail")
+        joints = rig.subtree(root)
+        det = det_of(joints)
+        limbs.append(Limb(kind, None, names[root], tuple(names[k] for k in joints), None,
+                          tuple(names[k] for k in det), round(conf, 2)))
     for r in raw:
         root = r["root"]
-        side_val = float(np.dot(rig.P[root] - trunk_centre, left))
-        side = "L" if side_val > 0 else "R"
-        partner = rig.partner[root]
-        partner_name = names[partner] if partner >= 0 else None
-        if partner < 0:
-            # the partner limb's root: the limb whose start pairs with this one's start
-            ps = rig.partner[r["s"]]
-            for o in raw:
-                if o["s"] == ps:
-                    partner_name = names[o["root"]]
+        side = "L" if (rig.P[root, rig.axis] - rig.plane.offset) * left[rig.axis] > 0 else "R"
+        # the partner limb: the one whose start pairs with this one's start
+        o = by_start.get(rig.partner[r["s"]])
+        partner_name = names[o["root"]] if o is not None else None
         limbs.append(Limb(r["kind"], side, names[root], tuple(names[k] for k in r["joints"]), partner_name,
                           tuple(names[k] for k in r["det"]), round(r["conf"], 2)))
     # everything deforming that no limb holds is trunk
