@@ -3,8 +3,7 @@ r"""Summaries for people: a character (``rigmix inspect``) and a composition (``
 :func:`describe` gives a character's summary as plain values (the ``--json`` output of
 ``rigmix inspect``), :func:`format_description` the text report made from them, and
 :func:`format_composition` the line ``rigmix compose`` prints once its files are written. The
-command line and the demo print these; they read objects in memory only, never a file, and
-depend on nothing but numpy.
+command line and the demo print these; they read objects in memory only, never a file.
 
 :func:`describe`'s keys
 -----------------------
@@ -20,8 +19,10 @@ of non-zero weights on one vertex, 0 if unskinned), ``slots`` (joint slots per v
 ``vertices``, ``faces``, ``material``), ``materials`` (``index``, ``name``, ``base_color``,
 ``metallic``, ``roughness``, ``texture``: null or ``name``, ``mime_type``, ``bytes``),
 ``clips`` (``name``, ``start``, ``end``, ``duration`` in seconds, ``channels``, ``paths``
-(path -> channel count), ``interpolations`` (sorted)), ``warnings`` (the defects repaired on
-load, one string each).
+(path -> channel count), ``interpolations`` (sorted)), ``limbs`` (:func:`rigmix.limbs.limbs_summary`:
+``kind`` (arm, leg, head, tail, wing or other), ``side``, ``root``, ``joints``, ``chain``,
+``partner``, ``detached``, ``confidence``; empty without a skin), ``warnings`` (the defects
+repaired on load, one string each).
 
 Every string taken from a file (names, paths, MIME types, warnings) goes through
 :func:`printable`: control characters and bidirectional overrides are shown escaped (``\x1b``,
@@ -189,8 +190,23 @@ def describe(character, path=None) -> dict:
         "props": props,
         "materials": materials,
         "clips": clips,
+        "limbs": _limbs(character),
         "warnings": [printable(w) for w in character.warnings],
     }
+
+
+def _limbs(character) -> list:
+    """The limbs :mod:`rigmix.limbs` finds on a skinned character, names escaped (none without a skin)."""
+    if not character.skinned:
+        return []
+    from .limbs import limbs_summary  # scipy and the mirror plane: loaded only when a skin is described
+
+    def clean(v):
+        if isinstance(v, str):
+            return printable(v)
+        return [clean(x) for x in v] if isinstance(v, list) else v
+
+    return [{k: clean(v) for k, v in row.items()} for row in limbs_summary(character)]
 
 
 def _vec(v):
@@ -261,6 +277,13 @@ def format_description(d: dict) -> str:
         paths = ", ".join(f"{k} {v}" for k, v in cl["paths"].items())
         lines.append(f"  '{cl['name']}': {cl['duration']:.4g} s, {cl['channels']} channels ({paths}), "
                      f"{'/'.join(cl['interpolations'])}")
+
+    limbs = d.get("limbs", [])
+    lines.append(f"limbs ({len(limbs)}):" if limbs else "limbs: none")
+    for lb in limbs:
+        side = f" {lb['side']}" if lb["side"] else ""
+        partner = f", mirror of '{lb['partner']}'" if lb["partner"] else ""
+        lines.append(f"  {lb['kind']}{side}: '{lb['root']}' ({lb['joints']} joints{partner})")
 
     lines.append(f"repaired defects ({len(d['warnings'])}):" if d["warnings"] else "repaired defects: none")
     lines += [f"  {w}" for w in d["warnings"]]

@@ -197,3 +197,20 @@ def test_facing_comes_from_the_head_and_feet(name):
     turned = mirror_character(mirror_character(_load(name), MirrorPlane(0, 0.0), swap_names=False),
                               MirrorPlane(2, 0.0), swap_names=False)
     assert _labels(classify_limbs(turned)) == _labels(_plan(name))
+
+
+def test_inspect_shows_the_limbs(capsys):
+    """``rigmix inspect`` lists the limbs (text and ``--json``), from the same classifier."""
+    import json
+
+    from rigmix.cli import main
+
+    path = str(asset("Horse"))
+    assert main(["inspect", path, "--json"]) == 0
+    limbs = json.loads(capsys.readouterr().out)["limbs"]
+    kinds = sorted(lb["kind"] for lb in limbs)
+    assert kinds == ["head", "leg", "leg", "leg", "leg", "tail"], kinds
+    assert {lb["root"]: lb["partner"] for lb in limbs if lb["kind"] == "leg"}["FrontUpperLeg.L"] == "FrontUpperLeg.R"
+    assert main(["inspect", path]) == 0
+    text = capsys.readouterr().out
+    assert "limbs (6):" in text and "leg L: 'FrontUpperLeg.L'" in text
