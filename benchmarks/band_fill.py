@@ -14,8 +14,9 @@ Protocol, per character (all its skinned meshes concatenated into one ``(V, F, W
 Methods: ``nearest``, ``harmonic``, ``inpaint`` (the paper's post-smoothing, 10 iterations),
 ``inpaint-anchor`` (no post-smoothing: the protocol of the issue's anchor figures) and ``dfd``
 (with the character's distilled DFD feature field, cached on disk, and its bind-pose joint
-positions, names and parents for the joint mirror and the bone prior). Nothing of the hidden band reaches any method: the
-weights passed for band vertices are zeros, and every method reads known rows only.
+positions, names and parents for the joint mirror and the bone prior). Nothing of the hidden
+band reaches any method: the weights passed for band vertices are zeros, and every method
+reads known rows only.
 
 Writes ``benchmarks/results/band_fill.json`` and ``band_fill.md``.
 Usage: ``python -m benchmarks.band_fill [CHARACTER ...]``.

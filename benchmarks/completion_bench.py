@@ -65,7 +65,8 @@ def characters():
     from conftest import ASSETS, CHARACTERS
 
     if all((ASSETS / CHARACTERS[n]).exists() for n in ("Horse", "Knight")):
-        config, label = ROOT / "tests" / "configs" / "centaur.toml", "Horse + Knight centaur (tests/configs/centaur.toml)"
+        config = ROOT / "tests" / "configs" / "centaur.toml"
+        label = "Horse + Knight centaur (tests/configs/centaur.toml)"
     else:
         config, label = ROOT / "examples" / "centaur.toml", "built-in centaur (examples/centaur.toml)"
     comp = rigmix.compose(config, until="mapping")

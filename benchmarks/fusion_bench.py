@@ -62,7 +62,9 @@ def _row(name, rep, seconds, extra=None):
         "junction_faces": m["junction_faces"],
         "junction_boundary_edges": m["junction_boundary_edges"],
         "new_non_manifold_edges": m["new_non_manifold_edges"],
-        "junction_min_angle_p05": None if m["junction_min_angle_p05"] is None else round(m["junction_min_angle_p05"], 2),
+        "junction_min_angle_p05": (
+            None if m["junction_min_angle_p05"] is None else round(m["junction_min_angle_p05"], 2)
+        ),
         "junction_self_intersections": m.get("junction_self_intersections"),
         "stages": rep["timings"],
     }
@@ -143,14 +145,16 @@ def main():
         "that can be preserved) and by default (`default`: the junction faces both inputs share are copied).",
         "",
         "| case | fusion s | voxels | voxel | junction faces | gap edges | new non-manifold | min angle p05 "
-        "| crossing pairs | Hausdorff % | preserved | presence 1 | default s | default Hausdorff % | default preserved |",
+        "| crossing pairs | Hausdorff % | preserved | presence 1 | default s | default Hausdorff % "
+        "| default preserved |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         lines.append(
             f"| {r['case']} | {r['fusion_s']} | {r['voxels']} | {r['voxel_size']:.4g} | {r['junction_faces']} | "
             f"{r['junction_boundary_edges']} | {r['new_non_manifold_edges']} | {r['junction_min_angle_p05']} | "
-            f"{r['junction_self_intersections']} | {r.get('hausdorff_pct', '')} | {r.get('faces_preserved', '')} | {r.get('presence_one', '')} | "
+            f"{r['junction_self_intersections']} | {r.get('hausdorff_pct', '')} | "
+            f"{r.get('faces_preserved', '')} | {r.get('presence_one', '')} | "
             f"{r.get('default_s', '')} | {r.get('default_hausdorff_pct', '')} | "
             f"{r.get('default_faces_preserved', '')} |"
         )

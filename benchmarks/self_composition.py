@@ -531,10 +531,10 @@ def main(argv=None) -> int:
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "self_composition.json").write_text(json.dumps(result, indent=2) + "\n")
     lines = ["# Self-composition: junction weights against the original (issue 6)", "",
-             "Weight error: L1 over output joints at junction vertices (mean / max) against the original weights at the "
-             "closest original point cut to 4 influences (JSON `full_truth`: uncut). Skinned error: max over all "
-             "vertices, frames (30 fps) and clips, % of the bounding-box diagonal. Stretch: junction stretch ratio. "
-             "`dfd_no_field`: dfd with `feature_field = false` (no distilled DFD field)."]
+             "Weight error: L1 over output joints at junction vertices (mean / max) against the original weights "
+             "at the closest original point cut to 4 influences (JSON `full_truth`: uncut). Skinned error: max "
+             "over all vertices, frames (30 fps) and clips, % of the bounding-box diagonal. Stretch: junction "
+             "stretch ratio. `dfd_no_field`: dfd with `feature_field = false` (no distilled DFD field)."]
     for p in protocols:
         acc = result["protocols"][p]["acceptance"]
         if p == "identity":

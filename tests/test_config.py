@@ -114,7 +114,8 @@ score = "prototype"
 
 def test_config_built_in_code_equals_loaded(tmp_path):
     (tmp_path / "a.glb").write_bytes(b"")
-    p = write(tmp_path, '[characters.a]\npath = "a.glb"\n[[actions]]\nop = "remove"\ntarget = "a"\ntarget_joint = "j"\n')
+    p = write(tmp_path, '[characters.a]\npath = "a.glb"\n'
+                        '[[actions]]\nop = "remove"\ntarget = "a"\ntarget_joint = "j"\n')
     loaded = load_config(p)
     built = Config(characters={"a": {"path": "a.glb"}}, actions=[{"op": "remove", "target": "a", "target_joint": "j"}])
     assert built.model_dump() == loaded.model_dump()
@@ -213,7 +214,7 @@ def test_cli_bad_configs_fail_with_one_line_and_no_output(capsys, name, words):
     assert main(["map", str(path)]) == 2
     cap = capsys.readouterr()
     assert cap.out == ""
-    err = [l for l in cap.err.splitlines() if l.startswith("rigmix: error:")]
+    err = [line for line in cap.err.splitlines() if line.startswith("rigmix: error:")]
     assert len(err) == 1 and f"{name}.toml" in err[0]
     for w in words:
         assert w in err[0]

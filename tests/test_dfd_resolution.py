@@ -34,7 +34,8 @@ def man():
 def _weights(mesh, **kw):
     V = mesh.V
     field = distill(V, mesh.F, uvs=mesh.uvs, texture=mesh.texture, **SETTINGS, **kw)
-    handles = [V[:, 1].argmax(), V[:, 0].argmin(), V[:, 0].argmax(), V[:, 1].argmin(), V[:, 2].argmax(), V[:, 2].argmin()]
+    handles = [V[:, 1].argmax(), V[:, 0].argmin(), V[:, 0].argmax(),
+               V[:, 1].argmin(), V[:, 2].argmax(), V[:, 2].argmin()]
     X = field.evaluate(V)
     return X, handle_weights(X, X[handles])
 

@@ -36,7 +36,8 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 def test_reflect():
     P = np.array([[1.0, 2.0, 3.0], [-4.0, 0.5, 0.0]])
     np.testing.assert_allclose(reflect(P, [1, 0, 0], [0.5, 0, 0]), [[0.0, 2.0, 3.0], [5.0, 0.5, 0.0]])
-    np.testing.assert_allclose(reflect(reflect(P, [1, 2, 3], [0.1, 0.2, 0.3]), [1, 2, 3], [0.1, 0.2, 0.3]), P, atol=1e-12)
+    np.testing.assert_allclose(reflect(reflect(P, [1, 2, 3], [0.1, 0.2, 0.3]), [1, 2, 3], [0.1, 0.2, 0.3]),
+                               P, atol=1e-12)
 
 
 def test_mirror_symmetric_figure_has_its_mirror_plane():

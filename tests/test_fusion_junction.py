@@ -88,7 +88,8 @@ def _square_with_a_long_border_edge(lift=0.0):
     the 13 border vertices come first (Delaunay triangles, counter-clockwise)."""
     from scipy.spatial import Delaunay
 
-    border = [(0, 0), (4, 0)] + [(4, y) for y in (1, 2, 3, 4)] + [(x, 4) for x in (3, 2, 1, 0)] + [(0, y) for y in (3, 2, 1)]
+    border = ([(0, 0), (4, 0)] + [(4, y) for y in (1, 2, 3, 4)] + [(x, 4) for x in (3, 2, 1, 0)]
+              + [(0, y) for y in (3, 2, 1)])
     inner = [(x, y) for y in (1, 2, 3) for x in (1, 2, 3)] + [(1, 0.25), (2, 0.25), (3, 0.25)]
     P = np.array(border + inner, float)
     F = Delaunay(P).simplices

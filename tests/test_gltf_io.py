@@ -228,7 +228,8 @@ class Synth:
     def __init__(self):
         rng = np.random.default_rng(7)
         n = self.n
-        self.V = np.column_stack([rng.uniform(-0.3, 0.3, n), np.linspace(0, 2, n), rng.uniform(-0.1, 0.1, n)]).astype(np.float32)
+        self.V = np.column_stack(
+            [rng.uniform(-0.3, 0.3, n), np.linspace(0, 2, n), rng.uniform(-0.1, 0.1, n)]).astype(np.float32)
         self.sparse_idx = np.array([3, 5])
         self.sparse_val = np.array([[0.5, 0.6, 0.7], [-0.5, 1.6, 0.2]], np.float32)
         self.V_expected = self.V.astype(float).copy()
@@ -346,7 +347,8 @@ class Synth:
                  "samplers": [{"input": t3, "output": acc(step_vals, 5126, "VEC3"), "interpolation": "STEP"}],
                  "channels": [{"sampler": 0, "target": {"node": 1, "path": "translation"}}]},
                 {"samplers": [
-                    {"input": t2, "output": acc(self.cubic.reshape(6, 4), 5126, "VEC4"), "interpolation": "CUBICSPLINE"},
+                    {"input": t2, "output": acc(self.cubic.reshape(6, 4), 5126, "VEC4"),
+                     "interpolation": "CUBICSPLINE"},
                     {"input": t2, "output": acc(self.q_short, 5122, "VEC4", normalized=True)},
                     {"input": t2, "output": acc(step_vals[:2], 5126, "VEC3")},
                 ], "channels": [
@@ -500,7 +502,8 @@ def test_static_gltf_reads_as_props(tmp_path):
     np.testing.assert_allclose(body.matrix[:3, 3], [1, 2, 3])
     hat = next(p for p in c.props if p.mesh.name == "Hat")  # world = Anchor @ Root @ Mid @ Hat
     L = trs_to_matrix(s.T, s.R, np.ones((3, 3)))
-    np.testing.assert_allclose(hat.matrix, s.anchor @ L[0] @ L[1] @ trs_to_matrix([0, .5, 0], [0, 0, 0, 1], [1, 1, 1]), atol=1e-12)
+    np.testing.assert_allclose(hat.matrix, s.anchor @ L[0] @ L[1] @ trs_to_matrix([0, .5, 0], [0, 0, 0, 1], [1, 1, 1]),
+                               atol=1e-12)
     with pytest.raises(UnsupportedError, match="no skinned mesh"):
         c.require_skinned()
     out = tmp_path / "static.glb"

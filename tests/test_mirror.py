@@ -31,7 +31,8 @@ def _diag(character):
 
 @pytest.mark.parametrize("name, other", [
     ("UpperArm.L", "UpperArm.R"), ("arm_joint_L__4_", "arm_joint_R__4_"), ("b_LeftUpperArm_09", "b_RightUpperArm_09"),
-    ("L_Hand", "R_Hand"), ("hand_left", "hand_right"), ("leg_L1", "leg_R1"), ("mixamorig:LeftHand", "mixamorig:RightHand"),
+    ("L_Hand", "R_Hand"), ("hand_left", "hand_right"), ("leg_L1", "leg_R1"),
+    ("mixamorig:LeftHand", "mixamorig:RightHand"),
     ("upperarm_l", "upperarm_r"), ("Spine_L_R", "Spine_R_L"), ("LEFT_ARM", "RIGHT_ARM"),
 ])
 def test_swap_side_conventions(name, other):

@@ -328,7 +328,8 @@ def test_centaur_real(real):
     assert "Torso.001" in sk.names  # the knight's Torso after the horse's
     s = plan.scales["knight"]
     Ph, Pk = horse.rest_worlds()[:, :3, 3], knight.rest_worlds()[:, :3, 3]
-    ratio = chain_length(horse.parents, Ph, horse.index("Neck1")) / chain_length(knight.parents, Pk, knight.index("Abdomen"))
+    ratio = (chain_length(horse.parents, Ph, horse.index("Neck1"))
+             / chain_length(knight.parents, Pk, knight.index("Abdomen")))
     assert s == pytest.approx(ratio)
 
 
@@ -394,7 +395,8 @@ def test_real_configs_give_valid_skeletons(real, name):
     for cid, im in plan.image.items():
         np.add.at(counts, im[im >= 0], 1)
     assert np.all(counts >= 1)
-    assert sum(len(p) - 1 for p in plan.provenance) == len([f for f in plan.fused_pairs if f.source != f.target or f.source_joint != f.target_joint])
+    assert sum(len(p) - 1 for p in plan.provenance) == len(
+        [f for f in plan.fused_pairs if f.source != f.target or f.source_joint != f.target_joint])
 
 
 # --------------------------------------------------------------------------------------------

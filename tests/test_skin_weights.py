@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -373,8 +372,8 @@ def test_self_composition_against_the_original_weights():
         ids = comp.fusion_ids
         figs = {}
         for method in WEIGHT_METHODS:
-            skin = blend_weights(comp.surface, comp.fusion_inputs,
-                                 [comp.maps[c] for c in ids], comp.skeleton.num_joints, params=WeightParams(method=method))
+            skin = blend_weights(comp.surface, comp.fusion_inputs, [comp.maps[c] for c in ids],
+                                 comp.skeleton.num_joints, params=WeightParams(method=method))
             figs[method] = self_composition_errors(comp, skin)
         assert figs["dfd"]["frames"] > 0 and figs["dfd"]["junction_vertices"] > 0
         assert figs["dfd"]["skinned_error_max"] < 1e-9 and figs["dfd"]["junction_weight_error_max"] < 1e-9, \

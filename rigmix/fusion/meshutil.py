@@ -322,7 +322,8 @@ def intersecting_face_pairs(V, F, faces=None, *, tol=1e-9):
     separated = np.zeros(len(a), bool)
     for ax in axes:
         norm = np.linalg.norm(ax, axis=1)
-        ok = norm > 1e-12 * np.maximum(np.linalg.norm(ea, axis=2).max(axis=1) * np.linalg.norm(eb, axis=2).max(axis=1), 1e-300)
+        ok = norm > 1e-12 * np.maximum(
+            np.linalg.norm(ea, axis=2).max(axis=1) * np.linalg.norm(eb, axis=2).max(axis=1), 1e-300)
         u = ax / np.maximum(norm, 1e-300)[:, None]
         pa = np.einsum("pkc,pc->pk", A, u)
         pb = np.einsum("pkc,pc->pk", B, u)

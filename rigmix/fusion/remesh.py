@@ -503,7 +503,8 @@ def snap_to_points(V, F, nfixed, P, *, max_dist, min_angle=15.0, min_normal_dot=
         n1 = np.cross(Q[:, 1] - Q[:, 0], Q[:, 2] - Q[:, 0])
         ln = np.linalg.norm(n1, axis=1)
         after = _ring_min_angle(V, ring)
-        good = np.all(ln > 0) and np.all(np.einsum("ij,ij->i", n1 / np.maximum(ln, 1e-300)[:, None], n0) >= min_normal_dot)
+        good = np.all(ln > 0) and np.all(
+            np.einsum("ij,ij->i", n1 / np.maximum(ln, 1e-300)[:, None], n0) >= min_normal_dot)
         if not good or after < min(min_angle, before):
             V[v] = old
             continue

@@ -25,7 +25,8 @@ def edge_keys(V, E):
     V = np.ascontiguousarray(V, dtype=np.float64)
     A, B = V[E[:, 0]], V[E[:, 1]]
     # order the two endpoints lexicographically so (a, b) and (b, a) give the same key
-    less = (A[:, 0] < B[:, 0]) | ((A[:, 0] == B[:, 0]) & ((A[:, 1] < B[:, 1]) | ((A[:, 1] == B[:, 1]) & (A[:, 2] <= B[:, 2]))))
+    less = (A[:, 0] < B[:, 0]) | (
+        (A[:, 0] == B[:, 0]) & ((A[:, 1] < B[:, 1]) | ((A[:, 1] == B[:, 1]) & (A[:, 2] <= B[:, 2]))))
     lo = np.where(less[:, None], A, B)
     hi = np.where(less[:, None], B, A)
     K = np.ascontiguousarray(np.concatenate([lo, hi], axis=1))

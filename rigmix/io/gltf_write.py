@@ -158,7 +158,8 @@ def _primitive(blob: _Blob, mesh: Mesh, num_materials: int, num_joints: int) -> 
     if mesh.joints is not None and num_joints > 0:
         J, W = sparsify_weights(mesh.joints, mesh.weights)
         if J.max() >= num_joints:
-            raise InputError(f"write_gltf: mesh '{mesh.name}' refers to joint {int(J.max())}, the skeleton has {num_joints}")
+            raise InputError(f"write_gltf: mesh '{mesh.name}' refers to joint {int(J.max())}, "
+                             f"the skeleton has {num_joints}")
         jt = UNSIGNED_BYTE if num_joints <= 256 else UNSIGNED_SHORT
         attrs["JOINTS_0"] = blob.accessor(J, jt, target=ARRAY_BUFFER)
         attrs["WEIGHTS_0"] = blob.accessor(W, FLOAT, target=ARRAY_BUFFER, what=f"{name} WEIGHTS_0")

@@ -384,7 +384,8 @@ def _material(path, mat, Ar, Sdf):
         asset = _input_value(tex, "file", None)
         data = _asset_bytes(path, asset, Ar) if asset is not None else None
         if data is not None:
-            mime = "image/png" if data[:8] == b"\x89PNG\r\n\x1a\n" else "image/jpeg" if data[:3] == b"\xff\xd8\xff" else None
+            mime = ("image/png" if data[:8] == b"\x89PNG\r\n\x1a\n"
+                    else "image/jpeg" if data[:3] == b"\xff\xd8\xff" else None)
             if mime is not None:
                 sampler = {k: _WRAP[str(_input_value(tex, k, "repeat"))] for k in ("wrapS", "wrapT")
                            if str(_input_value(tex, k, "repeat")) in _WRAP}

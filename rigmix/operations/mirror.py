@@ -15,9 +15,9 @@ plane keeps every local scale diagonal (a glTF TRS holds no shear), and the thre
 character authored facing an axis. ``axis=None`` (the config's ``mirror = true``) picks the axis
 whose plane the rest-pose surface is most symmetric about (x for the shared characters that face
 +Z with +Y up as glTF asks, z for the Wasp, which faces +X); when no axis plane is a symmetry
-within ``tol`` it falls back to x. The offset along the axis is the detected centre of symmetry, so a symmetric character
-stays where it is (any offset gives the same character up to a translation, which the
-composition's positioning removes anyway).
+within ``tol`` it falls back to x. The offset along the axis is the detected centre of
+symmetry, so a symmetric character stays where it is (any offset gives the same character up
+to a translation, which the composition's positioning removes anyway).
 
 The maths
 ---------
