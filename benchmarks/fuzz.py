@@ -71,7 +71,8 @@ def markdown(table: dict, meta: dict) -> str:
              f"{meta['cases']} cases ({meta['file_cases']} files, {meta['config_cases']} configs), "
              f"{meta['runs']} runs (inspect {meta['commands'].get('inspect', 0)}, convert "
              f"{meta['commands'].get('convert', 0)}, compose {meta['commands'].get('compose', 0)}) in "
-             f"{meta['seconds']:.0f} s; timeout {meta['timeout']:.0f} s per run; commit {meta['commit']}.", "",
+             f"{meta['seconds']:.0f} s; timeout {meta['timeout']:.0f} s per run; commit {meta['commit']}"
+             + (" (PARTIAL: interrupted)" if meta.get("partial") else "") + ".", "",
              "Counts are of cases (a case counts once if any of its runs shows it). *clean errors*: the "
              "first run (inspect, or compose for a config) exits 2 with one `rigmix: error:` line. "
              "*silently accepted*: exit 0 with no warning where the Khronos validator reports errors "
@@ -111,11 +112,36 @@ def _pick_compose(eligible: list, limit: int) -> list:
     return sorted(picked, key=lambda c: order[c.id])
 
 
+def _meta(outcomes, cases, args, seconds, partial=False) -> dict:
+    commands: dict[str, int] = {}
+    for o in outcomes:
+        commands[o.command] = commands.get(o.command, 0) + 1
+    done = {o.case for o in outcomes}
+    return {"cases": len(done), "file_cases": sum(c.kind == "file" for c in cases if c.id in done),
+            "config_cases": sum(c.kind == "config" for c in cases if c.id in done), "runs": len(outcomes),
+            "commands": commands, "seconds": seconds, "timeout": args.timeout, "commit": _commit(),
+            "quick": args.quick, "categories": args.category, "partial": partial}
+
+
+def write(outcomes, cases, args, seconds, partial=False) -> list:
+    """Write fuzz.json and fuzz.md; returns the failing runs."""
+    meta = _meta(outcomes, cases, args, seconds, partial)
+    table = summarize(outcomes, cases)
+    expect = {c.id: (c.expect, c.finding, c.note) for c in cases}
+    failures = [dict(asdict(o), failures=o.failures(), expect=expect[o.case][0], finding=expect[o.case][1],
+                     note=expect[o.case][2]) for o in outcomes if o.failures()]
+    args.results.mkdir(parents=True, exist_ok=True)
+    (args.results / "fuzz.json").write_text(json.dumps({"meta": meta, "table": table, "failures": failures},
+                                                       indent=1, default=str) + "\n")
+    (args.results / "fuzz.md").write_text(markdown(table, meta))
+    return failures
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.fuzz", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="only the fast slice of tests/test_hostile.py")
     parser.add_argument("--category", nargs="*", help="only these categories")
-    parser.add_argument("--compose-max", type=int, default=80, help="file cases also composed (default 80)")
+    parser.add_argument("--compose-max", type=int, default=40, help="file cases also composed (default 40)")
     parser.add_argument("--timeout", type=float, default=hostile.TIMEOUT)
     parser.add_argument("--keep", action="store_true", help="keep the scratch folder (its path is printed)")
     parser.add_argument("--results", type=Path, default=RESULTS)
@@ -132,6 +158,8 @@ def main(argv=None) -> int:
 
     def record(o):
         outcomes.append(o)
+        if len(outcomes) % 50 == 0:  # a checkpoint: an interrupted run still leaves its table
+            write(outcomes, cases, args, time.perf_counter() - t0, partial=True)
         fails = o.failures()
         mark = "ok  " if not fails else "FAIL"
         print(f"{mark} {o.case} [{o.command}] rc={o.rc} {o.seconds:.1f}s {o.peak_rss_mb:.0f}MB"
@@ -149,24 +177,8 @@ def main(argv=None) -> int:
                 readable.append(case)
     for case in _pick_compose(readable, args.compose_max):
         record(hostile.execute(case, ws, "compose", timeout=args.timeout))
-    seconds = time.perf_counter() - t0
-
-    commands: dict[str, int] = {}
-    for o in outcomes:
-        commands[o.command] = commands.get(o.command, 0) + 1
-    meta = {"cases": len(cases), "file_cases": sum(c.kind == "file" for c in cases),
-            "config_cases": sum(c.kind == "config" for c in cases), "runs": len(outcomes),
-            "commands": commands, "seconds": seconds, "timeout": args.timeout, "commit": _commit(),
-            "quick": args.quick, "categories": args.category}
-    table = summarize(outcomes, cases)
-    expect = {c.id: (c.expect, c.finding, c.note) for c in cases}
-    failures = [dict(asdict(o), failures=o.failures(), expect=expect[o.case][0], finding=expect[o.case][1],
-                     note=expect[o.case][2]) for o in outcomes if o.failures()]
-    args.results.mkdir(parents=True, exist_ok=True)
-    (args.results / "fuzz.json").write_text(json.dumps({"meta": meta, "table": table, "failures": failures},
-                                                       indent=1, default=str) + "\n")
-    (args.results / "fuzz.md").write_text(markdown(table, meta))
-    print(markdown(table, meta))
+    failures = write(outcomes, cases, args, time.perf_counter() - t0)
+    print(markdown(summarize(outcomes, cases), _meta(outcomes, cases, args, time.perf_counter() - t0)))
     print(f"wrote {args.results / 'fuzz.md'} and fuzz.json; {len(failures)} failing runs")
     if args.keep:
         print(f"kept {work}")
