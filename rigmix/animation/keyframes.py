@@ -334,16 +334,16 @@ def rotation_features(Q, w=None) -> np.ndarray:
 
 def _grid_slices(X, slices, bits):
     """``X ~ sum_s ldexp(I_s, -e_s)``: up to ``slices`` integer-valued float64 arrays with
-    ``|I_s| <= 2 ** bits``, each slice rounding the residual of the ones before."""
+    ``|G_s| <= 2 ** bits``, each slice rounding the residual of the ones before."""
     out = []
     for _ in range(slices):
         m = float(np.max(np.abs(X))) if X.size else 0.0
         if not m > 0.0:
             break
         e = bits - int(np.frexp(m)[1])  # |X| * 2 ** e < 2 ** bits
-        I = np.rint(np.ldexp(X, e))
-        out.append((I, e))
-        X = X - np.ldexp(I, -e)
+        grid = np.rint(np.ldexp(X, e))
+        out.append((grid, e))
+        X = X - np.ldexp(grid, -e)
     return out
 
 
