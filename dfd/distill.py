@@ -13,6 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -112,11 +113,27 @@ def training_samples(V, F, views, features):
 def _seeded(seed):
     """Seed torch's global generator (network initialization) and return a generator for the
     sampling. The CPU kernels used here (linear layers, LayerNorm, Adam, indexing) are
-    deterministic for a given thread count, so this is enough for identical fields; we do not
-    call ``torch.use_deterministic_algorithms``, whose first call imports the compiler stack
-    (seconds) and changes a process-wide setting."""
+    deterministic for a given thread count (:func:`_one_thread` fixes it), so this is enough
+    for identical fields; we do not call ``torch.use_deterministic_algorithms``, whose first
+    call imports the compiler stack (seconds) and changes a process-wide setting."""
     torch.manual_seed(seed)
     return torch.Generator().manual_seed(seed)
+
+
+@contextmanager
+def _one_thread():
+    """Train on one torch intra-op thread, whatever ``OMP_NUM_THREADS`` or the core count.
+
+    The backward pass's reductions over the batch split their work by the thread count and
+    round differently (the same seed gave other weights with 1 and 2 threads), so a field, and
+    the junction weights it judges, would depend on the machine. One thread costs little: the
+    network is small, and on two cores two threads were not faster."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 def _appearance_hash(vertex_colors, uvs, texture):
@@ -245,16 +262,17 @@ def distill(
     field.train()
     optimizer = torch.optim.Adam(field.parameters(), lr=lr)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max(steps, 1)) if lr_decay else None
-    for step in range(steps):
-        idx = torch.randint(len(X), (min(batch_size, len(X)),), generator=generator)
-        loss = (field(X[idx]) - Y[idx]).square().sum(dim=1).mean()
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        if schedule is not None:
-            schedule.step()
-        if progress is not None:
-            progress(step + 1, steps)
+    with _one_thread():
+        for step in range(steps):
+            idx = torch.randint(len(X), (min(batch_size, len(X)),), generator=generator)
+            loss = (field(X[idx]) - Y[idx]).square().sum(dim=1).mean()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            if schedule is not None:
+                schedule.step()
+            if progress is not None:
+                progress(step + 1, steps)
     log.debug("distill: final loss %.4f", float(loss.detach()) if steps else float("nan"))
     field.eval()
     if cache_path is not None:

@@ -19,6 +19,17 @@ cos^2(theta / 2) = (1 + cos theta) / 2`` is the chordal distance between rotatio
 as sign-invariant as ``|.|`` and, per joint, a monotone function of it. That is the default
 (``metric="squared"``); ``metric="abs"`` computes the paper's ``|.|`` exactly with one small
 GEMM per joint (about ``J`` times the memory traffic; still no loop over pairs).
+
+Thread-count independence
+-------------------------
+A BLAS product's rounding depends on its blocking, and the blocking on the thread count
+(OpenBLAS: from ``K`` of about 450 in single precision, earlier in double): argmax and Viterbi
+decisions over near-tied scores (duplicate or held frames) then flipped with
+``OMP_NUM_THREADS``, and whole tracks with them. Every product of the scores is therefore
+exact (:func:`exact_products`): the features are rounded to a grid of integers small enough
+that no partial sum rounds, so any blocking, thread count or BLAS gives the same bits, and the
+GEMMs still run multi-threaded. The rank-one terms are ``einsum`` reductions (numpy's own
+loops, never threaded).
 """
 
 from __future__ import annotations
@@ -42,6 +53,7 @@ __all__ = [
     "keyframe_scores",
     "Candidates",
     "continuity_scores",
+    "exact_products",
 ]
 
 logger = logging.getLogger(__name__)
@@ -320,6 +332,64 @@ def rotation_features(Q, w=None) -> np.ndarray:
     return phi.reshape(Q.shape[0], -1)
 
 
+def _grid_slices(X, slices, bits):
+    """``X ~ sum_s ldexp(I_s, -e_s)``: up to ``slices`` integer-valued float64 arrays with
+    ``|G_s| <= 2 ** bits``, each slice rounding the residual of the ones before."""
+    out = []
+    for _ in range(slices):
+        m = float(np.max(np.abs(X))) if X.size else 0.0
+        if not m > 0.0:
+            break
+        e = bits - int(np.frexp(m)[1])  # |X| * 2 ** e < 2 ** bits
+        grid = np.rint(np.ldexp(X, e))
+        out.append((grid, e))
+        X = X - np.ldexp(grid, -e)
+    return out
+
+
+def exact_products(A, B, *, slices=1, block=1 << 22) -> np.ndarray:
+    """``A @ B.T`` with the same bits whatever the BLAS, its blocking and its thread count.
+
+    Each operand is rounded to ``slices`` slices of integers of at most ``bits`` bits,
+    ``K * 2 ** (2 bits) <= 2 ** 53``, so every product of slices is an integer-valued GEMM
+    whose partial sums are all exact in float64 (run by BLAS, threads and all); the slice
+    products (``i + j < slices``) are scaled by exact powers of two and added in a fixed
+    order. One slice keeps about ``(53 - log2 K) / 2`` bits of each operand (22 for
+    ``K = 450``, finer than float32 scores), two about twice that (float64 scores).
+
+    Parameters
+    ----------
+    A : (Fa, K) float array
+    B : (Fb, K) float array
+    slices : int
+        1 or 2 (precision, see above).
+    block : int
+        Largest float64 temporary, in elements (rows of ``A`` are done in blocks).
+
+    Returns
+    -------
+    (Fa, Fb) float64
+    """
+    A = np.asarray(A, dtype=np.float64)
+    B = np.asarray(B, dtype=np.float64)
+    bits = (53 - max(A.shape[1], 1).bit_length()) // 2
+    sb = _grid_slices(B, slices, bits)
+    out = np.zeros((len(A), len(B)))
+    rows = max(1, block // max(len(B), 1))
+    for r0 in range(0, len(A), rows):
+        sa = _grid_slices(A[r0:r0 + rows], slices, bits)
+        pairs = [(i, j) for i in range(len(sa)) for j in range(len(sb)) if i + j < slices]
+        for i, j in sorted(pairs, key=lambda p: -(p[0] + p[1])):  # smallest terms first
+            (Ia, ea), (Ib, eb) = sa[i], sb[j]
+            out[r0:r0 + rows] += np.ldexp(Ia @ Ib.T, -(ea + eb))
+    return out
+
+
+def _slices(dtype) -> int:
+    """Grid slices of :func:`exact_products` for scores of ``dtype``."""
+    return 1 if np.dtype(dtype) == np.float32 else 2
+
+
 def _score_features(G, P, w, length):
     """Weighted rotation and position features of keyframes (kept joints: weight > 0).
 
@@ -360,9 +430,10 @@ def keyframe_scores(Ga, Pa, Gb, Pb, w, *, rotation_weight=0.8, translation_weigh
         Length scale of the positions (e.g. the skeleton's extent).
     metric : {"squared", "abs"}
     dtype : numpy dtype
-        Of the matrix products and the result. ``float32`` halves time and memory: the
-        features are centred on the candidates' mean first, so rounding scales with the
-        spread of the poses rather than with the scores themselves (about 1e-7 absolute).
+        Of the result, and the precision of the products (:func:`exact_products`: one grid
+        slice for ``float32``, two for ``float64``). The features are centred on the
+        candidates' mean first, so rounding scales with the spread of the poses rather than
+        with the scores themselves (about 1e-7 absolute in ``float32``).
 
     Returns
     -------
@@ -382,7 +453,7 @@ def keyframe_scores(Ga, Pa, Gb, Pb, w, *, rotation_weight=0.8, translation_weigh
         keep = np.flatnonzero(w > 0)
         cr = rotation_weight / w[keep].sum()
         for j in keep:
-            score += (cr * w[j]) * np.abs(Ga[:, j] @ Gb[:, j].T)
+            score += (cr * w[j]) * np.abs(exact_products(Ga[:, j], Gb[:, j], slices=_slices(dtype)))
     return score
 
 
@@ -394,7 +465,8 @@ class Candidates:
     Rotation term: ``rotation_weight * (Xr_a - m)(Xr_b - m)^T + row_a + col_b`` (the rank-one
     terms put the centring back). Translation term: ``translation_weight * exp(-|Xp_a - Xp_b|^2)``
     with ``|Xp_a - Xp_b|^2`` expanded around the candidates' mean position feature. Products
-    of centred features in ``dtype``, rank-one terms in float64.
+    of centred features exact (:func:`exact_products`, precision by ``dtype``), rank-one terms
+    in float64, sums in ``dtype``.
 
     Attributes
     ----------
@@ -404,9 +476,11 @@ class Candidates:
         ``(rotation_weight, translation_weight, length)``.
     mean_r, mean_p : (Kr,), (Kp,) float64
         Mean candidate rotation and position features.
-    Xr, Xp : (Fb, Kr), (Fb, Kp) arrays of ``dtype``
+    Xr, Xp : (Fb, Kr), (Fb, Kp) float64
         Centred candidate features (rotation ones scaled by ``rotation_weight``, position ones
         by -2).
+    dtype : numpy dtype
+        Of the scores.
     col_r, col_p : (Fb,) arrays of ``dtype``
         Per-candidate terms: ``rotation_weight (Xr_b . m - m . m)`` and ``|Xp_b - m|^2``.
     """
@@ -419,6 +493,7 @@ class Candidates:
     Xp: np.ndarray
     col_r: np.ndarray
     col_p: np.ndarray
+    dtype: np.dtype = np.dtype(np.float64)
 
     @classmethod
     def build(cls, Gb, Pb, w, rotation_weight, translation_weight, length, dtype) -> "Candidates":
@@ -428,26 +503,26 @@ class Candidates:
         Xr, Xp = _score_features(Gb, Pb, w, length)
         mr, mp = Xr.mean(axis=0), Xp.mean(axis=0)
         Xp = Xp - mp
-        col_r = rotation_weight * (Xr @ mr - mr @ mr)
+        col_r = rotation_weight * (np.einsum("ij,j->i", Xr, mr) - np.einsum("i,i->", mr, mr))
         col_p = np.einsum("ij,ij->i", Xp, Xp)
         return cls(w, (rotation_weight, translation_weight, length), mr, mp,
-                   (rotation_weight * (Xr - mr)).astype(dtype), (-2.0 * Xp).astype(dtype),
-                   col_r.astype(dtype), col_p.astype(dtype))
+                   rotation_weight * (Xr - mr), -2.0 * Xp, col_r.astype(dtype), col_p.astype(dtype),
+                   np.dtype(dtype))
 
     def scores(self, Ga, Pa) -> np.ndarray:
         """``(Fa, Fb)`` scores of query keyframes ``Ga (Fa, J, 4)``, ``Pa (Fa, J, 3)``."""
         rw, tw, length = self.weights
-        dtype = self.Xr.dtype
+        dtype, slices = self.dtype, _slices(self.dtype)
         Xr, Xp = _score_features(Ga, Pa, self.w, length)
         if rw > 0:
-            score = (Xr - self.mean_r).astype(dtype) @ self.Xr.T  # (Fa, Fb), one GEMM
-            score += (rw * (Xr @ self.mean_r)).astype(dtype)[:, None]
+            score = exact_products(Xr - self.mean_r, self.Xr, slices=slices).astype(dtype)  # (Fa, Fb)
+            score += (rw * np.einsum("ij,j->i", Xr, self.mean_r)).astype(dtype)[:, None]
             score += self.col_r[None, :]
         else:  # the rotation term is computed elsewhere (metric="abs")
             score = np.zeros((len(Xr), len(self.Xr)), dtype=dtype)
         if tw > 0:
             Xp = Xp - self.mean_p
-            d = Xp.astype(dtype) @ self.Xp.T  # -2 pa.pb, then + |pa|^2 + |pb|^2 - log tw
+            d = exact_products(Xp, self.Xp, slices=slices).astype(dtype)  # -2 pa.pb, + |pa|^2 + |pb|^2 - log tw
             d += (np.einsum("ij,ij->i", Xp, Xp) - np.log(tw)).astype(dtype)[:, None]
             d += self.col_p[None, :]
             np.negative(d, out=d)
@@ -512,9 +587,17 @@ def continuity_scores(score, segment_b, weights=(0.2, 0.1)) -> np.ndarray:
         edge_rows = np.flatnonzero(np.any(R != R.max(axis=0), axis=1))
         edge_cols = np.flatnonzero(~np.all(C > 0, axis=0))
         if edge_rows.size:
-            out[edge_rows] *= (full / (1.0 + R[edge_rows] @ C)).astype(score.dtype)
+            out[edge_rows] *= (full / (1.0 + _sum_products(R[edge_rows], C))).astype(score.dtype)
         if edge_cols.size:
             inner = np.setdiff1d(np.arange(Fa), edge_rows)
-            fix = (full / (1.0 + R[inner] @ C[:, edge_cols])).astype(score.dtype)
+            fix = (full / (1.0 + _sum_products(R[inner], C[:, edge_cols]))).astype(score.dtype)
             out[np.ix_(inner, edge_cols)] *= fix
+    return out
+
+
+def _sum_products(R, C):
+    """``R @ C`` for a short inner dimension, in a fixed order (no BLAS blocking)."""
+    out = np.zeros((R.shape[0], C.shape[1]))
+    for k in range(R.shape[1]):
+        out += R[:, k, None] * C[k]
     return out
