@@ -20,28 +20,7 @@ import pytest
 from conftest import asset
 
 #: case id -> the issue-23 finding (and the helper branch) whose fix makes it pass.
-PENDING = {
-    "binflip-RiggedFigure-0": "finding 10 (S1): accessor data outside its declared min/max accepted silently",
-    "quaternion-RiggedFigure-node-rot-zero": "finding 10 (S1): zero quaternion made identity without a warning",
-    "quaternion-Fox-node-rot-zero": "finding 10 (S1): zero quaternion made identity without a warning",
-    "anim-time-RiggedFigure-anim-times-negative": "finding 10 (S1): negative animation times accepted",
-    "anim-time-RiggedFigure-anim-time-first-neg": "finding 10 (S1): negative animation times accepted",
-    "extension-RiggedFigure-ext-required-unknown": "finding 10 (S1): unknown extensionsRequired accepted",
-    "component-type-RiggedFigure-position-uint": "finding 10 (S1): POSITION as UNSIGNED_INT accepted",
-    "component-type-Fox-position-uint": "finding 10 (S1): POSITION as UNSIGNED_INT accepted",
-    "scene-RiggedFigure-scene-nodes-999": "finding 10 (S1): scenes[0].nodes = [999] accepted",
-    "scene-RiggedFigure-scene-nodes-neg": "finding 10 (S1): scenes[0].nodes = [-1] accepted",
-    "name-RiggedFigure-name-joint-ansi": "finding 8 (S3): control characters in names printed raw",
-    "uri-buffer-dotdot": "finding 1 (S1): a ../ buffer URI is read outside the asset folder",
-    "uri-image-dotdot": "finding 1 (S1): a ../ image URI is read outside the asset folder",
-    "special-buffer-symlink-out": "finding 1 (S1): a symlink buffer URI is followed out of the folder",
-    "special-image-symlink-out": "finding 1 (S1): a symlink image URI is followed out of the folder",
-    "cfg-range-placement-1e308": "finding 2 (S2): placement 1e308 crashes or errors in native code",
-    "cfg-range-placement-neg1e308": "finding 2 (S2): placement -1e308 crashes or errors in native code",
-    "cfg-act-remove-root": "finding 4 (S2): removing the root joint is not refused",
-    "cfg-out-is-input": "finding 6 (S3): -o naming an input destroys it",
-    "cfg-report-is-input": "finding 6 (S3): --report naming an input destroys it",
-}
+PENDING: dict[str, str] = {}
 
 SLICE = hostile.slice_cases()
 

@@ -362,6 +362,20 @@ def test_normalized_weights_are_allowed(tmp_path):
     assert np.allclose(c.meshes[0].weights.sum(axis=1), 1.0) and c.warnings == ()
 
 
+def test_position_outside_its_declared_bounds_is_reported(tmp_path):
+    """A flipped POSITION value outside the accessor's min/max: the Khronos validator's
+    ACCESSOR_ELEMENT_OUT_OF_MIN_BOUND, accepted silently before; now a repair warning (the
+    writer recomputes the bounds). Valid bounds give no warning."""
+    assert read_gltf(_glb(tmp_path)).warnings == ()
+
+    def out_of_bounds(gl):
+        acc = gl["accessors"][_attr(gl, "POSITION")]
+        acc["min"] = [m + 1.0 for m in acc["min"]]
+
+    c = read_gltf(_glb(tmp_path, out_of_bounds, name="b.glb"))
+    assert any("POSITION" in w and "declared min/max differ from the data" in w for w in c.warnings), c.warnings
+
+
 def test_zero_rest_rotation_is_repaired_with_a_warning(tmp_path):
     c = read_gltf(_glb(tmp_path, lambda gl: gl["nodes"][1].update(rotation=[0, 0, 0, 0])))
     assert np.allclose(c.skeleton.rotations[1], [0, 0, 0, 1])

@@ -101,11 +101,16 @@ class Document:
         Buffer ``i`` cut to its declared ``byteLength`` (never longer than the bytes that exist).
     path : Path
         The file read (external URIs resolve relative to its folder).
+    bounds_mismatch : list of str
+        Labels of the float accessors read so far whose declared ``min``/``max`` differ from
+        their data (the glTF validator's error; the writer recomputes bounds, so the reader
+        reports it as a repair).
     """
 
     json: dict
     buffers: list
     path: Path
+    bounds_mismatch: list = field(default_factory=list)
     _cache: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -211,6 +216,8 @@ class Document:
         if "sparse" in acc:
             self._apply_sparse(acc["sparse"], out, label, dtype, elem_bytes, cols, rows, col_stride)
         if dtype.kind == "f":
+            if not _bounds_match(acc, out, ncomp):
+                self.bounds_mismatch.append(label)
             out = out.astype(np.float64)
         elif acc.get("normalized", False):
             out = _normalize_ints(out)
@@ -307,6 +314,23 @@ def _int(doc: Document, obj: dict, key: str, label: str, default=None) -> int:
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v != int(v):
         raise doc.error(f"{label}: '{key}' must be an integer, got {v!r}")
     return int(v)
+
+
+def _bounds_match(acc: dict, data: np.ndarray, ncomp: int) -> bool:
+    """Whether a float accessor's declared ``min``/``max`` (when given) equal its data's, per
+    component, compared in float32 as stored; NaN data never matches."""
+    for key, reduce in (("min", np.min), ("max", np.max)):
+        declared = acc.get(key)
+        if declared is None:
+            continue
+        if (not isinstance(declared, list) or len(declared) != ncomp
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in declared)):
+            return False
+        with np.errstate(over="ignore", invalid="ignore"):
+            want = np.asarray(declared, np.float64).astype(np.float32)
+            if not np.array_equal(reduce(data, axis=0).astype(np.float32), want):
+                return False
+    return True
 
 
 def _normalize_ints(a: np.ndarray) -> np.ndarray:

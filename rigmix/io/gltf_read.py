@@ -178,6 +178,8 @@ def _read(doc: Document, log: _Log) -> Character:
     materials = read_materials(doc, log)
     meshes, props = _meshes(doc, graph, skins, skeleton, joint_of_node, len(materials), log)
     clips = _clips(doc, joint_of_node, skeleton, log)
+    for label in doc.bounds_mismatch:
+        log(f"{label}: declared min/max differ from the data (out of spec; recomputed when written)")
     return Character(
         name=doc.path.stem, skeleton=skeleton, meshes=meshes, clips=clips, materials=materials,
         props=props, source=str(doc.path), warnings=tuple(log.items),

@@ -267,7 +267,7 @@ def _animations(blob: _Blob, character: Character, joint_nodes: list[int]) -> li
 
 def _check_skeleton(sk, where: str) -> None:
     """The skeleton's JSON numbers and matrices, finite in float32 (vectorized), by joint."""
-    for key in ("translations", "rotations", "scales", "inverse_binds"):
+    for key in ("translations", "rotations", "scales", "inverse_binds") if sk.num_joints else ():
         values = np.asarray(getattr(sk, key), dtype=np.float64).reshape(sk.num_joints, -1)
         with np.errstate(over="ignore", invalid="ignore"):
             bad = ~np.isfinite(values.astype(np.float32)).all(axis=1)

@@ -600,6 +600,12 @@ def plan_operations(inputs, config: Config) -> Plan:
     for cid in config.characters:
         inputs[cid].require_skinned("operations")
     actions = resolve_actions(inputs, config)
+    for a in actions:  # a character removed whole is a character that should not be in the config
+        sk = inputs[a.target].skeleton
+        if a.op == "remove" and np.all(sk.subtree(a.target_joint)):
+            raise InputError(f"config {config.source}: actions[{a.index}] removes '{sk.names[a.target_joint]}', "
+                             f"the root of every joint of character '{a.target}': nothing of it is left; remove "
+                             f"a subtree below its root, or leave '{a.target}' out of [characters]")
     rotations = resolve_rotations(inputs, config)
     structure = _structure(inputs, actions, config)
     if len(structure.order) == 0:
