@@ -201,7 +201,8 @@ def load_characters(config: Config) -> dict:
     Raises
     ------
     InputError
-        A missing file, an unknown ``builtin:`` name, or a file the reader rejects.
+        A missing file, an unknown ``builtin:`` name, a file the reader rejects, or characters
+        too large to compose (:func:`rigmix.fusion.inputs.check_weight_size`).
     """
     check_files(config)
     out = {}
@@ -221,6 +222,9 @@ def load_characters(config: Config) -> dict:
             from .operations.mirror import mirror_character
 
             out[cid] = mirror_character(out[cid], axis=None if mirror is True else mirror)
+    from .fusion.inputs import check_weight_size
+
+    check_weight_size(out, f"config {config.source}")  # before any (V, J) weight matrix is allocated
     return out
 
 

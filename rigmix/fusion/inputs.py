@@ -2,11 +2,74 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
+from ..errors import InputError
 from .fuse import FusionAction, FusionInput
 
-__all__ = ["fusion_input", "fusion_inputs_from_plan"]
+__all__ = ["MAX_DENSE_WEIGHT_ENTRIES", "check_dense_weights", "check_weight_size", "fusion_input",
+           "fusion_inputs_from_plan"]
+
+#: The most dense skin-weight entries (vertices x joints) compose allocates. The positioning, fusion,
+#: weights and quality stages keep skin weights as dense ``(V, J)`` float64 matrices (8 bytes an entry),
+#: several at once: 2**24 entries is 128 MiB a matrix, and keeps compose's peak memory under 2 GB.
+#: :func:`check_weight_size` checks it on the vertices of all the characters of a composition times all
+#: their joints (which bounds the output's matrix too) before anything is allocated.
+MAX_DENSE_WEIGHT_ENTRIES = 2**24
+
+
+def check_dense_weights(num_vertices: int, num_joints: int, what: str) -> None:
+    """Refuse a dense ``(num_vertices, num_joints)`` weight matrix past :data:`MAX_DENSE_WEIGHT_ENTRIES`.
+
+    Parameters
+    ----------
+    num_vertices, num_joints : int
+    what : str
+        The object, for the message (e.g. ``"fusion: character 'body'"``).
+
+    Raises
+    ------
+    InputError
+        Naming ``what``, the counts and the fix.
+    """
+    n = int(num_vertices) * int(num_joints)
+    if n > MAX_DENSE_WEIGHT_ENTRIES:
+        raise InputError(
+            f"{what}: {int(num_vertices)} vertices x {int(num_joints)} joints = {n:,} dense skin-weight entries, "
+            f"over the limit of {MAX_DENSE_WEIGHT_ENTRIES:,} (128 MiB a weight matrix); remove the joints that "
+            "carry no weight, or use fewer vertices")
+
+
+def check_weight_size(characters, where: str = "compose") -> None:
+    """Refuse a composition whose dense skin weights would pass :data:`MAX_DENSE_WEIGHT_ENTRIES`.
+
+    Counted as all the vertices of all the characters (every mesh, as positioning stacks them) times
+    all their joints, an upper bound of each input's and of the output's weight matrix. O(meshes).
+
+    Parameters
+    ----------
+    characters : mapping of str -> rigmix.character.Character
+        By character id (a file used under two ids counts twice: each is positioned on its own).
+    where : str
+        Prefix of the message (e.g. ``"config a.toml"``).
+
+    Raises
+    ------
+    InputError
+        Naming each character (id and file name), its counts, the total and the fix.
+    """
+    counts = {cid: (sum(len(m.positions) for m in c.meshes), c.skeleton.num_joints)
+              for cid, c in characters.items()}
+    V = sum(v for v, _ in counts.values())
+    J = sum(j for _, j in counts.values())
+    if V * J <= MAX_DENSE_WEIGHT_ENTRIES:
+        return
+    names = ", ".join(
+        f"{cid} ({Path(characters[cid].source).name or characters[cid].name}: {v} vertices, {j} joints)"
+        for cid, (v, j) in counts.items())
+    check_dense_weights(V, J, f"{where}: characters {names} together have skin weights too large to compose")
 
 
 def fusion_input(character, used, *, name: str = "") -> FusionInput:
@@ -28,13 +91,17 @@ def fusion_input(character, used, *, name: str = "") -> FusionInput:
         when every skinned mesh has them.
     """
     J = character.skeleton.num_joints
-    Vs, Fs, Ws, mv, uvs, nrm, col = [], [], [], [], [], [], []
+    Vs, Fs, mv, uvs, nrm, col = [], [], [], [], [], []
     base = 0
     meshes = [(k, m) for k, m in enumerate(character.meshes) if m.skinned and len(m.faces)]
+    n = sum(len(m.positions) for _, m in meshes)
+    check_dense_weights(n, J, f"fusion: character {name or character.name!r}")
+    W = np.zeros((n, J))  # filled in place: one (n, J) matrix, not one per mesh plus their concatenation
     for k, m in meshes:
         Vs.append(np.asarray(m.positions, np.float64))
         Fs.append(np.asarray(m.faces, np.int64) + base)
-        Ws.append(m.dense_weights(J))
+        rows = np.repeat(np.arange(len(m.positions)), m.joints.shape[1])  # as Mesh.dense_weights
+        np.add.at(W[base:base + len(m.positions)], (rows, m.joints.ravel()), m.weights.ravel())
         mv.append(np.full(len(m.positions), k, np.int64))
         uvs.append(m.uvs[0] if m.uvs else None)
         nrm.append(m.normals)
@@ -51,7 +118,7 @@ def fusion_input(character, used, *, name: str = "") -> FusionInput:
     if any(c is not None for c in col):
         colors = np.concatenate([c if c is not None else np.ones((len(v), 4)) for c, v in zip(col, Vs)])
     return FusionInput(
-        V=np.concatenate(Vs), F=np.concatenate(Fs), W=np.concatenate(Ws), used=np.asarray(used, bool),
+        V=np.concatenate(Vs), F=np.concatenate(Fs), W=W, used=np.asarray(used, bool),
         mesh_of_vertex=np.concatenate(mv), uvs=cat(uvs), normals=cat(nrm), colors=colors,
         name=name or character.name,
     )

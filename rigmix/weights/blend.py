@@ -57,6 +57,7 @@ import numpy as np
 from dfd.mesh import smooth, vertex_normals, welded_graph
 
 from ..errors import InputError, NumericalError
+from ..fusion.inputs import check_dense_weights
 from ..geometry import bounding_box_diagonal, weld
 from .fill import fill_weights
 from .junction import continue_far_parts, harmonic_blend_factors, match_junction
@@ -443,6 +444,7 @@ def copy_preserved_rows(surface, retargeted, num_output_joints, *, max_influence
         non-zeros or none (sparsified); junction rows zero.
     """
     N = len(surface.V)
+    check_dense_weights(N, num_output_joints, "weights: the fused surface")
     W = np.zeros((N, num_output_joints))
     junction = np.asarray(surface.junction_vertices, bool)
     pres = np.flatnonzero(~junction)

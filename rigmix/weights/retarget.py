@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from ..fusion.inputs import check_dense_weights
+
 __all__ = ["retarget_weights", "retarget_inputs", "closest_point_weights", "blend_parts", "to_influences"]
 
 
@@ -69,6 +71,7 @@ def retarget_inputs(inputs, maps, num_output_joints):
     """
     retargeted, confidence = [], []
     for x, bm in zip(inputs, maps):
+        check_dense_weights(len(x.W), num_output_joints, f"weights: input {x.name!r} retargeted")
         Wr, c = retarget_weights(x.W, bm.target, num_output_joints, confidence=bm.confidence)
         retargeted.append(Wr)
         confidence.append(c)

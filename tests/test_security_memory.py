@@ -1,0 +1,106 @@
+"""Issue 23 #5, unbounded resources: compose's dense (V, J) skin weights are bounded.
+
+A valid character with a 20,000-joint chain made compose allocate dense float64 (V, J) weight
+matrices of 1.9 GiB each (13 GB peak, minutes). The composition is now sized at load
+(:func:`rigmix.fusion.inputs.check_weight_size`) and refused at once with one clear line (exit 2)
+before any such matrix exists.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rigmix.character import Character, Mesh, Skeleton
+from rigmix.errors import InputError
+from rigmix.fusion.inputs import MAX_DENSE_WEIGHT_ENTRIES, check_dense_weights, check_weight_size
+from rigmix.io.gltf import write_gltf
+
+ROOT = Path(__file__).resolve().parent.parent
+
+#: Peak memory a compose may use (issue 23 acceptance).
+PEAK_RSS_LIMIT_KB = 2 * 1000**3 // 1024
+
+
+def chain_character(num_joints: int, rings: int, sides: int = 4, name: str = "chain") -> Character:
+    """A valid skinned tube along a chain of ``num_joints`` joints (1 mm bones), each vertex on 2 joints."""
+    step = 1e-3
+    t = np.zeros((num_joints, 3))
+    t[1:, 1] = step
+    ib = np.tile(np.eye(4), (num_joints, 1, 1))
+    ib[:, 1, 3] = -np.arange(num_joints) * step
+    sk = Skeleton(tuple(f"j{i}" for i in range(num_joints)), np.arange(num_joints) - 1, t,
+                  np.tile([0.0, 0.0, 0.0, 1.0], (num_joints, 1)), np.ones((num_joints, 3)), ib)
+    y = np.linspace(0.0, (num_joints - 1) * step, rings)
+    a = np.linspace(0.0, 2 * np.pi, sides, endpoint=False)
+    P = np.stack([0.05 * np.tile(np.cos(a), rings), np.repeat(y, sides), 0.05 * np.tile(np.sin(a), rings)], 1)
+    r, s = np.meshgrid(np.arange(rings - 1), np.arange(sides), indexing="ij")
+    a0, a1 = r * sides + s, r * sides + (s + 1) % sides
+    F = np.concatenate([np.stack([a0, a0 + sides, a1], -1), np.stack([a1, a0 + sides, a1 + sides], -1)], 1)
+    jf = np.repeat(y, sides) / step
+    j0 = np.clip(np.floor(jf).astype(np.int64), 0, num_joints - 2)
+    f = jf - j0
+    mesh = Mesh("tube", P, F.reshape(-1, 3), joints=np.stack([j0, j0 + 1], 1), weights=np.stack([1 - f, f], 1))
+    return Character(name, sk, (mesh,))
+
+
+#: Runs ``rigmix compose`` and writes the child's own peak RSS (KiB) to argv[1].
+_CHILD = """
+import resource, sys
+import rigmix.operations  # noqa: F401
+from rigmix.cli import main
+try:
+    code = main(["compose", *sys.argv[2:]])
+finally:
+    open(sys.argv[1], "w").write(str(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))
+sys.exit(code)
+"""
+
+
+def _limit_memory():
+    """The child's address space is capped (6 GiB) so that a regression fails fast instead of swapping."""
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_AS, (6 * 1024**3, 6 * 1024**3))
+
+
+def test_long_chain_compose_is_bounded(tmp_path):
+    """A valid 20,000-joint chain composed with itself: exit 0 or 2 with one line, peak RSS under 2 GB."""
+    write_gltf(chain_character(20_000, 3000), tmp_path / "chain.glb")
+    (tmp_path / "self.toml").write_text(
+        'name = "chain_self"\n[characters.body]\npath = "chain.glb"\n[characters.donor]\npath = "chain.glb"\n'
+        '[[actions]]\nop = "replace"\nsource = "donor"\nsource_joint = "j19000"\n'
+        'target = "body"\ntarget_joint = "j19000"\n')
+    rss = tmp_path / "rss.txt"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    r = subprocess.run([sys.executable, "-c", _CHILD, str(rss), str(tmp_path / "self.toml"),
+                        "-o", str(tmp_path / "out.glb"), "--no-progress"],
+                       capture_output=True, text=True, env=env, preexec_fn=_limit_memory, timeout=600)
+    assert r.returncode in (0, 2), r.stderr[-2000:]
+    peak_kb = int(rss.read_text())
+    assert peak_kb < PEAK_RSS_LIMIT_KB, f"peak RSS {peak_kb} KiB"
+    if r.returncode == 2:
+        lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+        assert len(lines) == 1 and lines[0].startswith("rigmix: error:"), r.stderr
+        assert "20000 joints" in lines[0] and "limit" in lines[0] and "Traceback" not in r.stderr
+        assert not (tmp_path / "out.glb").exists()
+    else:
+        assert (tmp_path / "out.glb").exists()
+
+
+def test_weight_size_check():
+    """The limit is checked on all vertices times all joints, and names each character and the fix."""
+    small = chain_character(64, 16)
+    check_weight_size({"a": small, "b": small})
+    big = chain_character(4097, 1024)  # 4096 x 4097 entries: one column past 2**24
+    assert 4096 * 4096 == MAX_DENSE_WEIGHT_ENTRIES
+    check_weight_size({"a": chain_character(4096, 1024)})
+    with pytest.raises(InputError, match=r"a \(chain: 4096 vertices, 4097 joints\).*4096 vertices x 4097 joints"):
+        check_weight_size({"a": big}, "config c.toml")
+    with pytest.raises(InputError, match="remove the joints that carry no weight"):
+        check_dense_weights(1 << 20, 1 << 20, "fusion: character 'x'")
