@@ -29,8 +29,8 @@ ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).resolve().parent / "results"
 sys.path.insert(0, str(ROOT / "tests"))
 
-from rigmix.character import Clip, Track  # noqa: E402
 from rigmix.animation.completion import CompletionOptions, complete_clips, completion_provenance  # noqa: E402
+from rigmix.character import Clip, Track  # noqa: E402
 from rigmix.transforms import quat_multiply  # noqa: E402
 
 FPS = 30.0
@@ -61,8 +61,9 @@ def synthetic_clips(skeleton, n_clips, n_frames, seed):
 def characters():
     """(inputs, S_R, provenance, maps, label): the pipeline's Horse + Knight centaur
     (tests/configs/centaur.toml) when the shared assets are present, else examples/centaur.toml."""
-    import rigmix
     from conftest import ASSETS, CHARACTERS
+
+    import rigmix
 
     if all((ASSETS / CHARACTERS[n]).exists() for n in ("Horse", "Knight")):
         config = ROOT / "tests" / "configs" / "centaur.toml"
@@ -124,9 +125,10 @@ RULES = [("paper: best frame per output frame", CompletionOptions(jump_penalty=0
 
 def smoothness_figures():
     """Acceleration ratios (completed joints over their source clips) through the pipeline."""
-    import rigmix
     import test_completion as tc
     from conftest import ASSETS, CHARACTERS
+
+    import rigmix
 
     out = {}
     for config, assets in CONFIGS:

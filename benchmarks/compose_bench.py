@@ -101,6 +101,7 @@ def _scaling_case(levels, queue):
     try:
         sys.path.insert(0, str(ROOT / "tests"))
         from conftest import ASSETS, CHARACTERS
+
         from rigmix.config import Config
         from rigmix.io.gltf import read_gltf, write_gltf
 

@@ -48,7 +48,6 @@ from dfd.render import render_views  # noqa: E402
 from dfd.shapes import grid  # noqa: E402
 from dfd.weights import handle_weights  # noqa: E402
 
-
 #: CPU seconds (all threads of this process) of each measure, by name, next to the wall times.
 CPU = {}
 

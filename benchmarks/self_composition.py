@@ -204,8 +204,8 @@ def hidden_weights(comp, options):
     skin : SkinWeights
     seconds : float
     """
-    from rigmix.weights.blend import weld_consistent
     from rigmix.weights import fill_weights
+    from rigmix.weights.blend import weld_consistent
 
     if options.get("method") != "nearest":
         return _weights(comp, {**options, **HIDDEN})

@@ -28,12 +28,18 @@ RESULTS = Path(__file__).resolve().parent / "results"
 sys.path.insert(0, str(ROOT / "tests"))
 
 from conftest import ASSETS, CHARACTERS  # noqa: E402
+from pxr import Usd, UsdSkel  # noqa: E402
+from test_usd import (  # noqa: E402
+    ours_world,
+    posed_error,
+    relative_error,
+    select_clip,
+    ten_times,
+    usd_skinned_world,
+    validation_errors,
+)
 
 from benchmarks.common import median_seconds  # noqa: E402
-from pxr import Usd, UsdSkel  # noqa: E402
-from test_usd import (ours_world, posed_error, relative_error, select_clip, ten_times,  # noqa: E402
-                      usd_skinned_world, validation_errors)
-
 from rigmix.animation import clip_times  # noqa: E402
 from rigmix.io.gltf import read_gltf  # noqa: E402
 from rigmix.io.usd import write_usd  # noqa: E402

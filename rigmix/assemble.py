@@ -19,6 +19,7 @@ import logging
 from functools import lru_cache
 
 import numpy as np
+
 from dfd.mesh import vertex_normals
 
 from .character import Character, Material, Mesh, Prop

@@ -61,8 +61,18 @@ import typing
 from pathlib import Path
 from typing import Annotated, ClassVar, Literal, Union
 
-from pydantic import (BaseModel, ConfigDict, Field, PrivateAttr, Strict, StrictBool, ValidationError, create_model,
-                      field_validator, model_validator)
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    Strict,
+    StrictBool,
+    ValidationError,
+    create_model,
+    field_validator,
+    model_validator,
+)
 
 from .animation.completion import CompletionOptions
 from .errors import InputError

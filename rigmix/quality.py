@@ -32,6 +32,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+
 from dfd.mesh import face_areas, welded_graph
 
 from .animation.sampling import clip_times, sample_clip
@@ -133,7 +134,10 @@ def band_stretch(skeleton, clips, V0, joints, weights, F, vertices, *, rest=None
     pos[sub] = np.arange(len(sub))
     Fs = pos[F[(pos[F] >= 0).all(axis=1)]]
     V0s, Js, Ws = np.asarray(V0)[sub], np.asarray(joints)[sub], np.asarray(weights)[sub]
-    rest = linear_blend_skinning(V0s, Js, Ws, rest_skinning_matrices(skeleton)) if rest is None else np.asarray(rest)[sub]
+    if rest is None:
+        rest = linear_blend_skinning(V0s, Js, Ws, rest_skinning_matrices(skeleton))
+    else:
+        rest = np.asarray(rest)[sub]
     vs = pos[np.asarray(vertices, np.int64)]
     out = []
     for clip in clips:

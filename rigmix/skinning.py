@@ -16,7 +16,7 @@ import logging
 
 import numpy as np
 
-from .transforms import matrix_to_quat, quat_multiply, quat_conjugate, trs_to_matrix
+from .transforms import matrix_to_quat, quat_conjugate, quat_multiply, trs_to_matrix
 
 __all__ = [
     "skinning_matrices",

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import asset
 from scipy.spatial.transform import Rotation
 
 from rigmix.animation import clip_times, resample_clip, sample_clip, sample_track
 from rigmix.character import Clip, Skeleton, Track
 from rigmix.io.gltf import read_gltf
 from rigmix.transforms import quat_angle
-
-from conftest import asset
 
 
 def _quat_axis_angle(axis, deg):

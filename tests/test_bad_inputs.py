@@ -19,8 +19,8 @@ import textwrap
 
 import numpy as np
 import pytest
-
 from conftest import ROOT
+
 from rigmix.config import load_config
 from rigmix.errors import InputError, RigmixError, UnsupportedError
 from rigmix.io import load_character

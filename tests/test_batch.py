@@ -9,8 +9,8 @@ import subprocess
 import sys
 
 import pytest
-
 from conftest import ROOT, require
+
 from rigmix.batch import MANIFEST, plan_batch, read_manifest, run_batch, run_one
 from rigmix.errors import InputError
 from rigmix.io.gltf import read_gltf

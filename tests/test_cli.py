@@ -10,8 +10,8 @@ import sys
 import numpy as np
 import pygltflib
 import pytest
-
 from conftest import ROOT, asset
+
 from rigmix import examples
 from rigmix.cli import build_parser, main
 from rigmix.describe import describe, format_description

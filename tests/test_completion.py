@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import asset
 
 from rigmix.animation import clip_times, sample_clip
-from rigmix.character import Skeleton
 from rigmix.animation.completion import (
     CompletionOptions,
     FixedFrame,
@@ -25,11 +25,10 @@ from rigmix.animation.completion import (
     rotation_features,
     smooth_seams,
 )
+from rigmix.character import Skeleton
 from rigmix.errors import InputError
 from rigmix.mapping import BoneMap
 from rigmix.transforms import quat_angle, quat_multiply, quat_normalize
-
-from conftest import asset
 
 # --------------------------------------------------------------------------------------------
 # helpers (acceleration_figures is also used by benchmarks/completion_bench.py)

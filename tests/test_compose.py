@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import pygltflib
 import pytest
-
 from conftest import ROOT, asset
+
 from rigmix.cli import main
 
 CONFIGS = sorted((ROOT / "tests" / "configs").glob("*.toml"))

@@ -6,8 +6,8 @@ import json
 from pathlib import Path
 
 import pytest
-
 from conftest import asset
+
 from rigmix.config import (
     Config,
     ReplaceAction,

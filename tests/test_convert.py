@@ -4,16 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import asset
 from pxr import Usd, UsdGeom, UsdSkel
+from test_usd import decorated_chain, validation_errors
 
 from rigmix.character import Character, Skeleton
 from rigmix.errors import RigmixError
 from rigmix.io import load_character
 from rigmix.io.convert import convert, save_character
 from rigmix.io.gltf import write_gltf
-
-from conftest import asset
-from test_usd import decorated_chain, validation_errors
 
 
 def test_glb_to_usda_keeps_joints_clips_and_texture(tmp_path):
@@ -76,10 +75,10 @@ def test_bad_targets_are_clear_errors(tmp_path):
 
 def test_usd_back_to_glb_is_valid_and_poses_the_same(tmp_path):
     """glb -> usdc -> glb: the Khronos validator finds no error and every frame poses the same."""
+    from test_usd import posed_error
+
     from rigmix.animation import clip_times
     from rigmix.io.validator import validate_gltf, validator_available
-
-    from test_usd import posed_error
 
     usd = tmp_path / "knight.usdc"
     original = convert(asset("Knight"), usd)

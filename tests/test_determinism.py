@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import ROOT, asset
+
 from rigmix.examples import humanoid
 from rigmix.io.gltf import read_gltf, write_gltf
 from rigmix.io.usd import write_usd

@@ -8,6 +8,7 @@ import os
 
 import numpy as np
 import pytest
+from fusion_shapes import ellipsoid
 
 from rigmix.fusion.fields import (
     Grid,
@@ -18,8 +19,6 @@ from rigmix.fusion.fields import (
     import_openvdb,
     prepare_surface,
 )
-
-from fusion_shapes import ellipsoid
 
 
 def reference_signed_distance(grid, V, F, values, band):

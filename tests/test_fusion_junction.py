@@ -2,12 +2,11 @@
 
 import numpy as np
 import pytest
+from fusion_shapes import sphere
 
 from rigmix.fusion.junction import boundary_loops, bridge_loops, clip_mesh, isosurface
 from rigmix.fusion.meshutil import boundary_halfedges, edge_counts, intersecting_face_pairs, triangle_min_angles
 from rigmix.fusion.remesh import flip_to_improve_angles, untangle
-
-from fusion_shapes import sphere
 
 
 def signed_volume(V, F):

@@ -1,8 +1,9 @@
 """Presence, secondary components and preserved faces (PIPELINE.md section 3)."""
 
 import numpy as np
+from fusion_shapes import ellipsoid, split_faces, two_joint_weights
 
-from rigmix.fusion.meshutil import face_adjacency, triangle_min_angles, edges_to_loops, boundary_halfedges
+from rigmix.fusion.meshutil import boundary_halfedges, edges_to_loops, face_adjacency, triangle_min_angles
 from rigmix.fusion.presence import (
     classify_components,
     compute_presence,
@@ -10,8 +11,6 @@ from rigmix.fusion.presence import (
     raw_presence,
     smooth_presence,
 )
-
-from fusion_shapes import ellipsoid, split_faces, two_joint_weights
 
 
 def test_raw_presence_sums_used_joints():

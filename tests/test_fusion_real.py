@@ -12,8 +12,8 @@ triangles.
 
 import numpy as np
 import pytest
-
 from conftest import asset
+
 from rigmix.fusion import FusionAction, FusionParams, fuse_surfaces
 from rigmix.fusion.inputs import fusion_input
 from rigmix.geometry import bounding_box_diagonal
@@ -256,12 +256,12 @@ def test_the_looser_tolerance_never_costs_the_junction_its_triangles():
     (from 28): it stays plain. (Until 2026-12-01 the retry reached p05 21, and allowed any
     loss it was taken; with the bridge recuts its junction keeps p05 18, below the acceptance
     level, and it is refused whatever the loss allowed.)"""
+    from conftest import ROOT
+
     from rigmix.config import load_config
     from rigmix.fusion import FusionParams
     from rigmix.fusion.inputs import fusion_inputs_from_plan
     from rigmix.pipeline import compose
-
-    from conftest import ROOT
 
     comp = compose(load_config(ROOT / "tests" / "configs" / "centaur.toml"), until="mapping")
     inputs, actions, _ = fusion_inputs_from_plan(comp.plan)

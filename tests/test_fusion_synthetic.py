@@ -2,11 +2,10 @@
 
 import numpy as np
 import pytest
+from fusion_shapes import ellipsoid, split_faces, two_joint_weights
 
 from rigmix.fusion import FusionAction, FusionInput, FusionParams, fuse_surfaces
 from rigmix.geometry import weld
-
-from fusion_shapes import ellipsoid, split_faces, two_joint_weights
 
 
 def closed_volume(V, F):

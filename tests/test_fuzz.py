@@ -19,14 +19,14 @@ import tomllib
 from pathlib import Path
 
 import pytest
+from conftest import ROOT, asset
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
+from test_bad_inputs import glb_bytes, tiny_skinned
 
-from conftest import ROOT, asset
 from rigmix.config import parse_config
 from rigmix.errors import InputError, RigmixError
 from rigmix.io.gltf import read_gltf, write_gltf
-from test_bad_inputs import glb_bytes, tiny_skinned
 
 FUZZ = settings(derandomize=True, deadline=None, database=None, print_blob=True,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,

@@ -10,8 +10,8 @@ import struct
 
 import numpy as np
 import pytest
-
 from conftest import CHARACTERS, asset
+
 from rigmix.animation import sample_clip, sample_track
 from rigmix.character import Character, Clip, Mesh
 from rigmix.errors import InputError, UnsupportedError

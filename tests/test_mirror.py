@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from conftest import asset
+
 from rigmix.animation import clip_times, sample_clip
 from rigmix.config import parse_config
 from rigmix.errors import InputError

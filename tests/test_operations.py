@@ -21,7 +21,7 @@ from rigmix.operations.positioning import (
     skeleton_adjacency,
     smooth_translations,
 )
-from rigmix.skinning import rest_pose, skinning_matrices, linear_blend_skinning
+from rigmix.skinning import linear_blend_skinning, rest_pose, skinning_matrices
 from rigmix.transforms import quat_to_matrix
 
 CONFIGS = Path(__file__).parent / "configs"

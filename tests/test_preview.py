@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import asset, require
-from rigmix.errors import InputError
+
 from rigmix.cli import main
+from rigmix.errors import InputError
 from rigmix.preview.viewer import find_three, preview, relative_imports, serve, write_viewer
 
 ROOT = Path(__file__).resolve().parent.parent

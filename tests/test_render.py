@@ -2,25 +2,22 @@
 
 from __future__ import annotations
 
-import os
-
 import importlib.util
+import os
 from dataclasses import replace
 
 import numpy as np
 import pytest
+from conftest import asset
 from PIL import Image
+from test_usd import decorated_chain
 
 from rigmix.animation import clip_times, sample_clip
 from rigmix.errors import RigmixError
 from rigmix.io.gltf import read_gltf
-from rigmix.preview.render import (BACKGROUND, camera_matrices, contact_sheet, pose_scene, render_clip,
-                                   render_frames)
+from rigmix.preview.render import BACKGROUND, camera_matrices, contact_sheet, pose_scene, render_clip, render_frames
 from rigmix.skinning import rest_pose
 from rigmix.transforms import trs_to_matrix
-
-from conftest import asset
-from test_usd import decorated_chain
 
 SIZE = 96
 

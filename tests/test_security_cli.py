@@ -22,8 +22,8 @@ import time
 from pathlib import Path
 
 import pytest
-
 from conftest import ROOT, asset
+
 from rigmix import examples
 from rigmix.batch import MANIFEST, exit_status
 from rigmix.cli import MAX_ERROR_CHARS, main

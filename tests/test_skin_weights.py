@@ -6,8 +6,8 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
 from conftest import ROOT, asset
+
 from rigmix.errors import InputError
 from rigmix.fusion import FusedSurface, FusionInput
 from rigmix.geometry import weld

@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from conftest import asset
 from scipy.linalg import polar
 from scipy.spatial.transform import Rotation
 
@@ -21,8 +22,6 @@ from rigmix.skinning import (
     skinning_matrices,
 )
 from rigmix.transforms import trs_to_matrix
-
-from conftest import asset
 
 # ---------------------------------------------------------------------------------------------
 # synthetic data

@@ -10,7 +10,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from conftest import asset
 from pxr import Sdf, Usd, UsdGeom, UsdShade, UsdSkel, UsdValidation
+from test_skinning import chain_character
 
 from rigmix.animation import clip_times, sample_clip
 from rigmix.character import Anchor, Character, Clip, Material, Mesh, Prop, Skeleton, Texture, Track
@@ -18,10 +20,6 @@ from rigmix.errors import RigmixError
 from rigmix.io.gltf import read_gltf
 from rigmix.io.usd import joint_paths, write_usd
 from rigmix.skinning import rest_pose, skin_character
-
-from conftest import asset
-from test_skinning import chain_character
-
 
 # ---------------------------------------------------------------------------------------------
 # helpers

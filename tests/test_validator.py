@@ -6,8 +6,8 @@ import os
 from collections import Counter
 
 import pytest
-
 from conftest import CHARACTERS, asset
+
 from rigmix.io.gltf import read_gltf, write_gltf
 from rigmix.io.validator import ValidatorUnavailable, validate_gltf, validator_available
 

@@ -6,8 +6,8 @@ import sys
 
 import numpy as np
 import pytest
-
 from conftest import ROOT, asset
+
 from rigmix.errors import InputError
 from rigmix.weights import (
     FILL_METHODS,
@@ -323,6 +323,7 @@ def test_real_fill_invariants_with_dfd_field(real):
     on two cores (the benchmark distills and caches them); here it checks the plumbing.
     """
     import torch
+
     from dfd.field import FeatureField
     from dfd.mesh import normalization
 

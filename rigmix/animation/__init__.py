@@ -9,7 +9,7 @@ stage. The modules:
 ``completion``   completing every clip for the output skeleton
 """
 
-from .sampling import clip_times, resample_clip, sample_clip, sample_track
 from .completion import CompletionOptions, complete_clips
+from .sampling import clip_times, resample_clip, sample_clip, sample_track
 
 __all__ = ["complete_clips", "CompletionOptions", "sample_track", "sample_clip", "clip_times", "resample_clip"]

@@ -53,15 +53,22 @@ from typing import Literal, Mapping, Sequence
 
 import numpy as np
 
-from .sampling import clip_times, sample_clip
 from ..character import Character, Clip, Skeleton, Track
 from ..errors import InputError
 from ..rig import unique_names
-from .keyframes import (Candidates, continuity_scores, forward_kinematics, global_rotations,
-                        hop_weights, keyframe_scores, map_pose, rotation_features)
 from ..transforms import quat_normalize
-from .transitions import (angular_acceleration, blend_seams, choose_frames, discontinuities,
-                          segments_next, smooth_seams)
+from .keyframes import (
+    Candidates,
+    continuity_scores,
+    forward_kinematics,
+    global_rotations,
+    hop_weights,
+    keyframe_scores,
+    map_pose,
+    rotation_features,
+)
+from .sampling import clip_times, sample_clip
+from .transitions import angular_acceleration, blend_seams, choose_frames, discontinuities, segments_next, smooth_seams
 
 __all__ = [
     "FixedFrame",

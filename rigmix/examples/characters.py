@@ -21,9 +21,9 @@ import logging
 
 import numpy as np
 
-from .bodyplan import build_character, cone, ellipsoid
 from ..character import Character, Clip, Material, Mesh, Prop, Skeleton, Track
 from ..transforms import quat_multiply
+from .bodyplan import build_character, cone, ellipsoid
 
 __all__ = ["humanoid", "quadruped", "static_box", "HUMANOID_JOINTS", "QUADRUPED_JOINTS"]
 

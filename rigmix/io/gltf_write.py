@@ -18,6 +18,7 @@ import struct
 from pathlib import Path
 
 import numpy as np
+
 from dfd.mesh import vertex_normals
 
 from ..character import Character, Material, Mesh

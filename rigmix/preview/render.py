@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
 from dfd.mesh import vertex_normals
 
 from ..animation.sampling import clip_times, sample_clip

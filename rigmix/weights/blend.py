@@ -61,7 +61,6 @@ from ..fusion.inputs import check_dense_weights
 from ..geometry import bounding_box_diagonal, weld
 from .fill import fill_weights
 from .junction import continue_far_parts, harmonic_blend_factors, match_junction
-
 from .mesh import sparsify
 from .mirror import feature_field as distill_feature_field
 from .params import WeightParams

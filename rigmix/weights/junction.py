@@ -16,7 +16,6 @@ from dfd.mesh import face_normals, welded_graph
 
 from ..geometry import neighbour_roughness
 
-
 __all__ = ["match_junction", "harmonic_blend_factors", "continue_far_parts"]
 
 
