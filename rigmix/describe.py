@@ -33,11 +33,14 @@ never depends on names that escaping could make equal.
 
 from __future__ import annotations
 
+import logging
 import re
 
 import numpy as np
 
 __all__ = ["describe", "format_description", "format_composition", "printable"]
+
+logger = logging.getLogger(__name__)
 
 #: C0 controls, DEL, C1 controls, the bidirectional embeddings, overrides and isolates (U+202A-E,
 #: U+2066-9), the bidirectional marks (U+061C, U+200E, U+200F) and the line and paragraph
@@ -201,12 +204,24 @@ def _limbs(character) -> list:
         return []
     from .limbs import limbs_summary  # scipy and the mirror plane: loaded only when a skin is described
 
+    rest = character.skeleton.rest_worlds()[:, :3, 3]
+    with np.errstate(all="ignore"):
+        extent = float(np.abs(rest).max()) if len(rest) else 0.0
+    if not np.isfinite(extent) or extent > 1e6:  # a skeleton out of range has no meaningful limbs
+        return []
+    try:
+        rows = limbs_summary(character)
+    except (ValueError, IndexError, ArithmeticError, np.linalg.LinAlgError) as e:
+        # the summary is an aid: a rig it cannot read is still described (and composes or not)
+        logger.warning("%s: limbs not classified (%s)", printable(character.name), printable(e))
+        return []
+
     def clean(v):
         if isinstance(v, str):
             return printable(v)
         return [clean(x) for x in v] if isinstance(v, list) else v
 
-    return [{k: clean(v) for k, v in row.items()} for row in limbs_summary(character)]
+    return [{k: clean(v) for k, v in row.items()} for row in rows]
 
 
 def _vec(v):

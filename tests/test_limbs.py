@@ -214,3 +214,24 @@ def test_inspect_shows_the_limbs(capsys):
     assert main(["inspect", path]) == 0
     text = capsys.readouterr().out
     assert "limbs (6):" in text and "leg L: 'FrontUpperLeg.L'" in text
+
+
+def test_inspect_of_an_out_of_range_skeleton_lists_no_limbs(tmp_path, capsys):
+    """A joint translated 1e300 m (a JSON edit of a real file): ``inspect`` still describes the
+    file (exit 0) and lists no limbs, instead of an internal error from the mirror plane."""
+    import json
+    import struct
+
+    from rigmix.cli import main
+
+    raw = asset("RiggedFigure").read_bytes()
+    n = struct.unpack("<I", raw[12:16])[0]
+    gl = json.loads(raw[20:20 + n])
+    gl["nodes"][2]["translation"] = [1e300, 0.0, 0.0]
+    text = json.dumps(gl).encode()
+    text += b" " * (-len(text) % 4)
+    body = struct.pack("<I", len(text)) + b"JSON" + text + raw[20 + n:]
+    path = tmp_path / "far.glb"
+    path.write_bytes(raw[:8] + struct.pack("<I", 12 + len(body)) + body)
+    assert main(["inspect", str(path)]) == 0
+    assert "limbs: none" in capsys.readouterr().out
