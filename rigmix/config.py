@@ -299,29 +299,35 @@ class PositioningOptions(BaseModel):
 # constraints, applied to the number of an optional or to each item of a tuple), ``{}`` for none.
 # The field's type, default and description come from the dataclass.
 
+#: Most iterations (or rounds, rings, frames) any iterative option may ask for: every stage's
+#: work stays bounded (the defaults are 2 to 10), so a typo like ``1e9`` is an error, not a hang.
+MAX_ITERATIONS = 1000
+#: Most frames per second the animation stages resample at (clips are sampled at ``fps``).
+MAX_FPS = 240.0
+
 #: Bounds of the ``[fusion]`` options (:class:`rigmix.fusion.FusionParams`).
 FUSION_RANGES: dict[str, dict] = {
     "snap": {"ge": 0, "le": 1},
-    "smooth_iterations": {"ge": 0},
+    "smooth_iterations": {"ge": 0, "le": MAX_ITERATIONS},
     "smooth_alpha": {"ge": 0, "le": 1},
     "preserve_threshold": {"gt": 0, "le": 1},
-    "morphology_rounds": {"ge": 0},
+    "morphology_rounds": {"ge": 0, "le": MAX_ITERATIONS},
     "secondary_variance": {"ge": 0},
     "voxel_factor": {"gt": 0},
-    "min_voxels_across": {"ge": 1},
+    "min_voxels_across": {"ge": 1, "le": 4096},
     "max_voxel_diagonal": {"ge": 0},
     "margin_voxels": {"ge": 0},
     "band_voxels": {"gt": 0},
     "max_voxels": {"ge": 1, "le": MAX_GRID_VOXELS},
     "cut_voxels": {"ge": 0},
     "attach_conflict_voxels": {"ge": 0},
-    "remesh_iterations": {"ge": 0},
+    "remesh_iterations": {"ge": 0, "le": MAX_ITERATIONS},
     "target_edge_factor": {"gt": 0},
-    "taubin_iterations": {"ge": 0},
+    "taubin_iterations": {"ge": 0, "le": MAX_ITERATIONS},
     "project_voxels": {"ge": 0},
     "fidelity_voxels": {"ge": 0},
     "fidelity_diagonal": {"ge": 0},
-    "feature_rounds": {"ge": 0},
+    "feature_rounds": {"ge": 0, "le": MAX_ITERATIONS},
     "fidelity_relax": {"gt": 0},
     "relax_max_angle_loss": {"ge": 0},
     "keep_input_corners": {},
@@ -346,7 +352,7 @@ FUSION_TYPES = {
 #: Bounds of the ``[weights]`` options (:class:`rigmix.weights.WeightParams`).
 WEIGHT_RANGES: dict[str, dict] = {
     "method": {},
-    "max_influences": {"ge": 1},
+    "max_influences": {"ge": 1, "le": 64},
     "match_distance": {"ge": 0},
     "match_angle": {"ge": 0, "le": 180},
     "match_on_surface": {"ge": 0},
@@ -355,10 +361,10 @@ WEIGHT_RANGES: dict[str, dict] = {
     "locality_power": {"gt": 0},
     "feature_field": {},
     "blend": {},
-    "smoothing": {"ge": 0},
+    "smoothing": {"ge": 0, "le": MAX_ITERATIONS},
     "seam_spread": {"ge": 0},
-    "seam_rings": {"ge": 0},
-    "iterations": {"ge": 0},
+    "seam_rings": {"ge": 0, "le": MAX_ITERATIONS},
+    "iterations": {"ge": 0, "le": MAX_ITERATIONS},
     "mirror_tol": {"ge": 0},
     "strength": {"ge": 0},
     "bone_prior": {"ge": 0, "le": 1},
@@ -370,16 +376,16 @@ WEIGHT_RANGES: dict[str, dict] = {
 ANIMATION_RANGES: dict[str, dict] = {
     "clips": {},
     "sources": {},
-    "fps": {"gt": 0},
+    "fps": {"gt": 0, "le": MAX_FPS},
     "rotation_weight": {"ge": 0},
     "translation_weight": {"ge": 0},
     "continuity": {"ge": 0},
-    "hops_full": {"ge": 0},
-    "hops_max": {"ge": 0},
+    "hops_full": {"ge": 0, "le": MAX_ITERATIONS},
+    "hops_max": {"ge": 0, "le": MAX_ITERATIONS},
     "metric": {},
     "jump_penalty": {"ge": 0},
-    "smoothing": {"ge": 0},
-    "blend_frames": {"ge": 0},
+    "smoothing": {"ge": 0, "le": MAX_ITERATIONS},
+    "blend_frames": {"ge": 0, "le": MAX_ITERATIONS},
     "confidence_blend": {},
     "score_dtype": {},
     "fixed_frames": {},
@@ -743,6 +749,9 @@ def load_config(path) -> Config:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise InputError(f"config {path}: not valid TOML: {e}") from None
+    except RecursionError:  # tomllib parses nested arrays and tables recursively
+        raise InputError(f"config {path}: arrays or tables nested too deep to read; a composition "
+                         "config needs a few levels") from None
     cfg = parse_config(data, base_dir=path.resolve().parent, source=str(path))
     check_files(cfg)
     return cfg

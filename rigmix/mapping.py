@@ -190,7 +190,7 @@ def hop_distances(parents) -> np.ndarray:
     parents = np.asarray(parents, dtype=np.int64)
     J = len(parents)
     c = np.flatnonzero(parents >= 0)
-    A = coo_matrix((np.ones(len(c)), (c, parents[c])), shape=(J, J))
+    A = coo_matrix((np.ones(len(c)), (c, parents[c])), shape=(J, J)).tocsr()  # Floyd-Warshall (small J) needs csr
     return shortest_path(A, directed=False, unweighted=True)
 
 

@@ -202,3 +202,15 @@ def test_clip_times_stay_strictly_increasing_in_float32(fps):
             assert np.all(np.diff(t32) > 0), (fps, frames, gap, t[-3:])
             assert t[0] == 0.0 and t[-1] == end  # the final pose is always sampled
             assert np.all(np.diff(t) <= 1.0 / fps + 16 * step)  # a snapped end moves a few float32 steps
+
+
+def test_clip_times_refuse_a_clip_too_long_to_sample():
+    """Key times of 1e30 s (a hostile file) gave "Maximum allowed size exceeded" (exit 1)."""
+    from rigmix.animation.sampling import MAX_CLIP_FRAMES
+    from rigmix.errors import InputError
+
+    q = np.array([[0.0, 0.0, 0.0, 1.0]] * 2)
+    for end in (1e30, np.inf, (MAX_CLIP_FRAMES + 1) / 30.0):
+        with pytest.raises(InputError, match="clip 'long'.*trim its key times"):
+            clip_times(Clip("long", (Track(0, "rotation", np.array([0.0, end]), q),)), 30.0)
+    assert len(clip_times(Clip("ok", (Track(0, "rotation", np.array([0.0, 60.0]), q),)), 30.0)) == 1801

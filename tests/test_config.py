@@ -354,3 +354,20 @@ def test_cli_unknown_stage_option_exits_2(tmp_path, capsys):
         err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("rigmix: error:")]
         assert len(err) == 1 and f"{section}.{key}: unknown key" in err[0] and f"closest: {closest}" in err[0]
         assert not (tmp_path / "out.glb").exists()
+
+
+@pytest.mark.parametrize("section, key", [("fusion", "smooth_iterations"), ("fusion", "remesh_iterations"),
+                                          ("weights", "smoothing"), ("animation", "blend_frames"),
+                                          ("animation", "fps")])
+def test_iterative_options_are_bounded(tmp_path, section, key):
+    """``1e9`` iterations hung the fusion for minutes, ``fps = 1e9`` exhausted memory: every
+    iterative option has an upper bound checked at load."""
+    base = '[characters.a]\npath = "builtin:humanoid"\n'
+    with pytest.raises(InputError, match=f"{section}.{key}"):
+        load_config(write(tmp_path, base + f"[{section}]\n{key} = 1000000000\n"))
+
+
+def test_deeply_nested_toml_is_an_input_error(tmp_path):
+    """tomllib parses nested arrays recursively: 100,000 levels gave RecursionError (exit 1)."""
+    with pytest.raises(InputError, match="nested too deep"):
+        load_config(write(tmp_path, "x = " + "[" * 100_000 + "]" * 100_000 + "\n"))

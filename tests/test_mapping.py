@@ -261,3 +261,13 @@ def test_example_configs_compose_on_builtin_characters():
         if f.stem == "beast_arms":  # two fused pairs moved the quadruped by a non-rigid field
             t = comp.plan.translations["animal"]
             assert not np.allclose(t, t[0])
+
+
+def test_hop_distances_of_a_tiny_skeleton():
+    """scipy picks Floyd-Warshall for a small graph, which refuses a COO matrix: SimpleSkin's
+    two joints gave "csgraph must be lil, csr, or csc format" (exit 1) in every composition."""
+    from rigmix.mapping import hop_distances
+
+    assert np.array_equal(hop_distances(np.array([-1, 0])), [[0, 1], [1, 0]])
+    d = hop_distances(np.array([-1, 0, 1, -1]))
+    assert d[0, 2] == 2 and np.isinf(d[0, 3]) and d[3, 3] == 0

@@ -19,9 +19,14 @@ import logging
 import numpy as np
 
 from ..character import Clip, Track
+from ..errors import InputError
 from ..transforms import quat_normalize, quat_slerp
 
-__all__ = ["sample_track", "sample_clip", "clip_times", "resample_clip"]
+__all__ = ["sample_track", "sample_clip", "clip_times", "resample_clip", "MAX_CLIP_FRAMES"]
+
+#: Most frames a clip is sampled at (about 9 hours at 30 fps): key times beyond that are a
+#: broken file, and sampling them would allocate without bound.
+MAX_CLIP_FRAMES = 1_000_000
 
 logger = logging.getLogger(__name__)
 
@@ -155,7 +160,11 @@ def clip_times(clip: Clip, fps: float = 30.0) -> np.ndarray:
     if fps <= 0:
         raise ValueError(f"animation: fps must be positive, got {fps}")
     start, end = clip.start, clip.end
-    n = int(np.floor((end - start) * fps + 1e-6))
+    frames = (end - start) * fps
+    if not np.isfinite(frames) or frames > MAX_CLIP_FRAMES:
+        raise InputError(f"animation: clip '{clip.name}' runs from {start:g} to {end:g} s, more than "
+                         f"{MAX_CLIP_FRAMES} frames at {fps:g} fps: trim its key times")
+    n = int(np.floor(frames + 1e-6))
     t = start + np.arange(n + 1) / fps
     # a few float32 steps: two times this close may cast to one float32 key
     distinct = max(1e-6 / fps, 8.0 * float(np.spacing(np.float32(max(abs(end), abs(t[-1]))))))
