@@ -130,9 +130,10 @@ MAX_EULER_DEGREES = 360.0
 #: Largest quaternion component (normalized on use): keeps the squared length finite.
 MAX_QUATERNION_COMPONENT = 1e6
 
-_Degrees = Annotated[float, Field(ge=-MAX_EULER_DEGREES, le=MAX_EULER_DEGREES)]
-_QuaternionComponent = Annotated[float, Field(ge=-MAX_QUATERNION_COMPONENT, le=MAX_QUATERNION_COMPONENT)]
-_Coordinate = Annotated[float, Field(ge=-MAX_COORDINATE, le=MAX_COORDINATE)]  # metres (rigmix.geometry)
+# strict: an int is a number, a bool or a string is not (TOML `true` or "1" would coerce)
+_Degrees = Annotated[float, Strict(), Field(ge=-MAX_EULER_DEGREES, le=MAX_EULER_DEGREES)]
+_QuaternionComponent = Annotated[float, Strict(), Field(ge=-MAX_QUATERNION_COMPONENT, le=MAX_QUATERNION_COMPONENT)]
+_Coordinate = Annotated[float, Strict(), Field(ge=-MAX_COORDINATE, le=MAX_COORDINATE)]  # metres (rigmix.geometry)
 
 
 class JointRotation(BaseModel):
@@ -204,7 +205,7 @@ class CharacterConfig(BaseModel):
         description="glTF/GLB file, relative to the config file, `${VAR}` expanded "
                     "(RIGMIX_ASSETS defaults to ../shared/data/characters beside the repository), "
                     "or `builtin:NAME` for a procedural character of rigmix.examples.")
-    scale: Literal["auto"] | float = Field(
+    scale: Literal["auto"] | Annotated[float, Strict()] = Field(
         "auto", description="Uniform scale applied before composing: a number in [1e-4, 1e4] (override) "
                             "or 'auto' (matched to the character it is fused with; 1 for a body).")
     rotations: dict[str, JointRotation] = Field(

@@ -371,3 +371,13 @@ def test_deeply_nested_toml_is_an_input_error(tmp_path):
     """tomllib parses nested arrays recursively: 100,000 levels gave RecursionError (exit 1)."""
     with pytest.raises(InputError, match="nested too deep"):
         load_config(write(tmp_path, "x = " + "[" * 100_000 + "]" * 100_000 + "\n"))
+
+
+@pytest.mark.parametrize("extra", ['scale = true', 'scale = "1"', 'placement = { translation = ["1", 0, 0] }',
+                                   'placement = { rotation = [true, 0, 0] }'])
+def test_numbers_are_not_coerced_from_bools_or_strings(tmp_path, extra):
+    """``scale = true`` composed at scale 1 and a string translation was read as a number."""
+    text = f'[characters.a]\npath = "builtin:humanoid"\n{extra}\n'
+    with pytest.raises(InputError, match="characters.a"):
+        load_config(write(tmp_path, text))
+    load_config(write(tmp_path, '[characters.a]\npath = "builtin:humanoid"\nscale = 2\n', name="ok.toml"))
