@@ -64,23 +64,36 @@ def require(what: str, ok: bool) -> None:
 def asset(name: str) -> Path:
     """Path of a shared character; fails under CI=true, skips elsewhere, when it is missing."""
     path = ASSETS / CHARACTERS.get(name, name)
-    if not path.exists():
-        msg = f"missing test asset {path} (set RIGMIX_ASSETS to the characters folder)"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg)
-        pytest.skip(msg)
+    require(f"test asset {path} (set RIGMIX_ASSETS to the characters folder)", path.exists())
     return path
 
 
 def corpus(name: str) -> Path:
     """Path of a corpus character; fails under CI=true, skips elsewhere, when it is missing."""
     path = CORPUS / CORPUS_CHARACTERS.get(name, name)
-    if not path.exists():
-        msg = f"missing corpus character {path} (set RIGMIX_CORPUS to the corpus folder)"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg)
-        pytest.skip(msg)
+    require(f"corpus character {path} (set RIGMIX_CORPUS to the corpus folder)", path.exists())
     return path
+
+
+def tail_config(scale: float = 0.65, extra: str = "") -> str:
+    """A composition config: the built-in humanoid with the quadruped's tail attached, nearest
+    junction weights (a few seconds); ``extra`` is TOML inserted before the actions."""
+    return f"""name = "tail"
+[characters.human]
+path = "builtin:humanoid"
+[characters.animal]
+path = "builtin:quadruped"
+scale = {scale}
+{extra}
+[[actions]]
+op = "attach"
+source = "animal"
+source_joint = "Tail.1"
+target = "human"
+target_joint = "Hips"
+[weights]
+method = "nearest"
+"""
 
 
 @pytest.fixture(params=sorted(CHARACTERS))

@@ -20,6 +20,7 @@ import textwrap
 import numpy as np
 import pytest
 from conftest import ROOT
+from hostile import glb as glb_bytes
 
 from rigmix.config import load_config
 from rigmix.errors import InputError, RigmixError, UnsupportedError
@@ -28,18 +29,6 @@ from rigmix.io.gltf import read_gltf
 from rigmix.safety import file_digest
 
 # --------------------------------------------------------------------------- builders
-
-
-def glb_bytes(gl, data: bytes = b"") -> bytes:
-    """A GLB container around ``gl`` (a JSON dict, or JSON text as bytes) and ``data`` (BIN
-    chunk, padded to 4 bytes)."""
-    text = gl if isinstance(gl, bytes) else json.dumps(gl).encode()
-    text += b" " * (-len(text) % 4)
-    body = struct.pack("<II", len(text), 0x4E4F534A) + text
-    if data:
-        data = bytes(data) + b"\0" * (-len(data) % 4)
-        body += struct.pack("<II", len(data), 0x004E4942) + data
-    return struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body
 
 
 def tiny_skinned(J: int = 3, *, shape: str = "chain", same_names: bool = False, V=None, F=None, W=None,

@@ -8,34 +8,18 @@ import json
 
 import numpy as np
 import pytest
+from conftest import tail_config
 
 from rigmix.batch import run_one
 from rigmix.cli import main
 from rigmix.errors import InputError
 from rigmix.export import json_default, report_json, write_outputs
 
-#: The built-in humanoid with the quadruped's tail, nearest junction weights: a few seconds.
-TAIL = """name = "tail"
-[characters.human]
-path = "builtin:humanoid"
-[characters.animal]
-path = "builtin:quadruped"
-scale = 0.65
-[[actions]]
-op = "attach"
-source = "animal"
-source_joint = "Tail.1"
-target = "human"
-target_joint = "Hips"
-[weights]
-method = "nearest"
-"""
-
 
 @pytest.fixture(scope="module")
 def config(tmp_path_factory):
     path = tmp_path_factory.mktemp("configs") / "tail.toml"
-    path.write_text(TAIL)
+    path.write_text(tail_config())
     return path
 
 

@@ -5,9 +5,6 @@ About 40 cases across every category, each run as ``rigmix inspect`` (files) or 
 traceback, no signal, no hang, no internal error, one clean line on exit 2, nothing opened outside
 the case's folder, no sentinel bytes in any output, no partial output, inputs byte-identical, no
 silent acceptance of what the Khronos validator rejects, the case's expectation met.
-
-Cases whose fix belongs to a finding of issue 23 fixed on another branch are marked xfail
-(strict) with the finding's number: remove the mark when the fix is merged.
 """
 
 from __future__ import annotations
@@ -19,18 +16,7 @@ import hostile
 import pytest
 from conftest import asset
 
-#: case id -> the issue-23 finding (and the helper branch) whose fix makes it pass.
-PENDING: dict[str, str] = {}
-
 SLICE = hostile.slice_cases()
-
-
-def _params():
-    out = []
-    for case in SLICE:
-        marks = [pytest.mark.xfail(reason=PENDING[case.id], strict=True)] if case.id in PENDING else []
-        out.append(pytest.param(case, id=case.id, marks=marks))
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +55,7 @@ def test_every_generated_gltf_differs_from_its_seed(workspace):
             assert path.read_bytes() not in seeds, case.id
 
 
-@pytest.mark.parametrize("case", _params())
+@pytest.mark.parametrize("case", SLICE, ids=[case.id for case in SLICE])
 def test_hostile_case(case, workspace):
     command = "compose" if case.kind == "config" else "inspect"
     outcome = hostile.execute(case, workspace, command, timeout=hostile.TIMEOUT)

@@ -21,34 +21,15 @@ import sys
 import time
 from pathlib import Path
 
+import psutil
 import pytest
-from conftest import ROOT, asset
+from conftest import ROOT, asset, tail_config
 
 from rigmix import examples
 from rigmix.batch import MANIFEST, exit_status
 from rigmix.cli import MAX_ERROR_CHARS, main
 from rigmix.describe import describe, format_description, printable
 from rigmix.safety import file_digest
-
-psutil = pytest.importorskip("psutil")
-
-#: The built-in humanoid with the quadruped's tail, nearest junction weights: a few seconds.
-TAIL = """name = "tail"
-[characters.human]
-path = "builtin:humanoid"
-[characters.animal]
-path = "builtin:quadruped"
-scale = 0.65
-{extra}
-[[actions]]
-op = "attach"
-source = "animal"
-source_joint = "Tail.1"
-target = "human"
-target_joint = "Hips"
-[weights]
-method = "nearest"
-"""
 
 BROKEN = """name = "broken"
 [characters.human]
@@ -151,7 +132,7 @@ def job(tmp_path, monkeypatch):
         {"uri": "fox%20data.bin", "byteLength": 4}]}))
     (folder / "fox data.bin").write_bytes(b"\0\0\0\0")
     (folder / "link.glb").symlink_to("Fox.glb")
-    (folder / "c.toml").write_text(TAIL.format(extra='[characters.fox]\npath = "Fox.glb"'))
+    (folder / "c.toml").write_text(tail_config(extra='[characters.fox]\npath = "Fox.glb"'))
     monkeypatch.chdir(folder)
     return folder
 
@@ -176,7 +157,7 @@ def test_compose_refuses_outputs_that_are_inputs(job, capsys, args, words):
 
 
 def test_compose_refuses_a_gltf_buffer_as_output(job, capsys):
-    (job / "c.toml").write_text(TAIL.format(extra='[characters.fox]\npath = "fox.gltf"'))
+    (job / "c.toml").write_text(tail_config(extra='[characters.fox]\npath = "fox.gltf"'))
     from rigmix.config import load_config
     from rigmix.export import config_inputs
 
@@ -187,7 +168,7 @@ def test_compose_refuses_a_gltf_buffer_as_output(job, capsys):
 
 
 def test_batch_refuses_an_output_folder_where_outputs_hit_inputs(job, capsys):
-    (job / "Fox.toml").write_text(TAIL.format(extra='[characters.fox]\npath = "Fox.glb"'))
+    (job / "Fox.toml").write_text(tail_config(extra='[characters.fox]\npath = "Fox.glb"'))
     digest = file_digest(job / "Fox.glb")
     # Fox.toml's output Fox.glb would land on the input Fox.glb
     assert main(["batch", "Fox.toml", "--out", ".", "--workers", "0", "--no-progress"]) == 2
@@ -228,7 +209,7 @@ def test_a_dying_worker_fails_its_own_job_only(tmp_path):
     cfgs.mkdir()
     names = ["a_crash", "b_tail", "c_tail", "d_broken"]
     for n in names:
-        (cfgs / f"{n}.toml").write_text(BROKEN if "broken" in n else TAIL.format(extra=""))
+        (cfgs / f"{n}.toml").write_text(BROKEN if "broken" in n else tail_config(extra=""))
     out = tmp_path / "out"
     r = subprocess.run([sys.executable, "-m", "rigmix.cli", "batch", *[cfgs / f"{n}.toml" for n in names],
                         "--out", out, "--workers", "2", "--no-progress"], cwd=ROOT, capture_output=True, text=True,
@@ -252,7 +233,7 @@ def test_a_dying_worker_fails_its_own_job_only(tmp_path):
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_sigterm_while_writing_leaves_nothing(tmp_path):
-    (tmp_path / "tail.toml").write_text(TAIL.format(extra=""))
+    (tmp_path / "tail.toml").write_text(tail_config(extra=""))
     hold = tmp_path / "hold"
     hold.mkdir()
     out = tmp_path / "out"
@@ -282,7 +263,7 @@ def test_sigterm_stops_the_batch_workers(tmp_path):
     paths = []
     for k in range(4):
         paths.append(cfgs / f"t{k}.toml")
-        paths[-1].write_text(TAIL.format(extra=""))
+        paths[-1].write_text(tail_config(extra=""))
     hold = tmp_path / "hold"
     hold.mkdir()
     out = tmp_path / "out"
@@ -391,7 +372,7 @@ def test_error_lines_are_escaped_and_capped(tmp_path, capsys):
 def test_a_failed_write_names_the_output(tmp_path):
     """A write that fails half way (here the file-size limit, as a full disk would): exit 2, one short
     line naming the output and the fix, no file and no temporary file left."""
-    (tmp_path / "tail.toml").write_text(TAIL.format(extra=""))
+    (tmp_path / "tail.toml").write_text(tail_config(extra=""))
     out = tmp_path / "out"
     out.mkdir()
 
