@@ -291,7 +291,7 @@ class PositioningOptions(BaseModel):
 
     model_config = _STRICT
 
-    translate: bool = Field(
+    translate: StrictBool = Field(
         True, description="Move each source character so that its fused joints land on their targets.")
 
 
@@ -318,7 +318,7 @@ FUSION_RANGES: dict[str, dict] = {
     "min_voxels_across": {"ge": 1, "le": 4096},
     "max_voxel_diagonal": {"ge": 0},
     "margin_voxels": {"ge": 0},
-    "band_voxels": {"gt": 0},
+    "band_voxels": {"gt": 0, "le": 4096},  # a band wider than the largest grid is the whole grid
     "max_voxels": {"ge": 1, "le": MAX_GRID_VOXELS},
     "cut_voxels": {"ge": 0},
     "attach_conflict_voxels": {"ge": 0},
@@ -377,7 +377,7 @@ WEIGHT_RANGES: dict[str, dict] = {
 ANIMATION_RANGES: dict[str, dict] = {
     "clips": {},
     "sources": {},
-    "fps": {"gt": 0, "le": MAX_FPS},
+    "fps": {"ge": 1, "le": MAX_FPS},  # below 1 fps a clip is one or two frames
     "rotation_weight": {"ge": 0},
     "translation_weight": {"ge": 0},
     "continuity": {"ge": 0},

@@ -282,10 +282,11 @@ def assert_main_error(capsys, argv, path=None, match=None):
 
 
 def assert_cli_error(result, path=None, match=None):
-    """Exit status 2, one line ``rigmix: error: ...`` (naming ``path``), no traceback."""
+    """Exit status 2, one line ``rigmix: error: ...`` (naming ``path``), no traceback; the
+    reader's repair warnings (``rigmix: WARNING: ...``) may come before it."""
     assert result.returncode == 2, (result.returncode, result.stderr[-2000:])
     assert "Traceback" not in result.stderr and "internal error" not in result.stderr, result.stderr[-2000:]
-    lines = [ln for ln in result.stderr.splitlines() if ln.strip()]
+    lines = [ln for ln in result.stderr.splitlines() if ln.strip() and not ln.startswith("rigmix: WARNING: ")]
     assert len(lines) == 1 and lines[0].startswith("rigmix: error: "), result.stderr[-2000:]
     if path is not None:
         assert path.name in lines[0]

@@ -280,7 +280,10 @@ def test_absent_section_gives_the_dataclass_defaults(section, params, ranges):
     ("[fusion]\nfidelity_relax = [4.0, -1]\n", ["fusion.fidelity_relax[1]", "greater than 0"]),
     ('[fusion]\nbackend = "vdb"\n', ["fusion.backend", "'openvdb'"]),
     ("[fusion]\nmargin_voxels = nan\n", ["fusion.margin_voxels", "finite number"]),
-    ("[animation]\nfps = 0\n", ["animation.fps", "greater than 0"]),
+    ("[animation]\nfps = 0\n", ["animation.fps", "greater than or equal to 1"]),
+    ("[animation]\nfps = 1e-9\n", ["animation.fps", "greater than or equal to 1"]),
+    ("[fusion]\nband_voxels = 1e9\n", ["fusion.band_voxels", "less than or equal to 4096"]),
+    ('[positioning]\ntranslate = "yes"\n', ["positioning.translate", "valid boolean"]),
     ("[animation]\nrest_mismatch = 181\n", ["animation.rest_mismatch", "less than or equal to 180"]),
     ("[animation]\nhops_full = 4\nhops_max = 3\n", ["animation", "hops_max must be >= hops_full"]),
 ])

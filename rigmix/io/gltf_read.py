@@ -126,8 +126,9 @@ def _check_extensions(doc: Document) -> None:
             )
 
 
-def _check_scenes(doc: Document, graph: "_Graph") -> None:
-    """``scene`` and every ``scenes[k].nodes`` refer to existing root nodes, each once."""
+def _check_scenes(doc: Document, graph: "_Graph", log) -> None:
+    """``scene`` and every ``scenes[k].nodes`` refer to existing root nodes, each once; an empty
+    ``nodes`` list (out of spec) is reported."""
     scenes = doc.items("scenes")
     if "scene" in doc.json:
         doc.get("scenes", doc.json["scene"], "'scene'")
@@ -136,6 +137,9 @@ def _check_scenes(doc: Document, graph: "_Graph") -> None:
         roots = doc.get("scenes", k).get("nodes", [])
         if not isinstance(roots, list):
             raise doc.error(f"scenes[{k}].nodes must be a JSON array")
+        if not roots and "nodes" in doc.get("scenes", k):
+            log(f"scenes[{k}].nodes is empty, which glTF 2.0 forbids (omit it instead): the scene shows nothing; "
+                "rigmix reads every node")
         for n in roots:
             if not isinstance(n, int) or isinstance(n, bool) or not 0 <= n < N:
                 raise doc.error(f"scenes[{k}].nodes refers to nodes[{n!r}], which does not exist: the file has "
@@ -172,7 +176,7 @@ def _check_attribute_type(doc: Document, index: int, key: str, label: str) -> No
 def _read(doc: Document, log: _Log) -> Character:
     _check_extensions(doc)
     graph = _node_graph(doc, log)
-    _check_scenes(doc, graph)
+    _check_scenes(doc, graph, log)
     skins = _choose_skin(doc, graph)
     skeleton, joint_of_node = _skeleton(doc, graph, skins, log)
     materials = read_materials(doc, log)
@@ -304,12 +308,37 @@ def _node_graph(doc: Document, log) -> _Graph:
         for c in reversed(chain):
             d += 1
             depth[c] = d
+    _check_node_transforms(doc, nodes, log)
     local = _node_locals(doc, _rest_rotations(doc, nodes, log))
     world = np.empty_like(local)
     for i in np.argsort(depth, kind="stable"):
         world[i] = local[i] if parent[i] < 0 else world[parent[i]] @ local[i]
+    for i, n in enumerate(nodes):
+        if "name" in n and not isinstance(n["name"], str):
+            log(f"nodes[{i}].name is {type(n['name']).__name__} {n['name']!r}, not a string: ignored")
     names = [n.get("name") if isinstance(n.get("name"), str) and n.get("name") else None for n in nodes]
     return _Graph(parent, local, world, depth, names)
+
+
+def _check_node_transforms(doc: Document, nodes: list, log) -> None:
+    """Warn about node transforms glTF 2.0 forbids but that have one reading: a ``matrix``
+    beside ``translation``/``rotation``/``scale`` (the matrix is used, as three.js and Blender
+    do) and a singular ``matrix`` (its subtree collapses; a joint there is refused later)."""
+    for i, n in enumerate(nodes):
+        if not isinstance(n, dict) or "matrix" not in n:
+            continue
+        trs = [k for k in ("translation", "rotation", "scale") if k in n]
+        if trs:
+            log(f"nodes[{i}] has both a matrix and {', '.join(trs)}, which glTF 2.0 forbids: the matrix is used")
+        try:
+            m = np.asarray(n["matrix"], np.float64).reshape(4, 4).T
+        except (TypeError, ValueError):
+            continue  # malformed: refused with its name by _node_local
+        with np.errstate(all="ignore"):
+            singular = not np.all(np.isfinite(m)) or abs(np.linalg.det(m[:3, :3])) <= 1e-12 * max(
+                float(np.abs(m[:3, :3]).max()) ** 3, 1e-300)
+        if singular and np.all(np.isfinite(m)):
+            log(f"nodes[{i}].matrix is singular (a zero scale): everything under it collapses to a point")
 
 
 # --------------------------------------------------------------------------- 2. skins
@@ -552,6 +581,7 @@ def _read_primitive(doc, prim: dict, label: str, njoints: int | None, log) -> di
         log(f"{label} has no POSITION: skipped")
         return None
     V = doc.accessor(attrs["POSITION"], f"{label} POSITION")
+    _check_declared_bounds(doc, attrs["POSITION"], f"{label} POSITION", log)
     _check_attribute_type(doc, attrs["POSITION"], "POSITION", label)
     n = len(V)
     if V.shape[1] != 3 or not np.all(np.isfinite(V)):
@@ -617,6 +647,8 @@ def _meshes(doc, graph: _Graph, skins, skeleton: Skeleton, joint_of_node, nmat, 
         mi = node["mesh"]
         mesh = doc.get("meshes", mi, f"nodes[{i}]")
         prims = mesh.get("primitives", [])
+        if not prims:
+            log(f"meshes[{mi}] has no primitives, which glTF 2.0 forbids: nothing to read from it")
         base = mesh.get("name") or f"mesh_{mi}"
         skin = None
         if "skin" in node:
@@ -714,6 +746,9 @@ def _clips(doc, joint_of_node, skeleton: Skeleton, log) -> tuple[Clip, ...]:
                 morph += 1
                 continue
             if node is None or path not in ("translation", "rotation", "scale"):
+                if "target" not in ch or path is None:  # required by glTF 2.0; a missing node is legal
+                    log(f"animation '{name}' channel {ci} has no target{' path' if 'target' in ch else ''}, "
+                        "which glTF 2.0 requires: ignored")
                 continue
             if node not in joint_of_node:
                 ignored_nodes.add(node)
@@ -739,11 +774,22 @@ def _clips(doc, joint_of_node, skeleton: Skeleton, log) -> tuple[Clip, ...]:
     return tuple(clips)
 
 
+def _check_declared_bounds(doc, index: int, label: str, log) -> None:
+    """Warn when an accessor that glTF 2.0 requires to declare ``min`` and ``max`` (POSITION,
+    animation input) declares none: readers that trust the bounds (culling, clip length) get
+    them wrong. rigmix computes them from the data, and writes them."""
+    acc = doc.get("accessors", index)
+    if "min" not in acc or "max" not in acc:
+        log(f"{label}: accessors[{index}] declares no min/max, which glTF 2.0 requires here "
+            "(computed from the data; written when saved)")
+
+
 def _track(doc, sampler: dict, joint: int, path: str, label: str, log) -> Track:
     interp = sampler.get("interpolation", "LINEAR")
     if interp not in ("LINEAR", "STEP", "CUBICSPLINE"):
         raise doc.error(f"{label} has unknown interpolation {interp!r}")
     times = doc.accessor(sampler.get("input"), f"{label} input")
+    _check_declared_bounds(doc, sampler.get("input"), f"{label} input", log)
     if times.shape[1] != 1 or not np.all(np.isfinite(times)):
         raise doc.error(f"{label}: input must be finite scalar times")
     times = times[:, 0]
