@@ -281,7 +281,7 @@ def _run_compose(args) -> int:
     with tqdm(total=len(STAGE_NAMES), desc="compose", unit="stage", disable=args.no_progress, file=sys.stderr,
               leave=False) as bar:
         def progress(stage, done, total):
-            if isinstance(done, int) and stage in STAGE_NAMES:
+            if isinstance(done, int) and (stage in STAGE_NAMES or stage == "done"):
                 bar.total = total
                 bar.set_postfix_str(stage)
                 bar.update(done - bar.n)

@@ -44,7 +44,9 @@ __all__ = ["Composition", "Progress", "STAGE_NAMES", "load_characters", "compose
 
 logger = logging.getLogger(__name__)
 
-#: ``progress(stage, done, total)``: called as stages finish; the CLI turns it into a bar.
+#: ``progress(stage, done, total)``: called as each stage starts (``stage`` the running one, ``done``
+#: the number finished) and once at the end (``"done"``, ``total``, ``total``); the CLI turns it
+#: into a bar labelled with the running stage.
 Progress = Callable[[str, int, int], None]
 
 
@@ -236,7 +238,7 @@ def compose(config, *, progress: Progress | None = None, until: str | None = Non
     config : Config, str or Path
         A config built in code, or a TOML file (read with :func:`rigmix.config.load_config`).
     progress : callable, optional
-        ``progress(stage, done, total)`` after each stage.
+        ``progress(stage, done, total)`` as each stage starts, then ``("done", total, total)``.
     until : str, optional
         Stop after this stage (one of :data:`STAGE_NAMES`), e.g. ``until="mapping"`` for
         ``rigmix map``.
@@ -285,11 +287,14 @@ class _StageClock:
 
     def run(self, name: str, fn: Callable, *args, **kwargs):
         """``fn(*args, **kwargs)``, timed as stage ``name``."""
+        index = STAGE_NAMES.index(name)
+        if self._progress is not None:
+            self._progress(name, index, self._last + 1)
         t0 = time.perf_counter()
         out = fn(*args, **kwargs)
         self._seconds[name] = round(time.perf_counter() - t0, 4)
-        if self._progress is not None:
-            self._progress(name, STAGE_NAMES.index(name) + 1, self._last + 1)
+        if self._progress is not None and index == self._last:
+            self._progress("done", self._last + 1, self._last + 1)
         return out
 
     def stage(self, name: str, fn: Callable[[Composition, Progress | None], Composition],
