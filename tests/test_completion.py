@@ -324,14 +324,14 @@ def fox():
     return load_character(asset("Fox"))
 
 
-def _self_compose(fox, part_root, options):
+def _self_compose(fox, part_root, options, selection=None):
     sk = fox.skeleton
     J = sk.num_joints
     part = sk.subtree(part_root)
     prov = [[("B", j)] if part[j] else [("A", j)] for j in range(J)]
     prov[part_root] = [("A", part_root), ("B", part_root)]
     maps = {k: BoneMap(k, np.arange(J), np.ones(J)) for k in "AB"}
-    clips = complete_clips(sk, {"A": fox, "B": fox}, maps, options=options, provenance=prov)
+    clips = complete_clips(sk, {"A": fox, "B": fox}, maps, options=options, provenance=prov, selection=selection)
     return clips, part
 
 
@@ -341,12 +341,17 @@ def _self_compose(fox, part_root, options):
     ("b_Spine02_03", CompletionOptions(metric="abs", jump_penalty=0.0)),  # the paper's rule
 ])
 def test_self_composition_reproduces_every_clip(fox, part_name, options):
-    clips, part = _self_compose(fox, fox.skeleton.index(part_name), options)
     names = [c.name for c in fox.clips]
-    assert [c.name for c in clips] == [f"{k}:{n}" for k in "AB" for n in names]
+    # by default a file listed twice gives its clips once, under their own names
+    clips, part = _self_compose(fox, fox.skeleton.index(part_name), options)
+    assert [c.name for c in clips] == names
+    # each id's clips, when both are asked for, are completed from the other's part
+    clips_both, _ = _self_compose(fox, fox.skeleton.index(part_name), options,
+                                  selection=[(k, n) for k in "AB" for n in names])
+    assert [c.name for c in clips_both] == [f"{k}:{n}" for k in "AB" for n in names]
     J = np.arange(fox.skeleton.num_joints)
-    for clip in clips:
-        src = fox.clip(clip.name.split(":", 1)[1])
+    for clip in clips + clips_both:
+        src = fox.clip(clip.name.split(":", 1)[-1])
         err = _angles_to_source(fox.skeleton, clip, fox, src, J, J)  # (F, J) radians
         assert err.max() < 1e-3, (clip.name, float(err.max()))
         assert len(clip.tracks) == 3 * len(J)
@@ -487,9 +492,11 @@ def _compose_until_mapping(config, *assets):
 def test_pipeline_self_composition_reproduces_the_clip():
     comp = _compose_until_mapping("self_composition.toml", "CesiumMan")
     plan = comp.plan
-    clips = complete_clips(plan.skeleton, comp.inputs, comp.maps, provenance=plan.provenance)
     keys = [(cid, c.name) for cid, ch in comp.inputs.items() for c in ch.clips]
-    assert len(clips) == len(keys) == 2
+    assert len(keys) == 2  # one file under two ids
+    assert len(complete_clips(plan.skeleton, comp.inputs, comp.maps, provenance=plan.provenance)) == 1
+    clips = complete_clips(plan.skeleton, comp.inputs, comp.maps, provenance=plan.provenance, selection=keys)
+    assert len(clips) == 2
     for clip, (cid, name) in zip(clips, keys):
         src = comp.inputs[cid]
         target = np.asarray(comp.maps[cid].target)

@@ -162,9 +162,11 @@ def test_attach_names_provenance_and_order():
     n_chest = int(y.skeleton.subtree(2).sum())
     assert sk.num_joints == 15 + n_chest - 1
     assert plan.used["x"].all() and plan.used["y"].sum() == n_chest
-    # collisions: the first in output order keeps the name, later ones get .001
-    assert "neck" in sk.names and "neck.001" in sk.names and "chest.001" not in sk.names
-    assert plan.report["renamed"]["neck.001"] == "y:neck"
+    # collisions: the body keeps the name, a grafted joint gets its character id as prefix
+    # (readable in Blender and engines, where ``.001`` reads as a duplicate)
+    assert "neck" in sk.names and "y_neck" in sk.names and "y_chest" not in sk.names
+    assert not any(n.endswith(".001") for n in sk.names)
+    assert plan.report["renamed"]["y_neck"] == "y:neck"
     hips = sk.names.index("hips")
     assert plan.provenance[hips] == (("x", 0), ("y", 2))
     for o, prov in enumerate(plan.provenance):
@@ -176,7 +178,7 @@ def test_attach_names_provenance_and_order():
     assert np.allclose(Wy[2, :3, 3], Wx[0, :3, 3])
     # grafted joints keep their positioned world transform in the output
     Wr = sk.rest_worlds()
-    assert np.allclose(Wr[sk.names.index("neck.001")], Wy[3])
+    assert np.allclose(Wr[sk.names.index("y_neck")], Wy[3])
 
 
 def test_replace_drops_the_target_subtree():
@@ -325,7 +327,7 @@ def test_centaur_real(real):
     Wr = sk.rest_worlds()
     assert np.allclose(plan.positioned["knight"].skeleton.rest_worlds()[knight.index("Abdomen"), :3, 3],
                        Wr[fused.output, :3, 3])
-    assert "Torso.001" in sk.names  # the knight's Torso after the horse's
+    assert "knight_Torso" in sk.names  # the knight's Torso after the horse's
     s = plan.scales["knight"]
     Ph, Pk = horse.rest_worlds()[:, :3, 3], knight.rest_worlds()[:, :3, 3]
     ratio = (chain_length(horse.parents, Ph, horse.index("Neck1"))

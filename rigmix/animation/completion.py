@@ -120,8 +120,9 @@ class CompletionOptions:
     Attributes
     ----------
     clips : mapping of str to sequence of str, or None
-        Clips to complete, per character id (``None``: every clip of every input; an id left
-        out: none of its clips).
+        Clips to complete, per character id (``None``: every clip of every input, once: a
+        file listed under two ids gives its clips under the first; an id left out: none of
+        its clips).
     sources : mapping of str to sequence of str, or None
         Clips whose frames may complete the others, per character id (``None``: all clips;
         an id left out: all its clips).
@@ -261,7 +262,14 @@ def _selected(inputs, options, selection):
     elif options.clips is not None:
         keys = [(cid, name) for cid, names in options.clips.items() for name in names]
     else:
-        keys = [(cid, c.name) for cid, ch in inputs.items() for c in ch.clips]
+        # a file listed under two ids is one Character: its clips are completed once, under
+        # the first id (a self-composition writes each clip once, not as body:/donor: copies)
+        seen, keys = set(), []
+        for cid, ch in inputs.items():
+            for c in ch.clips:
+                if id(c) not in seen:
+                    seen.add(id(c))
+                    keys.append((cid, c.name))
     for cid, name in keys:
         if cid not in inputs:
             raise InputError(f"completion: clip selection names character {cid!r}, inputs are {sorted(inputs)}")
@@ -323,7 +331,8 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
     maps : mapping of str to BoneMap
         Per id: ``target (J_in,)`` output joint or -1 and ``confidence (J_in,)``.
     selection : sequence of (character id, clip name), optional
-        The clips to complete (overrides ``options.clips``; default every clip of every input).
+        The clips to complete (overrides ``options.clips``; default every clip of every input,
+        once).
     options : CompletionOptions, optional
     provenance : sequence of sequence of (str, int), optional
         Per output joint, the (character id, input joint) it comes from (the plan's); without

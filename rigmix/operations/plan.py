@@ -17,9 +17,9 @@ output: to use a part twice, list the file under two ids.
 The fused joint takes the target's name, rest transform and parent. Output joints are ordered
 parents first; among the valid orders the one kept follows the body's own joint order, with a
 grafted subtree placed where the joint it is fused with sits (a self-composition therefore
-reproduces the input order exactly). Name collisions (:func:`rigmix.rig.unique_names`): a body's
-joints keep their names, grafted joints that collide get ``.001``, ``.002``... (as Blender
-does), in output order.
+reproduces the input order exactly). Name collisions (:func:`output_joint_names`): a body's
+joints keep their names, a grafted joint that collides is prefixed with its character id
+(``rider_Chest``), numbered ``_2``, ``_3``... only if that is taken too.
 """
 
 from __future__ import annotations
@@ -520,6 +520,25 @@ def _order(ids, actions, members, node_id, parent, part):
 # --------------------------------------------------------------------------------------------
 
 
+def output_joint_names(names, owners, level) -> list[str]:
+    """Unique output joint names: a joint whose name is taken by one of higher priority (lower
+    ``level``: the body's joints first, then each graft) is prefixed with its character id
+    (``rider_Chest``), then numbered ``_2``, ``_3``... should that be taken too.
+
+    Parameters
+    ----------
+    names : sequence of str
+        The joints' names in their own files, in output order.
+    owners : sequence of str
+        The config id of the character each joint comes from.
+    level : sequence of int
+        Priority: smaller keeps its name first (ties in list order).
+    """
+    first = unique_names(names, priority=level)
+    prefixed = [n if u == n else f"{cid}_{n}" for n, u, cid in zip(names, first, owners)]
+    return unique_names(prefixed, suffix="_{}", start=2, priority=level)
+
+
 def _build_skeleton(structure, positioned, config):
     order = structure.order
     N = len(order)
@@ -557,7 +576,7 @@ def _build_skeleton(structure, positioned, config):
         t, r, s = matrix_to_trs(np.linalg.inv(P) @ worlds[comp])
         T[comp], R[comp], S[comp] = t, r, s
     level = [structure.level[n] for n in order]
-    unique = unique_names(names, suffix=".{:03d}", priority=level)
+    unique = output_joint_names(names, [structure.members[n][0][0] for n in order], level)
     # in the order the names were made unique: a body's joints first (level 0), then grafts
     renamed = {unique[o]: names[o] for o in sorted(range(N), key=lambda o: (level[o], o)) if unique[o] != names[o]}
     skeleton = Skeleton(
