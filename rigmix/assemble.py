@@ -8,7 +8,8 @@
   interpolated from the closest input points (textures baked to vertex colours first, as in the
   paper), smooth normals from the fused surface;
 * props on kept joints follow the output joint of that joint; static props are kept; props on
-  dropped joints are dropped (logged);
+  dropped joints are dropped with a warning naming them;
+* materials equal in everything but their name are written once, unused ones not at all;
 * the skeleton is S_R (its anchors are the plan's), the clips those of the completion stage.
 """
 
@@ -25,7 +26,7 @@ from dfd.mesh import vertex_normals
 from .character import Character, Material, Mesh, Prop
 from .weights import closest_point_weights, to_influences
 
-__all__ = ["assemble_character", "baked_colors", "input_mesh_ranges"]
+__all__ = ["assemble_character", "baked_colors", "deduplicate_materials", "input_mesh_ranges"]
 
 log = logging.getLogger(__name__)
 
@@ -181,7 +182,7 @@ def assemble_character(composition) -> Character:
                            normals=normals, colors=colors, joints=joints_all[verts], weights=weights_all[verts],
                            material=len(materials) - 1))
 
-    props = []
+    props, dropped = [], []
     for cid in ids:
         ch = plan.positioned[cid]
         for p in ch.props:
@@ -194,14 +195,63 @@ def assemble_character(composition) -> Character:
                 continue
             o = int(plan.image[cid][p.joint])
             if o < 0:
-                log.info("assembly: prop %r of %s follows dropped joint %r: dropped", p.mesh.name, cid,
-                         ch.skeleton.names[p.joint])
+                dropped.append(f"assembly: prop '{p.mesh.name}' of {cid!r} is parented to joint "
+                               f"'{ch.skeleton.names[p.joint]}', which the composition removes: dropped")
+                log.warning(dropped[-1])
                 continue
             props.append(Prop(mesh, o, p.matrix))
-    warnings = tuple(w for cid in ids for w in composition.inputs[cid].warnings)
+    warnings = tuple(w for cid in ids for w in composition.inputs[cid].warnings) + tuple(dropped)
+    meshes, props, materials = deduplicate_materials(meshes, props, materials)
     return Character(name=composition.config.name, skeleton=composition.skeleton, meshes=tuple(meshes),
                      clips=clips, materials=tuple(materials), props=tuple(props), source="",
                      warnings=warnings)
+
+
+def _material_key(m: Material) -> tuple:
+    """Everything a material renders with, its name aside."""
+    tex = m.base_color_texture
+    tex_key = None if tex is None else (tex.data, tex.mime_type, repr(sorted(tex.sampler.items())))
+    return (m.base_color.tobytes(), float(m.metallic), float(m.roughness), tex_key, int(m.base_color_texcoord),
+            bool(m.double_sided), m.alpha_mode, float(m.alpha_cutoff), m.emissive.tobytes(),
+            repr(sorted(m.extra.items())))
+
+
+def deduplicate_materials(meshes, props, materials):
+    """Materials merged by content and pruned to those used.
+
+    Two inputs made in one tool often carry equal materials (``Black`` in both): the output keeps
+    one, under the first one's name, and drops the materials no mesh or prop uses (those of
+    removed parts).
+
+    Parameters
+    ----------
+    meshes : sequence of Mesh
+    props : sequence of Prop
+    materials : sequence of Material
+        ``Mesh.material`` indexes it (``-1``: the default material).
+
+    Returns
+    -------
+    (list of Mesh, list of Prop, list of Material)
+        The same meshes and props, their ``material`` re-indexed into the returned materials
+        (first-use order of the original indices kept).
+    """
+    from dataclasses import replace
+
+    used = sorted({m.material for m in meshes if m.material >= 0} | {p.mesh.material for p in props
+                                                                      if p.mesh.material >= 0})
+    new_index, kept, by_key = {}, [], {}
+    for k in used:
+        key = _material_key(materials[k])
+        if key not in by_key:
+            by_key[key] = len(kept)
+            kept.append(materials[k])
+        new_index[k] = by_key[key]
+
+    def remap(mesh):
+        return mesh if mesh.material < 0 else replace(mesh, material=new_index[mesh.material])
+
+    return ([remap(m) for m in meshes], [replace(p, mesh=remap(p.mesh)) for p in props], kept)
 
 
 def _junction_colors(surface, inputs, ids, plan, verts):
