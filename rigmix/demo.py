@@ -7,7 +7,9 @@
 3. reads each file back and prints its ``rigmix inspect`` summary (:mod:`rigmix.describe`),
 4. composes the built-in centaur and writes its GLB, USD and JSON report as ``rigmix compose``
    does (:func:`compose_examples`, through :func:`rigmix.export.write_outputs`),
-5. lists what was written.
+5. renders a contact sheet of the centaur's first clip (``centaur.sheet.png``, as
+   ``rigmix render --sheet`` does), the first thing to look at,
+6. lists what was written.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import sys
 import time
 from pathlib import Path
 
-__all__ = ["main", "write_examples", "compose_examples"]
+__all__ = ["main", "write_examples", "compose_examples", "render_sheet"]
 
 
 def write_examples(out: Path) -> list[Path]:
@@ -72,6 +74,19 @@ def compose_examples(inputs: list[Path], out: Path) -> list[Path]:
     return [glb, usd]
 
 
+def render_sheet(path: Path, out: Path, frames: int = 12) -> Path:
+    """Render a contact sheet of the first clip of the character file ``path`` to ``out``
+    (``frames`` evenly spaced frames, as ``rigmix render --sheet``); returns ``out``."""
+    from .io import load_character
+    from .preview.render import render_clip
+
+    character = load_character(path)
+    duration = character.clips[0].duration if character.clips else 0.0
+    # only the sheet's frames are needed: sample the clip at about twice their rate
+    render_clip(character, sheet=out, fps=max(1.0, 2 * frames / max(duration, 1e-3)), sheet_frames=frames)
+    return out
+
+
 def main(argv=None) -> int:
     """Run the demo; returns the exit status."""
     from .describe import describe, format_description
@@ -94,12 +109,14 @@ def main(argv=None) -> int:
         for path in composed:
             print(format_description(describe(load_character(path), path)))
             print()
+        sheet = render_sheet(composed[0], args.out / "centaur.sheet.png")
+        print(f"demo: contact sheet {sheet}")
     except RigmixError as exc:
         print(f"demo: error: {exc}", file=sys.stderr)
         return 2
 
     print("demo: wrote")
-    for path in written + composed:
+    for path in written + composed + [sheet]:
         print(f"  {path}  ({path.stat().st_size:,} bytes)")
     return 0
 
