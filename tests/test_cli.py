@@ -202,8 +202,8 @@ def test_demo_writes_and_inspects(tmp_path):
         assert f"character {name!r}" in r.stdout
     assert "'walk'" in r.stdout and "'trot'" in r.stdout and "demo: wrote" in r.stdout
     # the contact sheet of the centaur: a PNG with the character drawn on it (not a blank page)
-    from PIL import Image
     import numpy as np
+    from PIL import Image
 
     sheet = np.asarray(Image.open(out / "centaur.sheet.png").convert("L"), np.float64)
     assert sheet.shape[0] >= 480 and sheet.shape[1] >= 480
