@@ -104,9 +104,9 @@ def test_voxel_cap_relative_to_the_diagonal():
               FusionInput(Vb, Fb, two_joint_weights(Vb, 0.1, 0.1), np.array([False, True]))]
     diag = min(bounding_box_diagonal(Va), bounding_box_diagonal(Vb))
     plain = fuse_surfaces(inputs, [FusionAction("replace", 0, 1)])
-    capped = fuse_surfaces(inputs, [FusionAction("replace", 0, 1)], params=FusionParams(max_voxel_diagonal=0.004))
-    assert plain.report["fields"]["voxel_size"] > 0.004 * diag
-    assert capped.report["fields"]["voxel_size"] <= 0.004 * diag * (1 + 1e-9)
+    cap = 0.7 * plain.report["fields"]["voxel_size"] / diag  # just below the edge-length rule
+    capped = fuse_surfaces(inputs, [FusionAction("replace", 0, 1)], params=FusionParams(max_voxel_diagonal=cap))
+    assert capped.report["fields"]["voxel_size"] <= cap * diag * (1 + 1e-9)
     assert capped.report["fields"]["voxels"] > plain.report["fields"]["voxels"]
     m = capped.report["mesh"]
     assert m["junction_boundary_edges"] == 0 and m["boundary_edges"] == 0 and m["non_manifold_edges"] == 0
