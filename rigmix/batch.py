@@ -19,11 +19,14 @@ finished job appends one JSON line to ``DIR/manifest.jsonl``::
      "status": "ok" | "failed", "outputs": {"glb": "centaur.glb", "report": "centaur.report.json"},
      "timings": {"compose": 3.2, "write": 0.1, "total": 3.3, "stages": {...}},
      "error": null | "one-line message", "error_kind": null | "input" | "internal",
+     "gates_failed": ["junction_self_intersections = 3 (bound <= 0)", ...],
      "finished": "2026-11-22T01:02:03Z"}
 
 ``error_kind`` is ``"input"`` for a :class:`RigmixError` (a bad config or input file) and
-``"internal"`` for anything else (a bug, a worker process that died); :func:`exit_status`
-turns the entries into the exit status of ``rigmix batch`` (0, 2 or 1, as ``rigmix compose``).
+``"internal"`` for anything else (a bug, a worker process that died). ``gates_failed`` lists the
+hard gates of the report that failed (:mod:`rigmix.gates`; the job is still ``ok``, its outputs
+written). :func:`exit_status` turns the entries into the exit status of ``rigmix batch`` (0, 2
+or 1, as ``rigmix compose``; 3 with ``--strict`` when the only failures are gates).
 
 Outputs are named relative to ``DIR``. The batch is resumable: a config whose latest manifest
 entry is ``ok``, whose file has not changed since (same SHA-256) and whose outputs all exist is
@@ -58,6 +61,7 @@ from typing import Callable, Iterable
 
 from .errors import InputError, RigmixError, UnsupportedError
 from .export import config_inputs, json_default, write_outputs
+from .gates import failure_items
 from .safety import Interrupted, check_outputs, file_digest
 
 __all__ = ["MANIFEST", "LOCAL_DASK", "STOP_TIMEOUT", "run_one", "run_batch", "read_manifest", "plan_batch",
@@ -113,7 +117,8 @@ def run_one(config_path, out_dir) -> dict:
     stem = config_path.stem
     outputs = _outputs(stem)
     entry = {"config": str(config_path), "config_sha256": None, "stem": stem, "status": "failed",
-             "outputs": outputs, "timings": {}, "error": None, "error_kind": None, "finished": None}
+             "outputs": outputs, "timings": {}, "error": None, "error_kind": None, "gates_failed": [],
+             "finished": None}
     t_start = time.perf_counter()
     try:
         try:
@@ -129,9 +134,10 @@ def run_one(config_path, out_dir) -> dict:
                 f"batch: {config_path.name}: compose produced no character (the fusion, weight and "
                 "animation stages are not part of this build's pipeline); nothing to write")
         t0 = time.perf_counter()
-        write_outputs(composition, glb=out_dir / outputs["glb"], report=out_dir / outputs["report"],
-                      sort_keys=True)
+        result = write_outputs(composition, glb=out_dir / outputs["glb"], report=out_dir / outputs["report"],
+                               sort_keys=True)
         entry["timings"]["write"] = round(time.perf_counter() - t0, 4)
+        entry["gates_failed"] = failure_items(list(result.gates))
         entry["status"] = "ok"
     except RigmixError as exc:
         entry["error"], entry["error_kind"] = _one_line(exc), "input"
@@ -241,12 +247,13 @@ def _check_outputs(paths: list[Path], out_dir: Path) -> None:
     check_outputs(outputs, inputs, stage=f"batch --out {out_dir}")
 
 
-def exit_status(entries: list[dict]) -> int:
+def exit_status(entries: list[dict], *, strict: bool = False) -> int:
     """The exit status of a batch, as ``rigmix compose``'s: 0 if every job succeeded (or was
-    done before), 2 if every failure is a bad input, 1 if any failure is internal."""
+    done before), 2 if every failure is a bad input, 1 if any failure is internal; with
+    ``strict``, 3 when every job succeeded but some failed a gate (``gates_failed``)."""
     failed = [e for e in entries if e.get("status") != "ok"]
     if not failed:
-        return 0
+        return 3 if strict and any(e.get("gates_failed") for e in entries) else 0
     return 2 if all(e.get("error_kind") == "input" for e in failed) else 1
 
 
@@ -268,7 +275,7 @@ def _failed_entry(config: Path, message: str) -> dict:
     """The entry of a job that failed outside :func:`run_one` (its worker died): internal."""
     return {"config": str(config), "config_sha256": None, "stem": config.stem, "status": "failed",
             "outputs": _outputs(config.stem), "timings": {}, "error": _one_line(message),
-            "error_kind": "internal", "finished": _now()}
+            "error_kind": "internal", "gates_failed": [], "finished": _now()}
 
 
 def run_batch(configs, out_dir, *, workers: int | None = None, scheduler: str | None = None,

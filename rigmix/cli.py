@@ -26,6 +26,11 @@ instead (full traceback). Error lines are cut at :data:`MAX_ERROR_CHARS` charact
 and bidirectional-override characters in them (from names and paths) are shown escaped
 (:func:`rigmix.describe.printable`), as in every logged line.
 
+``compose --strict`` exits with status 3 when a hard gate of the report failed
+(:mod:`rigmix.gates`), after writing every output, with one line ``rigmix: gate failed: <name> =
+<value> (bound <op> <bound>)[; ...]`` on stderr; ``batch --strict`` exits with 3 when every job
+succeeded but some failed a gate (a failed job's status, 2 or 1, comes first).
+
 Outputs that are inputs or each other (``compose -o IN.glb``, ``--report CONFIG.toml``, ``-o X
 --report X``, a ``batch --out`` folder where an output would land on an input) are refused with
 exit status 2 before anything is composed. ``batch`` exits 0 when every job succeeded (or was
@@ -247,6 +252,9 @@ def _add_compose(parser):
                             "prior (a few seconds more; same as [weights] feature_field = true)")
     field.add_argument("--no-feature-field", action="store_true",
                        help="dfd without the feature field (the default; same as [weights] feature_field = false)")
+    parser.add_argument("--strict", action="store_true",
+                        help="exit with status 3 when a hard gate of the report fails (the outputs are still "
+                             "written); one stderr line names the failed gates")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -257,6 +265,7 @@ def _run_compose(args) -> int:
     from .describe import format_composition
     from .errors import InputError
     from .export import check_targets, config_inputs, write_outputs
+    from .gates import failure_text
     from .pipeline import STAGE_NAMES, compose
 
     if args.output.suffix.lower() not in (".glb", ".gltf"):
@@ -292,8 +301,17 @@ def _run_compose(args) -> int:
     if args.dump_fields and not result.fields:
         print(f"rigmix compose: --dump-fields {args.dump_fields}: no junction field was computed (every "
               "junction was copied from faces the inputs share); nothing written", file=sys.stderr)
-    print(format_composition(comp, args.output))
+    print(format_composition(comp, args.output, gates=result.gates))
+    failures = failure_text(list(result.gates))
+    if args.strict and failures:
+        _gate_failed(failures)
+        return 3
     return 0
+
+
+def _gate_failed(text: str) -> None:
+    """The one stderr line of a failed gate (``--strict``)."""
+    print("rigmix: " + _one_line("gate failed: " + text, MAX_ERROR_CHARS - len("rigmix: ")), file=sys.stderr)
 
 
 def _add_batch(parser):
@@ -306,6 +324,9 @@ def _add_batch(parser):
     parser.add_argument("--scheduler", metavar="ADDRESS",
                         help="run on a Dask cluster: a scheduler address (tcp://host:8786) or 'local-dask' "
                              "(needs rigmix[dask]; the output folder must be shared with the workers)")
+    parser.add_argument("--strict", action="store_true",
+                        help="exit with status 3 when every job succeeded but some failed a hard gate of its report "
+                             "(one stderr line per such job)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -331,11 +352,16 @@ def _run_batch(args) -> int:
 
     failed = [e for e in entries if e["status"] != "ok"]
     skipped = sum(bool(e.get("skipped")) for e in entries)
+    gated = [e for e in entries if e["status"] == "ok" and e.get("gates_failed")]
     for e in failed:
         _error(f"{Path(e['config']).name}: {e['error']}")
+    if args.strict:
+        for e in gated:
+            _gate_failed(f"{Path(e['config']).name}: {'; '.join(e['gates_failed'])}")
     print(f"{printable(args.out)}: {len(entries) - len(failed) - skipped} composed, {skipped} skipped "
-          f"(done before), {len(failed)} failed; manifest {printable(args.out / 'manifest.jsonl')}")
-    return exit_status(entries)
+          f"(done before), {len(failed)} failed, {len(gated)} with a failed gate; manifest "
+          f"{printable(args.out / 'manifest.jsonl')}")
+    return exit_status(entries, strict=args.strict)
 
 
 #: The sub-commands, in the order ``rigmix --help`` lists them. Append here.
@@ -428,7 +454,7 @@ def _error(message: str) -> None:
 
 def main(argv=None) -> int:
     """Run the command line; returns the exit status (0 ok, 2 user error, 1 internal error,
-    128 + signal after SIGTERM or SIGINT)."""
+    3 a failed gate with ``--strict``, 128 + signal after SIGTERM or SIGINT)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:

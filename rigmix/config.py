@@ -33,11 +33,13 @@ error naming the key), or a :class:`Config` built in code. ``rigmix schema`` pri
     method = "dfd"
     [animation]                           # rigmix.animation.CompletionOptions
     jump_penalty = 0.2
+    [gates]                               # rigmix.gates.GateBounds
+    max_seconds = 120
 
-The ``[fusion]``, ``[weights]`` and ``[animation]`` sections are built from the parameter
-dataclasses of their stages (:class:`FusionOptions`, :class:`WeightOptions`,
-:class:`AnimationOptions`): the same fields and defaults, with types and ranges checked at load;
-``to_params()`` gives the stage its dataclass.
+The ``[fusion]``, ``[weights]``, ``[animation]`` and ``[gates]`` sections are built from the
+parameter dataclasses of their stages (:class:`FusionOptions`, :class:`WeightOptions`,
+:class:`AnimationOptions`, :class:`GateOptions`): the same fields and defaults, with types and
+ranges checked at load; ``to_params()`` gives the stage its dataclass.
 
 Paths: relative paths are resolved against the config file's folder (or
 :meth:`Config.with_base_dir`); ``${NAME}`` is replaced by the environment variable ``NAME``,
@@ -77,6 +79,7 @@ from pydantic import (
 from .animation.completion import CompletionOptions
 from .errors import InputError
 from .fusion import FusionParams
+from .gates import GateBounds
 from .geometry import MAX_COORDINATE, MAX_GRID_VOXELS
 from .weights.params import WeightParams
 
@@ -93,9 +96,11 @@ __all__ = [
     "FusionOptions",
     "WeightOptions",
     "AnimationOptions",
+    "GateOptions",
     "FUSION_RANGES",
     "WEIGHT_RANGES",
     "ANIMATION_RANGES",
+    "GATE_RANGES",
     "FUSION_TYPES",
     "Config",
     "load_config",
@@ -393,6 +398,11 @@ ANIMATION_RANGES: dict[str, dict] = {
     "rest_mismatch": {"ge": 0, "le": 180},
 }
 
+#: Bounds of the ``[gates]`` options (:class:`rigmix.gates.GateBounds`): up to a week.
+GATE_RANGES: dict[str, dict] = {
+    "max_seconds": {"gt": 0, "le": 7 * 86400},
+}
+
 _SCALARS = (bool, int, float, str)
 
 
@@ -479,6 +489,7 @@ def _section_model(name: str, params: type, bounds: dict[str, dict], types_: dic
 FusionOptions = _section_model("FusionOptions", FusionParams, FUSION_RANGES, FUSION_TYPES)
 WeightOptions = _section_model("WeightOptions", WeightParams, WEIGHT_RANGES)
 AnimationOptions = _section_model("AnimationOptions", CompletionOptions, ANIMATION_RANGES)
+GateOptions = _section_model("GateOptions", GateBounds, GATE_RANGES)
 
 
 class Config(BaseModel):
@@ -505,6 +516,8 @@ class Config(BaseModel):
         default_factory=AnimationOptions,
         description="Animation completion options (rigmix.animation.CompletionOptions); `fixed_frames` "
                     "is a list of tables with the fields of rigmix.animation.completion.FixedFrame.")
+    gates: GateOptions = Field(default_factory=GateOptions,
+                               description="Bounds of the hard gates of the report (rigmix.gates.GateBounds).")
 
     _base_dir: Path | None = PrivateAttr(default=None)
     _source: str = PrivateAttr(default="")

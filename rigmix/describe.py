@@ -305,7 +305,7 @@ def format_description(d: dict) -> str:
     return "\n".join(lines)
 
 
-def format_composition(composition, output) -> str:
+def format_composition(composition, output, gates=None) -> str:
     """The one-line summary of a composition written to ``output``.
 
     Parameters
@@ -314,15 +314,21 @@ def format_composition(composition, output) -> str:
         A full composition (its ``character`` is set).
     output : str or Path
         The character file written.
+    gates : sequence of dict, optional
+        Its hard gates (:func:`rigmix.gates.evaluate_gates`), summarized when given.
 
     Returns
     -------
     str
         Joints, vertices, faces and clips of the result, the junction weight method, the
-        junction stretch ratio and the total time in seconds.
+        junction stretch ratio, the total time in seconds and ``gates: N/M passed`` (with the
+        failed gates' names).
     """
+    from .gates import gate_summary
+
     report = composition.report
     w, m, q = report.get("weights", {}), report.get("mesh", {}), report.get("quality", {})
-    return (f"{printable(output)}: {composition.skeleton.num_joints} joints, {m.get('vertices')} vertices, "
+    text = (f"{printable(output)}: {composition.skeleton.num_joints} joints, {m.get('vertices')} vertices, "
             f"{m.get('faces')} faces, {len(composition.character.clips)} clips; weights {w.get('method')}; "
             f"junction stretch ratio {q.get('junction_stretch_ratio')}; {report['timings']['total']:.1f} s")
+    return text + (f"; {gate_summary(list(gates))}" if gates else "")

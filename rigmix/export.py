@@ -2,7 +2,10 @@
 
 :func:`write_outputs` is the one writer behind ``rigmix compose`` and ``rigmix batch``: the
 composed character as glTF (``.glb`` or ``.gltf``) and as USD (with its ``textures/``), the JSON
-report, and the blended signed distance fields (``.vdb`` with OpenVDB, else ``.npz``).
+report, and the blended signed distance fields (``.vdb`` with OpenVDB, else ``.npz``). Between the
+files and the report it evaluates the hard gates (:func:`rigmix.gates.evaluate_gates`) on the
+glTF file as written: the report's ``gates``, and the writer's result for ``--strict``. The
+report's ``timings`` gain ``write`` (seconds writing the files before the gates) and ``gates``.
 
 Every output is first written into a temporary folder beside the first target; only when all
 of them are written is each one renamed into place through
@@ -27,6 +30,7 @@ from __future__ import annotations
 import json
 import logging
 import tempfile
+import time
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePath
@@ -87,10 +91,13 @@ class ExportResult:
     fields : tuple of Path
         The field files among them; empty when no junction field was computed (every junction
         copied from faces the inputs share) or none was asked for.
+    gates : tuple of dict
+        The hard gates (:func:`rigmix.gates.evaluate_gates`), as in the report.
     """
 
     files: tuple = ()
     fields: tuple = ()
+    gates: tuple = ()
 
 
 def write_outputs(composition, *, glb=None, usd=None, report=None, fields_dir=None, report_extra=None,
@@ -129,6 +136,7 @@ def write_outputs(composition, *, glb=None, usd=None, report=None, fields_dir=No
     TypeError
         A report value that is not JSON serializable.
     """
+    started = time.perf_counter()
     config = getattr(composition, "config", None)
     inputs = config_inputs(config) if config is not None else []
     check_targets(inputs, glb=glb, usd=usd, report=report, fields_dir=fields_dir, stage="export")
@@ -137,12 +145,12 @@ def write_outputs(composition, *, glb=None, usd=None, report=None, fields_dir=No
     with _writing(staging, "a temporary folder in"):
         tmp_dir = tempfile.TemporaryDirectory(dir=staging, prefix=".rigmix-export-")
     with tmp_dir as tmp:
-        staged = _stage(composition, Path(tmp), glb=glb, usd=usd, report=report, fields_dir=fields_dir,
-                        report_extra=report_extra, sort_keys=sort_keys)
+        staged, gates = _stage(composition, Path(tmp), glb=glb, usd=usd, report=report, fields_dir=fields_dir,
+                               report_extra=report_extra, sort_keys=sort_keys, started=started)
         # USD textures and field files are only known now: none may land on an input either
         check_outputs([("the output", s.dest) for s in staged], inputs, stage="export")
         files = _commit(staged, fields_dir)
-    return ExportResult(files=files, fields=tuple(s.dest for s in staged if s.is_field))
+    return ExportResult(files=files, fields=tuple(s.dest for s in staged if s.is_field), gates=tuple(gates))
 
 
 def config_inputs(config) -> list:
@@ -232,17 +240,21 @@ class _Staged(NamedTuple):
     is_field: bool = False
 
 
-def _stage(composition, tmp: Path, *, glb, usd, report, fields_dir, report_extra, sort_keys) -> list:
-    """Write every output under ``tmp``; returns the :class:`_Staged` files in commit order."""
+def _stage(composition, tmp: Path, *, glb, usd, report, fields_dir, report_extra, sort_keys, started) -> tuple:
+    """Write every output under ``tmp``, evaluating the gates before the report; returns the
+    :class:`_Staged` files in commit order and the gates."""
+    from .gates import evaluate_gates
+
     staged = []
+    written = None
     if glb is not None:
         from .io.gltf import write_gltf
 
         glb = Path(glb)
-        path = tmp / ("character" + glb.suffix.lower())
+        written = tmp / ("character" + glb.suffix.lower())
         with _writing(glb):
-            write_gltf(composition.character, path)
-        staged.append(_Staged(path, glb))
+            write_gltf(composition.character, written)
+        staged.append(_Staged(written, glb))
     if usd is not None:
         from .io.usd import write_usd
 
@@ -261,15 +273,21 @@ def _stage(composition, tmp: Path, *, glb, usd, report, fields_dir, report_extra
             fdir.mkdir()
             dump_fields(fdir, composition.surface.fields)
         staged += [_Staged(f, Path(fields_dir) / f.name, is_field=True) for f in sorted(fdir.iterdir())]
+    timings = dict(composition.report.get("timings", {}))
+    t0 = time.perf_counter()
+    timings["write"] = round(t0 - started, 4)
+    gates = evaluate_gates(composition, written, seconds=float(timings.get("total", 0.0)) + t0 - started)
+    timings["gates"] = round(time.perf_counter() - t0, 4)
     if report is not None:
         data = dict(composition.report)
+        data.update(timings=timings, gates=gates)
         data.update(report_extra or {})
         path = tmp / "report.json"
         text = report_json(data, sort_keys=sort_keys).encode("utf-8")
         with _writing(report):
             path.write_bytes(text)
         staged.append(_Staged(path, Path(report)))
-    return staged
+    return staged, gates
 
 
 def _commit(staged: list, fields_dir) -> tuple:

@@ -23,9 +23,9 @@ from dfd.mesh import weld
 
 from .errors import InputError
 
-__all__ = ["bounding_box_diagonal", "neighbour_roughness", "weld", "MAX_COORDINATE", "MAX_COORDINATE_RATIO",
-           "MAX_GRID_VOXELS", "FLOAT32_MAX", "check_coordinates", "check_transforms", "check_float32",
-           "check_grid_voxels"]
+__all__ = ["bounding_box_diagonal", "closest_surface_points", "neighbour_roughness", "weld", "MAX_COORDINATE",
+           "MAX_COORDINATE_RATIO", "MAX_GRID_VOXELS", "FLOAT32_MAX", "check_coordinates", "check_transforms",
+           "check_float32", "check_grid_voxels"]
 
 #: Largest coordinate, in metres from the origin, that the geometry kernels are given: 1000 km,
 #: beyond any character; float32 output positions there are still spaced 6 cm apart, and squared
@@ -56,6 +56,41 @@ def bounding_box_diagonal(V) -> float:
     if len(V) == 0:
         return 0.0
     return float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+
+
+def closest_surface_points(Q, V, F):
+    """The closest point of a triangle mesh to each query point.
+
+    Parameters
+    ----------
+    Q : (q, 3) float array
+        Query points.
+    V : (n, 3) float array
+    F : (m, 3) int array
+        At least one face.
+
+    Returns
+    -------
+    distance : (q,) float64
+    face : (q,) int64
+        The face holding the closest point.
+    bary : (q, 3) float64
+        Its barycentric coordinates in that face: non-negative, summing to 1 (a degenerate face
+        gives its corners 1/3 each).
+    """
+    import igl
+
+    Q = np.ascontiguousarray(Q, dtype=np.float64).reshape(-1, 3)
+    V = np.ascontiguousarray(V, dtype=np.float64)
+    F = np.ascontiguousarray(F, dtype=np.int64).reshape(-1, 3)
+    if len(Q) == 0:
+        return np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 3))
+    d2, face, C = igl.point_mesh_squared_distance(Q, V, F)
+    T = F[face]
+    B = igl.barycentric_coordinates(C, V[T[:, 0]], V[T[:, 1]], V[T[:, 2]])
+    B = np.clip(np.nan_to_num(B, nan=1 / 3), 0, 1)
+    B /= np.maximum(B.sum(axis=1, keepdims=True), 1e-12)
+    return np.sqrt(np.maximum(d2, 0.0)), np.asarray(face, np.int64), B
 
 
 def neighbour_roughness(A, X):

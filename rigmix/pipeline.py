@@ -140,15 +140,17 @@ def completion_stage(composition: Composition, progress: Progress | None = None)
     replaced limb roots whose rest bones disagree
     (:func:`rigmix.animation.completion.completion_provenance`).
 
-    Returns the composition with ``clips`` (tuple of Clip on S_R) and ``report["animation"]``.
+    Returns the composition with ``clips`` (tuple of Clip on S_R) and ``report["animation"]``
+    (``sources``: the ``[character id, clip name]`` each output clip of ``clips`` completes).
     """
-    from .animation.completion import complete_clips, completion_provenance
+    from .animation.completion import complete_clips, completion_provenance, selected_clips
 
     options = composition.config.animation.to_params()
     plan = composition.plan
-    clips = complete_clips(plan.skeleton, composition.inputs, composition.maps,
+    sources = selected_clips(composition.inputs, options)
+    clips = complete_clips(plan.skeleton, composition.inputs, composition.maps, selection=sources,
                            options=options, provenance=completion_provenance(plan, options.rest_mismatch))
-    report = {"clips": [c.name for c in clips], "fps": options.fps,
+    report = {"clips": [c.name for c in clips], "sources": [list(k) for k in sources], "fps": options.fps,
               "frames": [int(len(c.tracks[0].times)) if c.tracks else 0 for c in clips],
               "jump_penalty": options.jump_penalty, "metric": options.metric}
     return replace(composition, clips=tuple(clips),

@@ -25,6 +25,18 @@ neighbours' weights, on the mesh welded by position (0: the mean of its neighbou
 joint in common with any of them). The junction figure is taken over the junction vertices
 of the fused surface; the sources' over every vertex of the fusion's inputs, the artists'
 own painting, where the sharpest painted transitions reach 0.6 to 0.8 (the shared characters).
+
+Identity errors
+---------------
+A composition that replaces subtrees of one character by the same subtrees of the same file
+must give that character back. :func:`identity_errors` measures it on the files themselves
+(the output as read back): the rest surfaces of the skinned meshes, both ways (each output
+vertex to the input surface and each input vertex to the output surface), and every frame of
+every output clip (30 fps), where an output vertex skinned by the output's weights and clip is
+compared with the input surface point closest to it at rest, skinned by the input's weights
+and the clip it was completed from. Both are relative to the input's rest bounding-box
+diagonal. :func:`self_composition_errors` measures the weight stage of a self-composition
+against a truth on the fused surface instead (before anything is written).
 """
 
 from __future__ import annotations
@@ -36,11 +48,12 @@ import numpy as np
 from dfd.mesh import face_areas, welded_graph
 
 from .animation.sampling import clip_times, sample_clip
-from .geometry import check_transforms
+from .geometry import bounding_box_diagonal, check_transforms, closest_surface_points
 from .skinning import linear_blend_skinning, rest_skinning_matrices, skinning_matrices
 
 __all__ = ["face_stretch", "vertex_stretch", "band_stretch", "junction_stretch_ratio", "weight_roughness",
-           "junction_weight_roughness"]
+           "junction_weight_roughness", "self_composition_truth", "self_composition_errors", "skinned_surface",
+           "identity_errors"]
 
 log = logging.getLogger(__name__)
 
@@ -395,3 +408,95 @@ def self_composition_errors(composition, skin, *, fps=30.0, max_frames=None, tru
         "frames": len(per_frame),
         "junction_vertices": int(len(jrows)),
     }
+
+
+#: Vertex-frames skinned at once by :func:`identity_errors` (memory: about 50 bytes each).
+IDENTITY_CHUNK = 1 << 21
+
+
+def skinned_surface(character):
+    """The skinned meshes of a character as one surface.
+
+    Parameters
+    ----------
+    character : rigmix.character.Character
+
+    Returns
+    -------
+    V : (n, 3) float64
+        Bind-space positions.
+    F : (m, 3) int64
+        Faces, indices into ``V``.
+    joints, weights : (n, K) int64 and float64
+        The influences, ``K`` the most slots of any mesh (unused slots joint 0, weight 0).
+    """
+    meshes = [m for m in character.meshes if m.skinned and len(m.positions)]
+    K = max((np.asarray(m.joints).shape[1] for m in meshes), default=1)
+    V, F = [np.zeros((0, 3))], [np.zeros((0, 3), np.int64)]
+    J, W = [np.zeros((0, K), np.int64)], [np.zeros((0, K))]
+    offset = 0
+    for m in meshes:
+        j, w = np.asarray(m.joints, np.int64), np.asarray(m.weights, np.float64)
+        pad = K - j.shape[1]
+        V.append(np.asarray(m.positions, np.float64))
+        F.append(np.asarray(m.faces, np.int64).reshape(-1, 3) + offset)
+        J.append(np.pad(j, ((0, 0), (0, pad))))
+        W.append(np.pad(w, ((0, 0), (0, pad))))
+        offset += len(m.positions)
+    return np.concatenate(V), np.concatenate(F), np.concatenate(J), np.concatenate(W)
+
+
+def identity_errors(original, output, clips, *, fps=30.0) -> dict:
+    """How far a composition's output is from its input, when it should be that input.
+
+    See the module docstring (identity errors).
+
+    Parameters
+    ----------
+    original : rigmix.character.Character
+        The input character.
+    output : rigmix.character.Character
+        The output as written, read back.
+    clips : sequence of (Clip, Clip)
+        ``(output clip, the original's clip it was completed from)``.
+    fps : float
+        Frames per second at which every clip is compared (its start and end included).
+
+    Returns
+    -------
+    dict
+        ``surface_error`` (largest rest distance, both ways), ``skinned_error`` (largest
+        distance over every vertex and frame of every clip; 0 without clips), both relative to
+        the input's rest bounding-box diagonal, or None when either character has no skinned
+        face; ``frames``, the frames compared.
+    """
+    Vi, Fi, Ji, Wi = skinned_surface(original)
+    Vo, Fo, Jo, Wo = skinned_surface(output)
+    out = {"surface_error": None, "skinned_error": None, "frames": 0}
+    if not len(Fi) or not len(Fo):
+        return out
+    Ri = linear_blend_skinning(Vi, Ji, Wi, rest_skinning_matrices(original.skeleton))
+    Ro = linear_blend_skinning(Vo, Jo, Wo, rest_skinning_matrices(output.skeleton))
+    diag = bounding_box_diagonal(Ri) or 1.0
+    d_out, face, bary = closest_surface_points(Ro, Ri, Fi)  # output vertex -> input surface
+    d_in, _, _ = closest_surface_points(Ri, Ro, Fo)  # input vertex -> output surface
+    out["surface_error"] = float(max(d_out.max(), d_in.max()) / diag)
+    corners = Fi[face]  # (n_out, 3): the input vertices each output vertex is compared with
+    used = np.unique(corners)
+    local = np.searchsorted(used, corners)
+    worst, frames = 0.0, 0
+    for clip_out, clip_in in clips:
+        times = clip_times(clip_out, fps)
+        step = max(1, IDENTITY_CHUNK // (len(Vo) + len(used)))
+        for k in range(0, len(times), step):
+            t = times[k:k + step]
+            Uo = linear_blend_skinning(Vo, Jo, Wo, skinning_matrices(output.skeleton,
+                                                                     *sample_clip(output.skeleton, clip_out, t)))
+            Ui = linear_blend_skinning(Vi[used], Ji[used], Wi[used],
+                                       skinning_matrices(original.skeleton,
+                                                         *sample_clip(original.skeleton, clip_in, t)))
+            P = np.einsum("qk,fqkc->fqc", bary, Ui[:, local])  # the closest input point, skinned
+            worst = max(worst, float(np.linalg.norm(Uo - P, axis=2).max()))
+            frames += len(t)
+    out.update(skinned_error=worst / diag, frames=frames)
+    return out

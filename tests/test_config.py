@@ -229,20 +229,21 @@ def test_error_naming_an_odd_key_stays_on_one_line():
 
 
 # --------------------------------------------------------------------------------------------
-# The stage sections: [fusion], [weights], [animation]
+# The stage sections: [fusion], [weights], [animation], [gates]
 # --------------------------------------------------------------------------------------------
 
 SECTIONS = [("fusion", "FusionParams", "FUSION_RANGES"), ("weights", "WeightParams", "WEIGHT_RANGES"),
-            ("animation", "CompletionOptions", "ANIMATION_RANGES")]
+            ("animation", "CompletionOptions", "ANIMATION_RANGES"), ("gates", "GateBounds", "GATE_RANGES")]
 
 
 def _params_class(name):
     import rigmix.animation
     import rigmix.fusion
+    import rigmix.gates
     import rigmix.weights
 
     return {"FusionParams": rigmix.fusion.FusionParams, "WeightParams": rigmix.weights.WeightParams,
-            "CompletionOptions": rigmix.animation.CompletionOptions}[name]
+            "CompletionOptions": rigmix.animation.CompletionOptions, "GateBounds": rigmix.gates.GateBounds}[name]
 
 
 @pytest.mark.parametrize("section, params, ranges", SECTIONS)
@@ -286,6 +287,9 @@ def test_absent_section_gives_the_dataclass_defaults(section, params, ranges):
     ('[positioning]\ntranslate = "yes"\n', ["positioning.translate", "valid boolean"]),
     ("[animation]\nrest_mismatch = 181\n", ["animation.rest_mismatch", "less than or equal to 180"]),
     ("[animation]\nhops_full = 4\nhops_max = 3\n", ["animation", "hops_max must be >= hops_full"]),
+    ("[gates]\nmax_seconds = 0\n", ["gates.max_seconds", "greater than 0"]),
+    ('[gates]\nmax_seconds = "60"\n', ["gates.max_seconds", "valid number"]),
+    ("[gates]\nmax_second = 60\n", ["gates.max_second: unknown key", "closest: max_seconds"]),
 ])
 def test_invalid_stage_options_fail_at_load(tmp_path, text, words):
     (tmp_path / "a.glb").write_bytes(b"")

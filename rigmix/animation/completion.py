@@ -75,6 +75,7 @@ __all__ = [
     "FixedFrame",
     "CompletionOptions",
     "complete_clips",
+    "selected_clips",
     # the kernels, re-exported
     "map_pose",
     "global_rotations",
@@ -256,7 +257,28 @@ def _unique_names(keys):
                         suffix="_{}", start=2)
 
 
-def _selected(inputs, options, selection):
+def selected_clips(inputs, options, selection=None):
+    """The input clips that :func:`complete_clips` completes, in the order of its output clips.
+
+    Parameters
+    ----------
+    inputs : mapping of str to Character
+    options : CompletionOptions
+        Its ``clips`` selection applies when ``selection`` is None.
+    selection : sequence of (character id, clip name), optional
+        As :func:`complete_clips`' ``selection``.
+
+    Returns
+    -------
+    list of (str, str)
+        ``(character id, clip name)`` per output clip: the selection, else ``options.clips``, else
+        every clip of every input in input order.
+
+    Raises
+    ------
+    InputError
+        A selection naming an unknown character or clip.
+    """
     if selection is not None:
         keys = [(str(cid), str(name)) for cid, name in selection]
     elif options.clips is not None:
@@ -355,7 +377,7 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
             raise InputError(
                 f"completion: bone map of {cid!r} has {len(maps[cid].target)} entries, "
                 f"{inputs[cid].source or inputs[cid].name} has {nin} joints")
-    keys = _selected(inputs, options, selection)
+    keys = selected_clips(inputs, options, selection)
     if not keys:
         return ()
     J = skeleton_out.num_joints

@@ -1,0 +1,548 @@
+"""Hard gates: what every composition must meet, checked on the files it writes.
+
+:func:`evaluate_gates` is called by :func:`rigmix.export.write_outputs` (behind ``rigmix
+compose`` and ``rigmix batch``) once the glTF file is written and before the report is: the
+report's ``gates`` is its list, and ``rigmix compose --strict`` exits with status 3 when a gate
+has failed (the outputs are written all the same).
+
+A gate is a dict ``{"name", "value", "op", "bound", "pass"}``, plus ``"note"`` where something
+needs saying: it passes when ``value op bound`` (``op`` is ``"<="`` or ``">="``). ``pass`` is
+``null`` when the gate could not be evaluated (the Khronos validator is not installed, no glTF
+file was written), which is not a failure. A gate that does not apply to the composition (the
+identity gates of a composition of two characters) has ``value`` null, ``pass`` true and a note
+saying why; every gate is always listed, in this order (:data:`GATE_NAMES`):
+
+``wall_seconds`` <= :data:`MAX_SECONDS` (``[gates] max_seconds``)
+    Seconds of the composition and of writing its outputs, up to the gates (the interpreter's
+    start-up and the gates themselves not counted), on the machine that ran it.
+``validator_errors`` <= 0
+    Errors of the Khronos glTF-Validator (:func:`rigmix.io.validator.validate_gltf`) on the
+    written file; the note names the first error codes.
+``junction_boundary_edges``, ``open_seam_edges``, ``new_non_manifold_edges``, ``junction_self_intersections`` <= 0
+    The fusion's counts (report ``mesh``): holes along the junction, open seam chains, edges
+    shared by more than two faces that no input had, pairs of crossing faces at the junction.
+``junction_min_angle_p05`` >= :data:`MIN_ANGLE_P05` degrees
+    The 5th percentile of the smallest angle of the generated junction triangles; null (pass)
+    when no junction triangle was generated (the junction faces were copied from the inputs).
+``junction_stretch_ratio`` <= :data:`MAX_STRETCH_RATIO`
+    Report ``quality`` (:func:`rigmix.quality.junction_stretch_ratio`); null (pass) when no input
+    has a clip, no clip was completed, or no joint is fused; null otherwise fails (not measured).
+``weights_min`` >= 0, ``weights_unnormalized_vertices`` <= 0, ``weights_max_influences`` <= :data:`MAX_INFLUENCES`
+    On the ``WEIGHTS_n`` accessors as written (:func:`rigmix.io.accessors.load_document`, no
+    repair): the smallest weight; the vertices whose weights, summed in float32 slot by slot,
+    are farther from 1 than :data:`WEIGHT_SUM_TOLERANCE` per non-zero weight (the validator's
+    rule); the most non-zero weights of a vertex.
+``clips_missing`` <= 0, ``clips_non_increasing_times`` <= 0
+    Distinct input clips (by content: a file listed under two ids gives its clips once) among
+    those the completion was asked for (``[animation] clips``, else all) with no written
+    animation completing them (named as the report's ``animation`` says) over the same time
+    span (within half a frame at :data:`GATE_FPS`); written animations having a sampler whose
+    key times (float32, as stored) are not strictly increasing.
+``identity_surface_error``, ``identity_skinned_error`` <= :data:`IDENTITY_TOLERANCE`
+    Only for an identity composition (:func:`identity_mismatch`): the output, read back by
+    :func:`rigmix.io.gltf.read_gltf`, against its input (:func:`rigmix.quality.identity_errors`):
+    rest surfaces both ways, and
+    every vertex at every frame (:data:`GATE_FPS`) of every clip, relative to the bounding-box
+    diagonal. Otherwise value null, pass true, the note saying what makes it no identity.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import RigmixError
+
+__all__ = ["MAX_SECONDS", "MIN_ANGLE_P05", "MAX_STRETCH_RATIO", "MAX_INFLUENCES", "IDENTITY_TOLERANCE", "GATE_FPS",
+           "WEIGHT_SUM_TOLERANCE", "VALIDATOR_TIMEOUT", "GATE_NAMES", "GateBounds", "Gate", "evaluate_gates",
+           "wall_time_gate", "validator_gate", "mesh_gates", "stretch_gate", "weight_gates", "clip_gates",
+           "identity_gates", "identity_mismatch", "clip_fingerprint", "character_fingerprint", "failed_gates",
+           "failure_items", "failure_text", "gate_summary"]
+
+logger = logging.getLogger(__name__)
+
+#: Most wall seconds of one composition with its outputs (issue 24: on 2 CPU cores).
+MAX_SECONDS = 60.0
+#: Least 5th percentile of the junction triangles' smallest angle, degrees.
+MIN_ANGLE_P05 = 20.0
+#: Most junction stretch ratio (1: the seam deforms as the inputs deform near the same joints).
+MAX_STRETCH_RATIO = 1.5
+#: Most influences per vertex (glTF's one ``JOINTS_0``/``WEIGHTS_0`` set, what engines read).
+MAX_INFLUENCES = 4
+#: Most error of an identity composition, relative to the bounding-box diagonal.
+IDENTITY_TOLERANCE = 0.005
+#: Frames per second at which clips are compared, and half a frame the time-span tolerance.
+GATE_FPS = 30.0
+#: Allowed distance of a weight sum from 1, per non-zero weight, the sum accumulated in float32
+#: (the Khronos validator's ``ACCESSOR_WEIGHTS_NON_NORMALIZED`` rule).
+WEIGHT_SUM_TOLERANCE = 2e-7
+#: Seconds the validator may run before its gate is left unevaluated.
+VALIDATOR_TIMEOUT = 60.0
+#: Scales this close to 1 are unit scales (identity compositions).
+SCALE_TOLERANCE = 1e-9
+
+#: Every gate, in report order.
+GATE_NAMES = ("wall_seconds", "validator_errors", "junction_boundary_edges", "open_seam_edges",
+              "new_non_manifold_edges", "junction_self_intersections", "junction_min_angle_p05",
+              "junction_stretch_ratio", "weights_min", "weights_unnormalized_vertices", "weights_max_influences",
+              "clips_missing", "clips_non_increasing_times", "identity_surface_error", "identity_skinned_error")
+
+
+@dataclass(frozen=True)
+class GateBounds:
+    """The gate bounds a config may set (its ``[gates]`` section); the others are fixed.
+
+    Attributes
+    ----------
+    max_seconds : float
+        Most wall seconds of the composition and of writing its outputs (``wall_seconds``);
+        raise it on a slower machine than 2 cores of a current server.
+    """
+
+    max_seconds: float = MAX_SECONDS
+
+
+@dataclass(frozen=True)
+class Gate:
+    """One gate: ``value op bound``.
+
+    Attributes
+    ----------
+    name : str
+    value : int, float or None
+    op : {"<=", ">="}
+    bound : float
+    passed : bool or None
+        None: not evaluated.
+    note : str or None
+    """
+
+    name: str
+    value: float | int | None
+    op: str
+    bound: float
+    passed: bool | None
+    note: str | None = None
+
+    @classmethod
+    def measure(cls, name: str, value, op: str, bound: float, note: str | None = None) -> "Gate":
+        """The gate of a measured ``value`` (finite; a NaN fails)."""
+        ok = value <= bound if op == "<=" else value >= bound
+        return cls(name, value, op, bound, bool(ok), note)
+
+    def as_dict(self) -> dict:
+        """The report's form: ``{"name", "value", "op", "bound", "pass"}`` and ``"note"`` if any."""
+        out = {"name": self.name, "value": self.value, "op": self.op, "bound": self.bound, "pass": self.passed}
+        if self.note:
+            out["note"] = self.note
+        return out
+
+
+def _not_evaluated(name: str, op: str, bound: float, note: str) -> Gate:
+    return Gate(name, None, op, bound, None, note)
+
+
+def _not_applicable(name: str, op: str, bound: float, note: str) -> Gate:
+    return Gate(name, None, op, bound, True, note)
+
+
+# --------------------------------------------------------------------------------------------
+# the gate families
+
+
+def wall_time_gate(seconds: float, max_seconds: float = MAX_SECONDS) -> Gate:
+    """``wall_seconds``: the composition's wall time, seconds."""
+    return Gate.measure("wall_seconds", round(float(seconds), 3), "<=", float(max_seconds))
+
+
+def validator_gate(path) -> Gate:
+    """``validator_errors``: Khronos glTF-Validator errors on the file at ``path``.
+
+    Not evaluated (``pass`` None, the note says why) when Node or the validator package is
+    missing, or the validator cannot run; ``path`` None: no file written.
+    """
+    from .io.validator import ValidatorUnavailable, validate_gltf
+
+    name = "validator_errors"
+    if path is None:
+        return _not_evaluated(name, "<=", 0, "no glTF file written")
+    try:
+        report = validate_gltf(path, timeout=VALIDATOR_TIMEOUT)
+    except ValidatorUnavailable as exc:
+        return _not_evaluated(name, "<=", 0, f"validator unavailable: {exc}")
+    except RigmixError as exc:
+        logger.info("gates: %s", exc)
+        return _not_evaluated(name, "<=", 0, str(exc))
+    issues = report.get("issues", {})
+    count = int(issues.get("numErrors", 0))
+    codes = list(dict.fromkeys(m.get("code") for m in issues.get("messages", []) if m.get("severity") == 0))
+    return Gate.measure(name, count, "<=", 0, ", ".join(map(str, codes[:3])) or None)
+
+
+def mesh_gates(mesh: dict, *, min_angle: float = MIN_ANGLE_P05) -> list[Gate]:
+    """The fusion's gates from the report's ``mesh``: the four counts, then the junction angle."""
+    gates = []
+    for name in ("junction_boundary_edges", "open_seam_edges", "new_non_manifold_edges",
+                 "junction_self_intersections"):
+        value = mesh.get(name)
+        gates.append(_not_evaluated(name, "<=", 0, "not in the report") if value is None
+                     else Gate.measure(name, int(value), "<=", 0))
+    angle = mesh.get("junction_min_angle_p05")
+    name = "junction_min_angle_p05"
+    if angle is None:
+        gates.append(_not_applicable(name, ">=", min_angle, f"no junction triangle generated "
+                                                            f"({mesh.get('copied_faces', 0)} junction faces copied)"))
+    else:
+        gates.append(Gate.measure(name, float(angle), ">=", min_angle))
+    return gates
+
+
+def stretch_gate(composition, *, max_ratio: float = MAX_STRETCH_RATIO) -> Gate:
+    """``junction_stretch_ratio`` from the report's ``quality`` (see the module docstring for null)."""
+    name = "junction_stretch_ratio"
+    ratio = composition.report.get("quality", {}).get(name)
+    if ratio is not None:
+        return Gate.measure(name, float(ratio), "<=", max_ratio)
+    character = composition.character
+    if not any(ch.clips for ch in composition.inputs.values()):
+        return _not_applicable(name, "<=", max_ratio, "no input has a clip")
+    if character is not None and not character.clips:
+        return _not_applicable(name, "<=", max_ratio, "no clip completed")
+    if not composition.plan.fused_pairs:
+        return _not_applicable(name, "<=", max_ratio, "no joint fused")
+    return Gate(name, None, "<=", max_ratio, False, "not measured: no junction band with a clip")
+
+
+def weight_gates(document) -> list[Gate]:
+    """``weights_min``, ``weights_unnormalized_vertices``, ``weights_max_influences`` of a written file.
+
+    Parameters
+    ----------
+    document : rigmix.io.accessors.Document
+        The file as written (:func:`rigmix.io.accessors.load_document`): the weights are read as
+        stored (floats exactly, normalized integers mapped to [0, 1]), nothing repaired.
+    """
+    W = _written_weights(document)
+    names = ("weights_min", "weights_unnormalized_vertices", "weights_max_influences")
+    ops = ((">=", 0), ("<=", 0), ("<=", MAX_INFLUENCES))
+    if W is None:
+        return [_not_applicable(n, op, b, "no skinned mesh written") for n, (op, b) in zip(names, ops)]
+    W32 = W.astype(np.float32)
+    total = np.zeros(len(W32), np.float32)
+    for k in range(W32.shape[1]):  # slot by slot in float32, as the validator adds them
+        total = (total + np.maximum(W32[:, k], 0)).astype(np.float32)
+    nonzero = np.count_nonzero(W32, axis=1)
+    off = np.abs(total.astype(np.float64) - 1.0)
+    bad = off > WEIGHT_SUM_TOLERANCE * np.maximum(nonzero, 1)
+    worst = float(off.max()) if len(off) else 0.0
+    return [Gate.measure(names[0], float(W.min()) if W.size else 0.0, *ops[0]),
+            Gate.measure(names[1], int(bad.sum()), *ops[1], f"largest |sum - 1| {worst:.3g}" if bad.any() else None),
+            Gate.measure(names[2], int(nonzero.max()) if len(nonzero) else 0, *ops[2])]
+
+
+def _written_weights(document):
+    """Every skinned vertex's written weights ``(n, 4 s)`` (``s`` weight sets; padded with 0), or
+    None without a skinned primitive. A primitive sharing its accessors with another counts once."""
+    rows, seen = [], set()
+    for i, mesh in enumerate(document.items("meshes")):
+        for p, prim in enumerate(mesh.get("primitives") or []):
+            attrs = prim.get("attributes") or {}
+            sets = sorted((k for k in attrs if k.startswith("WEIGHTS_") and k[8:].isdigit()), key=lambda k: int(k[8:]))
+            key = tuple(attrs[k] for k in sets)
+            if not key or key in seen:
+                continue
+            seen.add(key)
+            parts = [document.accessor(a, f"meshes[{i}].primitives[{p}] {k}") for a, k in zip(key, sets)]
+            n = max(len(x) for x in parts)
+            rows.append(np.concatenate([np.pad(np.asarray(x, np.float64), ((0, n - len(x)), (0, 0))) for x in parts],
+                                       axis=1))
+    if not rows:
+        return None
+    width = max(r.shape[1] for r in rows)
+    return np.concatenate([np.pad(r, ((0, 0), (0, width - r.shape[1]))) for r in rows])
+
+
+def clip_gates(document, composition) -> list[Gate]:
+    """``clips_missing`` and ``clips_non_increasing_times`` (see the module docstring).
+
+    Parameters
+    ----------
+    document : rigmix.io.accessors.Document
+        The file as written: its animations' names and key times as stored.
+    composition : rigmix.pipeline.Composition
+        Its ``inputs``, ``config`` (``[animation] clips``) and ``report["animation"]`` (the
+        source of each output clip).
+    """
+    spans, bad = _written_clips(document)
+    missing = _missing_clips(spans, composition)
+    return [Gate.measure("clips_missing", len(missing), "<=", 0, ", ".join(missing[:5]) or None),
+            Gate.measure("clips_non_increasing_times", len(bad), "<=", 0, ", ".join(bad[:5]) or None)]
+
+
+def _written_clips(document) -> tuple[dict, list]:
+    """The written animations: ``{name: (start, end)}`` over their samplers' key times, and the
+    names of those with a sampler whose key times do not strictly increase (unnamed ones are
+    ``clip_<index>``, as :func:`rigmix.io.gltf.read_gltf` names them)."""
+    spans, bad = {}, []
+    for i, anim in enumerate(document.items("animations")):
+        name = str(anim.get("name") or f"clip_{i}")
+        lo, hi, increasing = math.inf, -math.inf, True
+        for s, sampler in enumerate(anim.get("samplers") or []):
+            times = document.accessor(sampler.get("input"), f"animations[{i}].samplers[{s}] input").ravel()
+            lo, hi = min(lo, float(times.min())), max(hi, float(times.max()))
+            increasing &= not np.any(np.diff(times) <= 0)
+        if lo <= hi:
+            spans[name] = (lo, hi)
+        if not increasing:
+            bad.append(name)
+    return spans, bad
+
+
+def _missing_clips(spans: dict, composition) -> list[str]:
+    """``"<id>:<clip>"`` of each distinct asked-for input clip that no written clip (``spans``:
+    name -> (start, end)) completes over the same time span."""
+    from .animation.completion import selected_clips
+
+    inputs = composition.inputs
+    asked = selected_clips(inputs, composition.config.animation.to_params())
+    animation = composition.report.get("animation", {})
+    output_name = {tuple(src): name for src, name in zip(animation.get("sources", []), animation.get("clips", []))}
+    groups: dict[str, list] = {}
+    for cid, name in asked:
+        groups.setdefault(clip_fingerprint(inputs[cid].skeleton, inputs[cid].clip(name)), []).append((cid, name))
+    half_frame = 0.5 / GATE_FPS
+    missing = []
+    for keys in groups.values():
+        source = inputs[keys[0][0]].clip(keys[0][1])
+        found = [spans.get(output_name.get(k)) for k in keys]
+        if not any(span is not None and abs(span[0] - source.start) <= half_frame
+                   and abs(span[1] - source.end) <= half_frame for span in found):
+            missing.append(f"{keys[0][0]}:{keys[0][1]}")
+    return missing
+
+
+def identity_gates(composition, path, *, tolerance: float = IDENTITY_TOLERANCE) -> list[Gate]:
+    """``identity_surface_error`` and ``identity_skinned_error`` (see the module docstring).
+
+    Parameters
+    ----------
+    composition : rigmix.pipeline.Composition
+    path : str or Path
+        The written file, read back by :func:`rigmix.io.gltf.read_gltf` when the composition
+        is an identity composition.
+    """
+    from .io.gltf import read_gltf
+    from .quality import identity_errors
+
+    names = ("identity_surface_error", "identity_skinned_error")
+    why = identity_mismatch(composition)
+    if why is not None:
+        return [_not_applicable(n, "<=", tolerance, f"not an identity composition: {why}") for n in names]
+    written = read_gltf(path)
+    inputs = composition.inputs
+    original = next(iter(inputs.values()))
+    animation = composition.report.get("animation", {})
+    by_name = {c.name: c for c in written.clips}
+    clips = [(by_name[name], inputs[cid].clip(clip)) for (cid, clip), name
+             in zip(animation.get("sources", []), animation.get("clips", [])) if name in by_name]
+    errors = identity_errors(original, written, clips, fps=GATE_FPS)
+    out = []
+    for name, key in zip(names, ("surface_error", "skinned_error")):
+        value = errors[key]
+        out.append(_not_evaluated(name, "<=", tolerance, "no skinned face to compare") if value is None
+                   else Gate.measure(name, float(value), "<=", tolerance,
+                                     f"{errors['frames']} frames" if key == "skinned_error" else None))
+    return out
+
+
+def identity_mismatch(composition) -> str | None:
+    """What keeps a composition from being an identity composition; None when it is one.
+
+    An identity composition has inputs of one and the same content (:func:`character_fingerprint`:
+    one file listed under several ids), each at unit scale, unmirrored, unplaced, with no
+    rest-pose rotation, and only ``replace`` actions whose source joint has the target joint's
+    name: its output must be its input.
+    """
+    config = composition.config
+    for i, action in enumerate(config.actions):
+        if action.op != "replace":
+            return f"action {i} is {action.op!r}"
+        if action.source_joint != action.target_joint:
+            return f"action {i} replaces {action.target_joint!r} by {action.source_joint!r}"
+    characters = list(composition.inputs.values())
+    first = characters[0]
+    if any(ch is not first for ch in characters[1:]):
+        digest = character_fingerprint(first)
+        if any(ch is not first and character_fingerprint(ch) != digest for ch in characters[1:]):
+            return "the characters differ"
+    for cid, cc in config.characters.items():
+        if cc.mirror is not False:
+            return f"character {cid!r} is mirrored"
+        if cc.placement is not None:
+            return f"character {cid!r} is placed"
+        if cc.rotations:
+            return f"character {cid!r} has rest-pose rotations"
+    for cid, scale in composition.plan.scales.items():
+        if abs(float(scale) - 1.0) > SCALE_TOLERANCE:
+            return f"character {cid!r} has scale {float(scale):.6g}"
+    return None
+
+
+def character_fingerprint(character) -> str:
+    """SHA-256 of what a composition reads of a character: skeleton, skinned meshes and clips."""
+    sk = character.skeleton
+    h = hashlib.sha256()
+    h.update("\0".join(sk.names).encode("utf-8"))
+    for a in (sk.parents, sk.translations, sk.rotations, sk.scales, sk.inverse_binds, sk.anchor_worlds()):
+        _update(h, a)
+    for m in character.meshes:
+        h.update(m.name.encode("utf-8"))
+        for a in (m.positions, m.faces, m.joints, m.weights):
+            _update(h, a)
+    for c in character.clips:
+        h.update(c.name.encode("utf-8"))
+        h.update(clip_fingerprint(sk, c).encode("ascii"))
+    return h.hexdigest()
+
+
+def clip_fingerprint(skeleton, clip) -> str:
+    """SHA-256 of a clip's content (not its name): each track's joint name, path, interpolation,
+    times and values; equal for the same clip of one file loaded under two ids."""
+    h = hashlib.sha256()
+    for t in clip.tracks:
+        h.update(f"{skeleton.names[t.joint]}\0{t.path}\0{t.interpolation}\0".encode("utf-8"))
+        _update(h, t.times)
+        _update(h, t.values)
+    return h.hexdigest()
+
+
+def _update(h, a) -> None:
+    if a is None:
+        h.update(b"-")
+        return
+    a = np.ascontiguousarray(a)
+    h.update(f"{a.dtype.str}{a.shape}".encode("ascii"))
+    h.update(a.tobytes())
+
+
+# --------------------------------------------------------------------------------------------
+# all of them
+
+
+def evaluate_gates(composition, path, *, seconds: float) -> list[dict]:
+    """Every gate of a composition whose glTF file has been written (see the module docstring).
+
+    Parameters
+    ----------
+    composition : rigmix.pipeline.Composition
+        A full composition (``character`` set, ``report`` with ``mesh``, ``quality`` and
+        ``animation``); its config's ``[gates]`` section gives ``max_seconds``.
+    path : str or Path or None
+        The written ``.glb`` or ``.gltf`` (with its resources beside it); None: the gates that
+        need the file are not evaluated.
+    seconds : float
+        Wall seconds of the composition and its writing so far.
+
+    Returns
+    -------
+    list of dict
+        One per :data:`GATE_NAMES`, in that order (:meth:`Gate.as_dict`).
+    """
+    bounds = composition.config.gates
+    report = composition.report
+    validation = _in_background(validator_gate, path)  # Node on another core while the rest is measured
+    gates = [wall_time_gate(seconds, bounds.max_seconds)]
+    gates += mesh_gates(report.get("mesh", {}))
+    gates.append(stretch_gate(composition))
+    if path is None:
+        gates += [_not_evaluated(name, ">=" if name == "weights_min" else "<=", _bound(name), "no glTF file written")
+                  for name in GATE_NAMES[len(gates) + 1:]]
+    else:
+        gates += _file_gates(composition, path)
+    gates.insert(1, validation())
+    assert tuple(g.name for g in gates) == GATE_NAMES, [g.name for g in gates]
+    return [g.as_dict() for g in gates]
+
+
+def _in_background(fn, *args):
+    """Start ``fn(*args)`` in a daemon thread; returns the function that waits for its result
+    (re-raising its exception). A daemon: an interrupted composition never waits for it."""
+    box = {}
+
+    def run():
+        try:
+            box["value"] = fn(*args)
+        except BaseException as exc:  # noqa: BLE001 - handed to the waiting thread
+            box["error"] = exc
+
+    thread = threading.Thread(target=run, name="rigmix-gates", daemon=True)
+    thread.start()
+
+    def wait():
+        thread.join()
+        if "error" in box:
+            raise box["error"]
+        return box["value"]
+
+    return wait
+
+
+def _file_gates(composition, path) -> list[Gate]:
+    """The weight, clip and identity gates of the written file; all failed, with the reason,
+    when rigmix cannot read that file back."""
+    from .io.accessors import load_document
+
+    try:
+        document = load_document(path)
+        return weight_gates(document) + clip_gates(document, composition) + identity_gates(composition, path)
+    except RigmixError as exc:
+        start = GATE_NAMES.index("weights_min")
+        return [Gate(name, None, ">=" if name == "weights_min" else "<=", _bound(name), False,
+                     f"the written file cannot be read back: {exc}") for name in GATE_NAMES[start:]]
+
+
+def _bound(name: str) -> float:
+    """The fixed bound of a gate read from the written file."""
+    return {"weights_max_influences": MAX_INFLUENCES, "identity_surface_error": IDENTITY_TOLERANCE,
+            "identity_skinned_error": IDENTITY_TOLERANCE}.get(name, 0)
+
+
+def failed_gates(gates: list[dict]) -> list[dict]:
+    """The gates with ``pass`` false (not those left unevaluated)."""
+    return [g for g in gates if g.get("pass") is False]
+
+
+def _number(value) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, float) and math.isfinite(value) and value != int(value):
+        return f"{value:.4g}"
+    return str(int(value)) if isinstance(value, float) and math.isfinite(value) else str(value)
+
+
+def failure_items(gates: list[dict]) -> list[str]:
+    """``"<name> = <value> (bound <op> <bound>)"`` per failed gate."""
+    return [f"{g['name']} = {_number(g['value'])} (bound {g['op']} {_number(g['bound'])})" for g in failed_gates(gates)]
+
+
+def failure_text(gates: list[dict]) -> str | None:
+    """The :func:`failure_items` joined by ``"; "``, None if no gate failed."""
+    return "; ".join(failure_items(gates)) or None
+
+
+def gate_summary(gates: list[dict]) -> str:
+    """``"gates: N/M passed"``, with the failed gates' names and the count left unevaluated."""
+    passed = sum(g.get("pass") is True for g in gates)
+    failed = [g["name"] for g in failed_gates(gates)]
+    unevaluated = sum(g.get("pass") is None for g in gates)
+    text = f"gates: {passed}/{len(gates)} passed"
+    if failed:
+        text += f" (failed: {', '.join(failed)})"
+    if unevaluated:
+        text += f" ({unevaluated} not evaluated)"
+    return text
