@@ -316,7 +316,8 @@ def markdown(cases, rows: dict, *, timeout: float) -> str:
     if fallback:
         lines += [f"**FALLBACK gates** in {fallback} rows (`gates_source = fallback`): the report had no `gates`, "
                   "so they were derived by `benchmarks/corpus.py` from the report, the Khronos validator and the "
-                  "input clip counts; the identity gate is not measured there.", ""]
+                  "input clip counts; the identity gates are not measured there (an identity case may pass without "
+                  "them).", ""]
     lines += ["## Pass rate by kind", "", "| kind | cases | run | passed | pass rate |", "|---|---:|---:|---:|---:|"]
     for s in summary(cases, rows):
         rate = "-" if s["pass_rate"] is None else f"{100 * s['pass_rate']:.1f} %"
