@@ -43,6 +43,9 @@ body (waist up) replacing the head of every quadruped and tailed character (huma
 winged character attached at the shoulder of every humanoid and wingless quadruped (donors in
 turn). ``three``: for each humanoid, the head of a quadruped (in turn) and the left arm of the next
 humanoid. Cross-character donors have ``scale = "auto"``.
+
+A limb is replaced with its detached parts (:func:`limb_actions`: the IK feet that carry a foot's
+skin from the armature root are replaced by the donor's, or removed).
 """
 
 from __future__ import annotations
@@ -65,7 +68,8 @@ from conftest import ASSETS, CHARACTERS, CORPUS, CORPUS_CHARACTERS  # noqa: E402
 from rigmix.errors import InputError  # noqa: E402
 from rigmix.limbs import BodyPlan, Limb, classify_limbs  # noqa: E402
 
-__all__ = ["Case", "Subject", "KINDS", "load_subjects", "generate_matrix", "ci_slice", "write_configs"]
+__all__ = ["Case", "Subject", "KINDS", "load_subjects", "generate_matrix", "ci_slice", "write_configs",
+           "limb_actions", "config_text", "character_files"]
 
 #: the kinds of composition, in matrix order
 KINDS = ("identity", "mirror", "arm_swap", "leg_swap", "head_swap", "torso", "tail", "wings", "three")
@@ -133,6 +137,12 @@ class Subject:
     def limbs(self, kind: str, side: str | None = None) -> tuple[Limb, ...]:
         """Limbs of one kind (and side), in the classifier's order."""
         return tuple(lb for lb in self.plan.of_kind(kind) if side is None or lb.side == side)
+
+    def detached_tops(self, limb: Limb) -> list[str]:
+        """The top joints of ``limb``'s detached parts (those whose parent is not detached too)."""
+        parts = set(limb.detached)
+        return [j for j in limb.detached
+                if self.parents[self.names.index(j)] < 0 or self.names[self.parents[self.names.index(j)]] not in parts]
 
     def count(self, kind: str) -> int:
         return len(self.plan.of_kind(kind))
@@ -295,6 +305,27 @@ def _replace(source, source_joint, target, target_joint) -> dict:
             "target_joint": target_joint, "mode": "blend"}
 
 
+def limb_actions(body: Subject, limb: Limb, donor_id: str, donor: Subject, donor_limb: Limb, *,
+                 mirrored: bool = False) -> list[dict]:
+    """The actions replacing ``limb`` of the body (id ``"body"``) by ``donor_limb`` of ``donor``.
+
+    A limb is its root's subtree and its detached parts (:attr:`rigmix.limbs.Limb.detached`: an IK
+    foot carrying the foot's skin from the armature root): each detached part of the body is
+    replaced by the donor's part of the same rank, or removed when the donor has none left (the
+    body's foot would stay where the old leg stood); a donor part with no body part to replace is
+    left out. ``mirrored``: the donor is listed with ``mirror = true``, so its joints are named as
+    mirrored (:attr:`Subject.mirrored`).
+    """
+    def named(joint):
+        return donor.mirrored[donor.names.index(joint)] if mirrored else joint
+
+    out = [_replace(donor_id, named(donor_limb.root), "body", limb.root)]
+    ours, theirs = body.detached_tops(limb), donor.detached_tops(donor_limb)
+    out += [_replace(donor_id, named(d), "body", b) for b, d in zip(ours, theirs)]
+    out += [{"op": "remove", "target": "body", "target_joint": b} for b in ours[len(theirs):]]
+    return out
+
+
 def _attach(source, source_joint, target, target_joint) -> dict:
     return {"op": "attach", "source": source, "source_joint": source_joint, "target": target,
             "target_joint": target_joint}
@@ -311,7 +342,7 @@ def identity_cases(subjects) -> list[Case]:
     for s in subjects:
         for lb in s.plan.limbs:
             out.append(_case("identity", lb.root, f"{s.name}: {lb.label} ({lb.root}) replaced by itself",
-                             {"body": (s, {}), "donor": (s, {})}, [_replace("donor", lb.root, "body", lb.root)]))
+                             {"body": (s, {}), "donor": (s, {})}, limb_actions(s, lb, "donor", s, lb)))
     return out
 
 
@@ -321,11 +352,10 @@ def mirror_cases(subjects) -> list[Case]:
         for lb in s.plan.limbs:
             if lb.partner is None:
                 continue
-            donor_joint = s.mirrored[s.names.index(lb.partner)]
             out.append(_case("mirror", lb.root,
                              f"{s.name}: {lb.label} ({lb.root}) replaced by its partner {lb.partner}, mirrored",
                              {"body": (s, {}), "mirror": (s, {"mirror": True, "scale": 1.0})},
-                             [_replace("mirror", donor_joint, "body", lb.root)]))
+                             limb_actions(s, lb, "mirror", s, s.plan.limb(lb.partner), mirrored=True)))
     return out
 
 
@@ -335,13 +365,13 @@ def arm_swap_cases(subjects) -> list[Case]:
     for a, b in combinations(humanoids, 2):
         arm, donor = a.limbs("arm", "L")[0], b.limbs("arm", "L")[0]
         out.append(_case("arm_swap", b.name, f"{a.name}'s left arm replaced by {b.name}'s",
-                         {"body": (a, {}), "donor": (b, AUTO)}, [_replace("donor", donor.root, "body", arm.root)]))
+                         {"body": (a, {}), "donor": (b, AUTO)}, limb_actions(a, arm, "donor", b, donor)))
     return out
 
 
 def _leg_swap(a: Subject, b: Subject, leg: Limb, donor: Limb, what: str) -> Case:
     return _case("leg_swap", b.name, f"{a.name}'s {what} replaced by {b.name}'s",
-                 {"body": (a, {}), "donor": (b, AUTO)}, [_replace("donor", donor.root, "body", leg.root)])
+                 {"body": (a, {}), "donor": (b, AUTO)}, limb_actions(a, leg, "donor", b, donor))
 
 
 def leg_swap_cases(subjects) -> list[Case]:
@@ -362,7 +392,7 @@ def leg_swap_cases(subjects) -> list[Case]:
 def head_swap_cases(subjects) -> list[Case]:
     ring = [s for s in subjects if s.head is not None and len(s.plan.limbs) >= 2]
     return [_case("head_swap", b.name, f"{a.name}'s head replaced by {b.name}'s",
-                  {"body": (a, {}), "donor": (b, AUTO)}, [_replace("donor", b.head.root, "body", a.head.root)])
+                  {"body": (a, {}), "donor": (b, AUTO)}, limb_actions(a, a.head, "donor", b, b.head))
             for a, b in zip(ring, ring[1:] + ring[:1])]
 
 
@@ -373,7 +403,9 @@ def torso_cases(subjects) -> list[Case]:
     for i, a in enumerate(bodies):
         h = humanoids[i % len(humanoids)]
         out.append(_case("torso", h.name, f"{h.name}'s upper body ({h.waist} up) replacing {a.name}'s head",
-                         {"body": (a, {}), "rider": (h, AUTO)}, [_replace("rider", h.waist, "body", a.head.root)]))
+                         {"body": (a, {}), "rider": (h, AUTO)},
+                         [_replace("rider", h.waist, "body", a.head.root)]
+                         + [{"op": "remove", "target": "body", "target_joint": j} for j in a.detached_tops(a.head)]))
     return out
 
 
@@ -410,8 +442,8 @@ def three_cases(subjects) -> list[Case]:
         q, b = heads[i % len(heads)], humanoids[(i + 1) % len(humanoids)]
         out.append(_case("three", f"{q.name}__{b.name}", f"{a.name} with {q.name}'s head and {b.name}'s left arm",
                          {"body": (a, {}), "head": (q, AUTO), "arm": (b, AUTO)},
-                         [_replace("head", q.head.root, "body", a.head.root),
-                          _replace("arm", b.limbs("arm", "L")[0].root, "body", a.limbs("arm", "L")[0].root)]))
+                         limb_actions(a, a.head, "head", q, q.head)
+                         + limb_actions(a, a.limbs("arm", "L")[0], "arm", b, b.limbs("arm", "L")[0])))
     return out
 
 

@@ -56,11 +56,13 @@ def test_matrix_covers_every_kind_with_the_counts_asked(subjects, matrix):
     assert len(matrix) >= 150
     assert {c.kind for c in matrix} == set(KINDS)
     by = {s.name: s for s in subjects}
-    # identity: every limb of every character, by itself; mirror: every limb of a pair
+    # identity: every limb of every character, with its detached parts, by itself; mirror: every limb of a pair
     identity = {(c.characters[0], a["target_joint"]) for c in of_kind(matrix, "identity") for a in actions(c)}
-    assert identity == {(s.name, lb.root) for s in subjects for lb in s.plan.limbs}
+    limbs = {(s.name, j) for s in subjects for lb in s.plan.limbs for j in [lb.root] + s.detached_tops(lb)}
+    assert identity == limbs
+    assert all(a["source_joint"] == a["target_joint"] for c in of_kind(matrix, "identity") for a in actions(c))
     mirror = {(c.characters[0], a["target_joint"]) for c in of_kind(matrix, "mirror") for a in actions(c)}
-    assert mirror == {(s.name, lb.root) for s in subjects for lb in s.plan.limbs if lb.partner}
+    assert {(s.name, lb.root) for s in subjects for lb in s.plan.limbs if lb.partner} <= mirror
     # the 21 pairs of humanoids, one arm swap each
     arms = of_kind(matrix, "arm_swap")
     assert len(arms) == 21
@@ -88,6 +90,10 @@ def test_matrix_covers_every_kind_with_the_counts_asked(subjects, matrix):
     assert all(len(actions(c)) == 2 for c in wings)  # both wings
     three = of_kind(matrix, "three")
     assert len(three) >= 5 and all(len(set(c.characters)) == 3 for c in three)
+    # a leg swap takes the IK foot with the leg: the Knight's Foot.L replaces EnemyLarge's
+    swap = next(c for c in of_kind(matrix, "leg_swap") if c.characters == ("EnemyLarge", "Knight"))
+    assert [(a["source_joint"], a["target_joint"]) for a in actions(swap)] == [("UpperLeg.L", "Leg1.L"),
+                                                                                ("Foot.L", "Foot.L")]
     # the generator names no joint: every joint it writes is one the classifier or the skeleton gave
     for c in matrix:
         for a in actions(c):
