@@ -63,7 +63,8 @@ ROOT = HERE.parent
 RESULTS = HERE / "results"
 SCRATCH = ROOT / "out" / "corpus"
 
-__all__ = ["Case", "KINDS", "generate_matrix", "ci_slice", "run_case", "fallback_gates", "select", "main"]
+__all__ = ["Case", "KINDS", "generate_matrix", "ci_slice", "run_case", "report_gates", "fallback_gates", "select",
+           "main"]
 
 #: seconds a composition may take, interpreter start-up included (the ``process_seconds`` gate)
 TIME_BOUND = 60.0
@@ -154,6 +155,14 @@ def fallback_gates(report: dict, glb: Path, input_clips: int, identity: bool) ->
     return out
 
 
+def report_gates(report: dict, glb: Path, case: Case) -> tuple[str, list[dict]]:
+    """``("report", report["gates"])`` when the report has them, else ``("fallback",``
+    :func:`fallback_gates` ``)``."""
+    if isinstance(report.get("gates"), list):
+        return "report", list(report["gates"])
+    return "fallback", fallback_gates(report, glb, _input_clips(case), case.kind == "identity")
+
+
 def failed_gates(gates: list[dict]) -> list[dict]:
     return [g for g in gates if g["pass"] is False]
 
@@ -211,17 +220,13 @@ def run_case(case: Case, config: Path, scratch: Path, *, timeout: float = DEFAUL
     if report is not None:
         for key in REPORT_FIGURES:
             row[key] = report.get(key)
-        if isinstance(report.get("gates"), list):
-            row["gates_source"] = "report"
-            gates += [g for g in report["gates"] if g.get("name") not in {x["name"] for x in gates}]
-        else:
-            row["gates_source"] = "fallback"
-            gates += fallback_gates(report, glb, _input_clips(case), case.kind == "identity")
+        row["gates_source"], more = report_gates(report, glb, case)
+        gates += [g for g in more if g.get("name") not in {x["name"] for x in gates}]
     row["gates"] = gates
     failed = failed_gates(gates)
     row["failed"] = [g["name"] for g in failed]
     row["passed"] = not failed
-    row["message"] = _message(row, failed)
+    row["message"] = failure_message(row, failed)
     return row
 
 
@@ -233,7 +238,9 @@ def _fmt(v) -> str:
     return str(v)
 
 
-def _message(row: dict, failed: list[dict]) -> str:
+def failure_message(row: dict, failed: list[dict]) -> str:
+    """What a failed row says: the last line of stderr when the command failed, else each failed gate
+    with its value, bound and note."""
     if row["rc"] != 0:
         return row["stderr_last"] or f"exit status {row['rc']}"
     parts = []

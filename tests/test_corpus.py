@@ -176,3 +176,12 @@ def test_runner_composes_a_case_and_records_its_gates(tmp_path, monkeypatch, sub
     assert set(row["timings"]) >= {"load", "fusion", "weights", "total"}
     assert rc == (0 if row["passed"] else 1)
     assert row["name"] in (results / "corpus.md").read_text()
+
+
+def test_the_report_gates_are_used_when_the_report_has_them(matrix, tmp_path):
+    gates = [{"name": "validator_errors", "value": 3, "op": "<=", "bound": 0, "pass": False, "note": "ACCESSOR_X"}]
+    report = {"gates": gates, "mesh": {"open_seam_edges": 5}}
+    source, got = runner.report_gates(report, tmp_path / "none.glb", matrix[0])
+    assert source == "report" and got == gates
+    row = {"rc": 0}
+    assert runner.failure_message(row, runner.failed_gates(got)) == "validator_errors = 3 (needs <= 0) [ACCESSOR_X]"
