@@ -9,7 +9,7 @@ VDB_VENV ?= .venv-vdb
 SYSDEPS  := /usr/bin/chromium /usr/lib/python3/dist-packages/pyopenvdb.cpython-311-x86_64-linux-gnu.so \
             /usr/lib/x86_64-linux-gnu/libEGL_mesa.so.0
 
-.PHONY: env demo test bench fuzz clean
+.PHONY: env demo test bench fuzz corpus clean
 
 # Debian packages: Chromium (headless preview tests) and python3-openvdb (the optional OpenVDB
 # field backend, tested for parity in CI), Mesa EGL (`rigmix render` on the CPU). Installed with apt
@@ -58,6 +58,11 @@ bench: env
 # The hostile-input corpus (tests/hostile.py), every case in a subprocess: benchmarks/results/fuzz.md
 fuzz: env
 	$(BIN)/python -m benchmarks.fuzz
+
+# The composition matrix over the 27 characters (benchmarks/corpus.py), resumed where it stopped:
+# benchmarks/results/corpus.md. CORPUS_ARGS passes options, e.g. CORPUS_ARGS="--kind torso --jobs 2".
+corpus: env
+	$(BIN)/python -m benchmarks.corpus $(CORPUS_ARGS)
 
 clean:
 	rm -rf $(VENV) $(VDB_VENV) node_modules out

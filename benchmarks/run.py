@@ -22,9 +22,9 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 
 
-#: Modules that are not timing or quality benchmarks: the hostile-input corpus has its own target
-#: (``make fuzz``), which takes longer than the whole ``make bench``.
-NOT_BENCHMARKS = {"__init__", "run", "common", "fuzz"}
+#: Modules that are not timing or quality benchmarks: the hostile-input corpus (``make fuzz``) and the
+#: composition matrix (``make corpus``) have their own targets, each longer than the whole ``make bench``.
+NOT_BENCHMARKS = {"__init__", "run", "common", "fuzz", "corpus", "corpus_matrix"}
 
 
 def discover() -> list[str]:

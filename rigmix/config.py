@@ -43,7 +43,8 @@ ranges checked at load; ``to_params()`` gives the stage its dataclass.
 
 Paths: relative paths are resolved against the config file's folder (or
 :meth:`Config.with_base_dir`); ``${NAME}`` is replaced by the environment variable ``NAME``,
-and ``${RIGMIX_ASSETS}`` defaults to ``../shared/data/characters`` beside the repository.
+``${RIGMIX_ASSETS}`` defaults to ``../shared/data/characters`` beside the repository and
+``${RIGMIX_CORPUS}`` to ``../shared/data/corpus`` (:data:`DATA_DIRS`).
 ``builtin:NAME`` names a procedural character of :mod:`rigmix.examples` (``builtin:humanoid``).
 """
 
@@ -110,6 +111,8 @@ __all__ = [
     "expand_path",
     "closest_names",
     "default_assets_dir",
+    "default_data_dir",
+    "DATA_DIRS",
     "BUILTIN_PREFIX",
     "MIN_SCALE",
     "MAX_SCALE",
@@ -208,7 +211,8 @@ class CharacterConfig(BaseModel):
 
     path: str = Field(
         description="glTF/GLB file, relative to the config file, `${VAR}` expanded "
-                    "(RIGMIX_ASSETS defaults to ../shared/data/characters beside the repository), "
+                    "(RIGMIX_ASSETS defaults to ../shared/data/characters beside the repository, RIGMIX_CORPUS "
+                    "to ../shared/data/corpus), "
                     "or `builtin:NAME` for a procedural character of rigmix.examples.")
     scale: Literal["auto"] | Annotated[float, Strict()] = Field(
         "auto", description="Uniform scale applied before composing: a number in [1e-4, 1e4] (override) "
@@ -597,12 +601,22 @@ class Config(BaseModel):
                 f"is not set (in {raw!r})") from None
 
 
-def default_assets_dir() -> Path:
-    """``$RIGMIX_ASSETS``, else ``../shared/data/characters`` beside the repository."""
-    env = os.environ.get("RIGMIX_ASSETS")
+#: ``${NAME}`` variables with a default: the folder of that name in ``../shared/data/`` beside the
+#: repository (the shared test characters and the corpus)
+DATA_DIRS = {"RIGMIX_ASSETS": "characters", "RIGMIX_CORPUS": "corpus"}
+
+
+def default_data_dir(variable: str) -> Path:
+    """``$variable``, else its :data:`DATA_DIRS` folder in ``../shared/data`` beside the repository."""
+    env = os.environ.get(variable)
     if env:
         return Path(env)
-    return Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "characters"
+    return Path(__file__).resolve().parent.parent.parent / "shared" / "data" / DATA_DIRS[variable]
+
+
+def default_assets_dir() -> Path:
+    """``$RIGMIX_ASSETS``, else ``../shared/data/characters`` beside the repository."""
+    return default_data_dir("RIGMIX_ASSETS")
 
 
 _VAR = re.compile(r"\$\{(\w+)\}")
@@ -611,13 +625,13 @@ _VAR = re.compile(r"\$\{(\w+)\}")
 def expand_path(raw: str, base_dir) -> Path:
     """Expand ``${VAR}`` and ``~`` in ``raw`` and resolve it against ``base_dir``.
 
-    Raises ``KeyError(name)`` for an unset variable other than ``RIGMIX_ASSETS``.
+    Raises ``KeyError(name)`` for an unset variable other than those of :data:`DATA_DIRS`.
     """
 
     def sub(m):
         name = m.group(1)
-        if name == "RIGMIX_ASSETS":
-            return str(default_assets_dir())
+        if name in DATA_DIRS:
+            return str(default_data_dir(name))
         if name not in os.environ:
             raise KeyError(name)
         return os.environ[name]
@@ -778,7 +792,7 @@ def check_files(cfg: Config) -> None:
         if isinstance(p, Path) and not p.is_file():
             raise InputError(
                 f"config {cfg.source}: characters.{cid}.path: no such file {p} "
-                f"(from {cfg.characters[cid].path!r}; set RIGMIX_ASSETS for ${{RIGMIX_ASSETS}} paths)")
+                f"(from {cfg.characters[cid].path!r}; set RIGMIX_ASSETS or RIGMIX_CORPUS for their ${{...}} paths)")
 
 
 def config_schema() -> dict:

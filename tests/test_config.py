@@ -51,6 +51,15 @@ def test_rigmix_assets_expansion(tmp_path, monkeypatch):
     assert expand_path("${RIGMIX_ASSETS}/x.glb", "/tmp") == repo.parent / "shared" / "data" / "characters" / "x.glb"
 
 
+def test_rigmix_corpus_expansion(tmp_path, monkeypatch):
+    monkeypatch.setenv("RIGMIX_CORPUS", str(tmp_path))
+    assert expand_path("${RIGMIX_CORPUS}/Bee/Bee.glb", "/elsewhere") == tmp_path / "Bee" / "Bee.glb"
+    monkeypatch.delenv("RIGMIX_CORPUS")
+    # default: ../shared/data/corpus beside the repository, like RIGMIX_ASSETS
+    repo = Path(__file__).resolve().parent.parent
+    assert expand_path("${RIGMIX_CORPUS}/x.glb", "/tmp") == repo.parent / "shared" / "data" / "corpus" / "x.glb"
+
+
 def test_unset_variable_is_an_input_error(monkeypatch):
     monkeypatch.delenv("RIGMIX_NO_SUCH_VAR", raising=False)
     cfg = parse_config({"characters": {"a": {"path": "${RIGMIX_NO_SUCH_VAR}/x.glb"}}})

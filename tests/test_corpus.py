@@ -1,0 +1,187 @@
+"""The composition matrix over the 27 characters (``benchmarks/corpus_matrix.py``) and its runner
+(``benchmarks/corpus.py``, ``make corpus``): generated from the limb classifier, every config valid,
+a CI slice over every kind, a runner that resumes. Composes nothing but SimpleSkin's identity.
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from itertools import combinations
+
+import pytest
+from conftest import CHARACTERS, CORPUS_CHARACTERS, asset, corpus
+
+from benchmarks import corpus as runner
+from benchmarks.corpus_matrix import KINDS, ci_slice, generate_matrix, load_subjects, write_configs
+from rigmix.config import load_config
+
+#: the issue's lists (#24), which the classifier's roles must reproduce
+HUMANOIDS = {"Knight", "CesiumMan", "RiggedFigure", "PlatformerCharacter", "CyberpunkCharacter", "Adventurer", "Witch"}
+ROBOTS = {"EnemyLarge", "EnemyTwoLegs", "Leela"}
+FOUR_LEGGED = {"Horse", "Fox", "Deer", "Wolf", "Bull", "Frog"}
+DINOSAURS = {"Velociraptor", "Trex", "Triceratops", "Stegosaurus", "Apatosaurus"}
+
+
+@pytest.fixture(scope="module")
+def subjects():
+    for name in CHARACTERS:
+        asset(name)  # skips, or fails under CI=true, when a character is missing
+    for name in CORPUS_CHARACTERS:
+        corpus(name)
+    return load_subjects()
+
+
+@pytest.fixture(scope="module")
+def matrix(subjects):
+    return generate_matrix(subjects)
+
+
+def of_kind(matrix, kind):
+    return [c for c in matrix if c.kind == kind]
+
+
+def actions(case):
+    return tomllib.loads(case.config)["actions"]
+
+
+def test_roles_come_from_the_classifier(subjects):
+    assert {s.name for s in subjects if s.humanoid} == HUMANOIDS
+    assert {s.name for s in subjects if s.walker} == ROBOTS
+    assert FOUR_LEGGED <= {s.name for s in subjects if s.quadruped}
+    assert DINOSAURS <= {s.name for s in subjects if s.quadruped or s.tailed}
+
+
+def test_matrix_covers_every_kind_with_the_counts_asked(subjects, matrix):
+    assert len(matrix) >= 150
+    assert {c.kind for c in matrix} == set(KINDS)
+    by = {s.name: s for s in subjects}
+    # identity: every limb of every character, with its detached parts, by itself; mirror: every limb of a pair
+    identity = {(c.characters[0], a["target_joint"]) for c in of_kind(matrix, "identity") for a in actions(c)}
+    limbs = {(s.name, j) for s in subjects for lb in s.plan.limbs for j in [lb.root] + s.detached_tops(lb)}
+    assert identity == limbs
+    assert all(a["source_joint"] == a["target_joint"] for c in of_kind(matrix, "identity") for a in actions(c))
+    mirror = {(c.characters[0], a["target_joint"]) for c in of_kind(matrix, "mirror") for a in actions(c)}
+    assert {(s.name, lb.root) for s in subjects for lb in s.plan.limbs if lb.partner} <= mirror
+    # the 21 pairs of humanoids, one arm swap each
+    arms = of_kind(matrix, "arm_swap")
+    assert len(arms) == 21
+    assert {frozenset(c.characters) for c in arms} == {frozenset(p) for p in combinations(sorted(HUMANOIDS), 2)}
+    # legs: every robot with every humanoid and with each other robot; the four-legged and dinosaurs too
+    legs = {frozenset(c.characters) for c in of_kind(matrix, "leg_swap")}
+    assert {frozenset((r, h)) for r in ROBOTS for h in HUMANOIDS} <= legs
+    assert {frozenset(p) for p in combinations(sorted(ROBOTS), 2)} <= legs
+    assert FOUR_LEGGED | DINOSAURS <= {n for pair in legs for n in pair}
+    # heads: every character with a head and a limb more gives one and takes one
+    heads = of_kind(matrix, "head_swap")
+    assert {c.characters[0] for c in heads} == {c.characters[1] for c in heads}
+    assert HUMANOIDS | ROBOTS | FOUR_LEGGED | DINOSAURS <= {c.characters[0] for c in heads}
+    # a humanoid torso on every four-legged character and dinosaur (and the many-legged Wasp)
+    torso = of_kind(matrix, "torso")
+    assert FOUR_LEGGED | DINOSAURS | {"Wasp"} <= {c.characters[0] for c in torso}
+    assert all(c.characters[1] in HUMANOIDS for c in torso)
+    # every tail onto a humanoid; wings onto every humanoid and four-legged character
+    tails = of_kind(matrix, "tail")
+    assert {c.characters[1] for c in tails} == {s.name for s in subjects if s.limbs("tail")}
+    assert all(c.characters[0] in HUMANOIDS and actions(c)[0]["op"] == "attach" for c in tails)
+    wings = of_kind(matrix, "wings")
+    assert HUMANOIDS | FOUR_LEGGED <= {c.characters[0] for c in wings}
+    assert {c.characters[1] for c in wings} == {"Bee", "Wasp"}
+    assert all(len(actions(c)) == 2 for c in wings)  # both wings
+    three = of_kind(matrix, "three")
+    assert len(three) >= 5 and all(len(set(c.characters)) == 3 for c in three)
+    # a leg swap takes the IK foot with the leg: the Knight's Foot.L replaces EnemyLarge's
+    swap = next(c for c in of_kind(matrix, "leg_swap") if c.characters == ("EnemyLarge", "Knight"))
+    assert [(a["source_joint"], a["target_joint"]) for a in actions(swap)] == [("UpperLeg.L", "Leg1.L"),
+                                                                                ("Foot.L", "Foot.L")]
+    # the generator names no joint: every joint it writes is one the classifier or the skeleton gave
+    for c in matrix:
+        for a in actions(c):
+            assert a["target_joint"] in by[c.characters[0]].names
+
+
+def test_names_are_unique_and_the_matrix_deterministic(subjects, matrix):
+    names = [c.name for c in matrix]
+    assert len(set(names)) == len(names)
+    assert generate_matrix(list(reversed(subjects))) == matrix
+
+
+def test_every_config_loads_and_names_existing_joints(tmp_path, subjects, matrix):
+    by = {s.name: s for s in subjects}
+    paths = write_configs(matrix, tmp_path)
+    for case in matrix:
+        assert "${RIGMIX_ASSETS}/" in case.config or "${RIGMIX_CORPUS}/" in case.config
+        cfg = load_config(paths[case.name])  # missing character files are an InputError
+        assert cfg.name == case.name
+        files = {cid: c.path for cid, c in cfg.characters.items()}
+        for a in cfg.actions:
+            target = next(s for s in by.values() if s.path == files[a.target])
+            assert a.target_joint in target.names
+            if getattr(a, "source", None):
+                source = next(s for s in by.values() if s.path == files[a.source])
+                names = source.mirrored if cfg.characters[a.source].mirror else source.names
+                assert a.source_joint in names, (case.name, a.source_joint)
+
+
+def test_ci_slice_covers_every_kind(matrix):
+    picked = ci_slice(matrix)
+    assert len(picked) >= 12
+    assert {c.kind for c in picked} == set(KINDS)
+    assert len({c.name for c in picked}) == len(picked)
+    assert ci_slice(matrix) == picked and all(c in matrix for c in picked)
+
+
+def _fake_row(calls):
+    def run_case(case, config, scratch, *, timeout):
+        calls.append(case.name)
+        gates = runner.runner_gates(0, 1.0)
+        return {"name": case.name, "kind": case.kind, "characters": list(case.characters), "config_sha": case.sha,
+                "rc": 0, "timed_out": False, "stderr_last": "", "wall_s": 1.0, "gates": gates, "failed": [],
+                "passed": True, "message": "", "timings": {"fusion": 0.5, "total": 1.0}}
+    return run_case
+
+
+def test_runner_resumes_unchanged_rows(tmp_path, monkeypatch, subjects):
+    calls = []
+    monkeypatch.setattr(runner, "load_subjects", lambda: subjects)
+    monkeypatch.setattr(runner, "run_case", _fake_row(calls))
+    args = ["--kind", "three", "--results", str(tmp_path / "results"), "--out", str(tmp_path / "out")]
+    assert runner.main(args) == 0
+    assert len(calls) == 7
+    assert runner.main(args) == 0 and len(calls) == 7  # every row kept
+    path = tmp_path / "results" / "corpus.json"
+    data = json.loads(path.read_text())
+    assert [r["name"] for r in data["rows"]] == calls
+    data["rows"][0]["config_sha"] = "changed"
+    data["rows"][1]["passed"] = False
+    path.write_text(json.dumps(data))
+    assert runner.main(args) == 1  # the failed row is kept and counted
+    assert calls[7:] == [data["rows"][0]["name"]]  # only the changed config ran again
+    assert runner.main(args + ["--rerun-failed"]) == 0 and calls[8:] == [data["rows"][1]["name"]]
+    assert runner.main(args + ["--fresh", "--limit", "2"]) == 0 and len(calls) == 11
+    md = (tmp_path / "results" / "corpus.md").read_text()
+    assert "| three | 7 | 7 | 7 | 100.0 % |" in md
+
+
+def test_runner_composes_a_case_and_records_its_gates(tmp_path, monkeypatch, subjects):
+    monkeypatch.setattr(runner, "load_subjects", lambda: subjects)
+    results = tmp_path / "results"
+    rc = runner.main(["--only", "identity__SimpleSkin__*", "--results", str(results), "--out", str(tmp_path / "out")])
+    row = json.loads((results / "corpus.json").read_text())["rows"][0]
+    assert row["name"].startswith("identity__SimpleSkin__") and row["rc"] == 0
+    assert (tmp_path / "out" / "glb" / f"{row['name']}.glb").is_file()
+    names = [g["name"] for g in row["gates"]]
+    assert names[:2] == ["exit_status", "process_seconds"] and len(names) > 2
+    assert all({"name", "value", "op", "bound", "pass"} <= set(g) for g in row["gates"])
+    assert set(row["timings"]) >= {"load", "fusion", "weights", "total"}
+    assert rc == (0 if row["passed"] else 1)
+    assert row["name"] in (results / "corpus.md").read_text()
+
+
+def test_the_report_gates_are_used_when_the_report_has_them(matrix, tmp_path):
+    gates = [{"name": "validator_errors", "value": 3, "op": "<=", "bound": 0, "pass": False, "note": "ACCESSOR_X"}]
+    report = {"gates": gates, "mesh": {"open_seam_edges": 5}}
+    source, got = runner.report_gates(report, tmp_path / "none.glb", matrix[0])
+    assert source == "report" and got == gates
+    row = {"rc": 0}
+    assert runner.failure_message(row, runner.failed_gates(got)) == "validator_errors = 3 (needs <= 0) [ACCESSOR_X]"
