@@ -189,8 +189,10 @@ def _builtin(name: str) -> Character:
 @lru_cache(maxsize=16)
 def _load_file(path: str, mtime: float) -> Character:
     from .io import load_character
+    from .skinning import rest_at_bind
 
-    return load_character(path)
+    # composed in the pose its mesh is bound in: animations stay exact (rest_at_bind)
+    return rest_at_bind(load_character(path))
 
 
 def load_characters(config: Config) -> dict:
@@ -199,8 +201,10 @@ def load_characters(config: Config) -> dict:
     Returns
     -------
     dict of str -> Character
-        By character id, in the config's order; a character with ``mirror`` set in the config is
-        mirrored (:func:`rigmix.operations.mirror.mirror_character`, joint sides swapped).
+        By character id, in the config's order, each file's rest pose moved to its bind pose
+        where they differ (:func:`rigmix.skinning.rest_at_bind`); a character with ``mirror`` set
+        in the config is mirrored (:func:`rigmix.operations.mirror.mirror_character`, joint sides
+        swapped).
 
     Raises
     ------

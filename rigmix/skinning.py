@@ -25,6 +25,7 @@ __all__ = [
     "dual_quaternion_skinning",
     "skin_character",
     "rest_pose",
+    "rest_at_bind",
 ]
 
 logger = logging.getLogger(__name__)
@@ -259,3 +260,82 @@ def rest_pose(character, *, method="lbs"):
     """
     sk = character.skeleton
     return skin_character(character, sk.translations, sk.rotations, sk.scales, method=method)
+
+
+def rest_at_bind(character, *, rtol=1e-6):
+    """The same character with its rest pose moved to its bind pose where the two differ per joint.
+
+    Many exported rigs (every Quaternius character) are bound in one pose and stored in another:
+    ``rest_world[j] @ inverse_bind[j]`` differs from joint to joint. Composing needs one pose in
+    which mesh and skeleton agree; moving the mesh to the rest pose by skinning (and binding it
+    there) changes how it deforms, since blend skinning does not compose, while moving the rest
+    pose to the bind pose changes nothing an animation shows: the skinned mesh at every frame
+    is the same.
+
+    The reference is the skinning matrix ``M`` of the joint carrying the most skin weight: each
+    weighted joint's new rest world is ``M @ inv(inverse_bind[j])``, so the rest mesh is ``M``
+    applied to the bind-space mesh (one similarity). Joints that deform nothing keep their rest
+    local transform (IK and pole targets stay where they were relative to their parent). Clips
+    keep their keys; a joint whose rest local transform changed gets a one-key track holding
+    its old rest value for every property a clip leaves unanimated, so the clip poses it as
+    before.
+
+    Parameters
+    ----------
+    character : rigmix.character.Character
+    rtol : float
+        Skinning matrices within ``rtol`` times their largest entry of the reference count as
+        the same pose.
+
+    Returns
+    -------
+    Character
+        ``character`` itself when every weighted joint's rest is its bind pose (up to one
+        transform); otherwise the skeleton's rest TRS and the clips change, meshes and inverse
+        bind matrices are kept.
+    """
+    from dataclasses import replace
+
+    from .character import Clip, Track
+    from .transforms import matrix_to_trs
+
+    sk = character.skeleton
+    J = sk.num_joints
+    mass = np.zeros(J)
+    for m in character.meshes:
+        if m.skinned and len(m.positions):
+            np.add.at(mass, np.asarray(m.joints).ravel(), np.asarray(m.weights, np.float64).ravel())
+    weighted = mass > 0
+    if not weighted.any():
+        return character
+    W = sk.rest_worlds()
+    M = W @ sk.inverse_binds
+    ref = M[int(np.argmax(mass))]
+    tol = rtol * max(1.0, float(np.abs(ref).max()))
+    if np.abs(M[weighted] - ref).max() <= tol:
+        return character
+    bind = ref @ np.linalg.inv(sk.inverse_binds)
+    L = sk.rest_locals()
+    base = sk.root_parent_worlds()
+    worlds = np.empty_like(W)
+    for j in range(J):  # parents first (Skeleton: parents[j] < j)
+        p = sk.parents[j]
+        worlds[j] = bind[j] if weighted[j] else (worlds[p] if p >= 0 else base[j]) @ L[j]
+    parent_worlds = np.where(sk.parents[:, None, None] >= 0, worlds[np.maximum(sk.parents, 0)], base)
+    L_new = np.linalg.inv(parent_worlds) @ worlds
+    t, r, s = matrix_to_trs(L_new)
+    scale = max(1.0, float(np.abs(L[:, :3, 3]).max()))
+    changed = np.flatnonzero(np.abs(L_new - L).reshape(J, -1).max(axis=1) > 1e-9 * scale)
+    if not len(changed):
+        return character
+    T, R, S = (np.array(a, np.float64) for a in (sk.translations, sk.rotations, sk.scales))
+    T[changed], R[changed], S[changed] = t[changed], r[changed], s[changed]
+    old = {"translation": sk.translations, "rotation": sk.rotations, "scale": sk.scales}
+    clips = []
+    for clip in character.clips:
+        have = {(tr.joint, tr.path) for tr in clip.tracks}
+        held = [Track(int(j), path, np.array([clip.start]), np.asarray(old[path][j], np.float64)[None])
+                for j in changed for path in ("translation", "rotation", "scale") if (int(j), path) not in have]
+        clips.append(Clip(clip.name, clip.tracks + tuple(held)) if held else clip)
+    logger.info("%s: rest pose moved to the bind pose on %d joints", character.name, len(changed))
+    return replace(character, skeleton=replace(sk, translations=T, rotations=R, scales=S), clips=tuple(clips))
