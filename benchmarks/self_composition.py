@@ -110,19 +110,20 @@ def mirror_pairs(name: str) -> list[tuple[str, str]]:
     return out
 
 
-def self_config(path: Path, joint: str, *, fusion: dict | None = None) -> Config:
+def self_config(path: Path, joint: str, *, fusion: dict | None = None, pose: str = "bind") -> Config:
     """The config replacing ``joint``'s subtree of a character with the same subtree of itself.
 
     ``fusion``: the config's fusion options. By default the fusion copies the junction faces,
     which both inputs share, so every weight method gets them exactly; the benchmark passes
     :data:`REBUILT` to measure the methods on a junction rebuilt from the fields, as between
-    two different characters.
+    two different characters. ``pose``: ``[positioning] pose`` (the pose composed in).
     """
     return Config.model_validate({
         "name": f"self_{path.stem}_{joint}",
         "characters": {"body": {"path": str(path)}, "donor": {"path": str(path)}},
         "actions": [{"op": "replace", "source": "donor", "source_joint": joint, "target": "body",
                      "target_joint": joint, "mode": "blend"}],
+        "positioning": {"pose": pose},
         **({"fusion": fusion} if fusion else {}),
     })
 
@@ -131,7 +132,7 @@ def self_config(path: Path, joint: str, *, fusion: dict | None = None) -> Config
 REBUILT = {"copy_coincident": False}
 
 
-def mirror_config(path: Path, joint: str, donor_joint: str) -> Config:
+def mirror_config(path: Path, joint: str, donor_joint: str, *, pose: str = "bind") -> Config:
     """The config replacing ``joint``'s subtree by ``donor_joint``'s subtree of the mirrored character.
 
     The donor keeps unit scale: the truth is the original, not a rescaled copy.
@@ -142,6 +143,7 @@ def mirror_config(path: Path, joint: str, donor_joint: str) -> Config:
                        "donor": {"path": str(path), "mirror": True, "scale": 1.0}},
         "actions": [{"op": "replace", "source": "donor", "source_joint": donor_joint, "target": "body",
                      "target_joint": joint, "mode": "blend"}],
+        "positioning": {"pose": pose},
     })
 
 
@@ -352,7 +354,7 @@ def mirrored_errors(comp, skin, pair, *, fps=30.0, max_frames=None, truth_influe
             "frames": frames, "junction_vertices": int(len(jall)), "measured_vertices": int(len(jrows))}
 
 
-def mirror_case(path: Path, limb_joint: str, opposite_joint: str, *, until="completion"):
+def mirror_case(path: Path, limb_joint: str, opposite_joint: str, *, until="completion", pose="bind"):
     """The mirrored composition of one limb pair, composed up to ``until``.
 
     Returns
@@ -368,10 +370,10 @@ def mirror_case(path: Path, limb_joint: str, opposite_joint: str, *, until="comp
     from rigmix.operations.mirror import mirror_plane
     from rigmix.pipeline import load_characters
 
-    original = load_characters(self_config(path, limb_joint))["body"]  # unmirrored, for the joint indices
+    original = load_characters(self_config(path, limb_joint, pose=pose))["body"]  # unmirrored, for the joint indices
     x, y = original.skeleton.index(limb_joint), original.skeleton.index(opposite_joint)
-    donor_joint = load_characters(mirror_config(path, limb_joint, ""))["donor"].skeleton.names[y]
-    comp = compose(mirror_config(path, limb_joint, donor_joint), until=until)
+    donor_joint = load_characters(mirror_config(path, limb_joint, "", pose=pose))["donor"].skeleton.names[y]
+    comp = compose(mirror_config(path, limb_joint, donor_joint, pose=pose), until=until)
     pair, dist = limb_pairing(original.skeleton, x, y, mirror_plane(original))
     return comp, pair, donor_joint, dist
 

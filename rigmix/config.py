@@ -27,6 +27,8 @@ error naming the key), or a :class:`Config` built in code. ``rigmix schema`` pri
     target_joint = "Neck1"
     mode = "blend"                        # replace only: blend | union
 
+    [positioning]
+    pose = "bind"                         # bind (animations exact) | rest (the files' stored rest pose)
     [fusion]                              # rigmix.fusion.FusionParams
     voxel_factor = 0.8
     [weights]                             # rigmix.weights.WeightParams
@@ -302,6 +304,12 @@ class PositioningOptions(BaseModel):
 
     translate: StrictBool = Field(
         True, description="Move each source character so that its fused joints land on their targets.")
+    pose: Literal["bind", "rest"] = Field(
+        "bind", description="Pose each file is composed in (and the output's rest pose), where a file's rest "
+                            "pose differs per joint from the pose its mesh is bound in (every Quaternius rig): "
+                            "'bind' keeps every animation exact (the rest pose moves to the bind pose); 'rest' "
+                            "keeps the stored rest pose and moves the mesh there by skinning, which changes "
+                            "how it deforms (a few % of its size on such rigs).")
 
 
 # -- the stage sections: pydantic models built from the stages' parameter dataclasses ----------

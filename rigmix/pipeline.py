@@ -187,12 +187,13 @@ def _builtin(name: str) -> Character:
 
 
 @lru_cache(maxsize=16)
-def _load_file(path: str, mtime: float) -> Character:
+def _load_file(path: str, mtime: float, pose: str = "bind") -> Character:
     from .io import load_character
     from .skinning import rest_at_bind
 
+    character = load_character(path)
     # composed in the pose its mesh is bound in: animations stay exact (rest_at_bind)
-    return rest_at_bind(load_character(path))
+    return rest_at_bind(character) if pose == "bind" else character
 
 
 def load_characters(config: Config) -> dict:
@@ -202,7 +203,8 @@ def load_characters(config: Config) -> dict:
     -------
     dict of str -> Character
         By character id, in the config's order, each file's rest pose moved to its bind pose
-        where they differ (:func:`rigmix.skinning.rest_at_bind`); a character with ``mirror`` set
+        where they differ (:func:`rigmix.skinning.rest_at_bind`; not with ``[positioning] pose =
+        "rest"``); a character with ``mirror`` set
         in the config is mirrored (:func:`rigmix.operations.mirror.mirror_character`, joint sides
         swapped).
 
@@ -224,7 +226,7 @@ def load_characters(config: Config) -> dict:
                 raise InputError(f"config {config.source}: characters.{cid}.path: no built-in character "
                                  f"{name!r}; known: {e.args[0]}") from None
         else:
-            out[cid] = _load_file(str(p.resolve()), p.stat().st_mtime)
+            out[cid] = _load_file(str(p.resolve()), p.stat().st_mtime, config.positioning.pose)
         mirror = config.characters[cid].mirror
         if mirror is not False:  # before everything else: actions name the mirrored joints
             from .operations.mirror import mirror_character

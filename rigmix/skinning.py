@@ -272,8 +272,9 @@ def rest_at_bind(character, *, rtol=1e-6):
     pose to the bind pose changes nothing an animation shows: the skinned mesh at every frame
     is the same.
 
-    The reference is the skinning matrix ``M`` of the joint carrying the most skin weight: each
-    weighted joint's new rest world is ``M @ inv(inverse_bind[j])``, so the rest mesh is ``M``
+    The reference is the skinning matrix ``M`` of the weighted joint with the most skin weight at
+    or below it (the body's root): each weighted joint's new rest world is
+    ``M @ inv(inverse_bind[j])``, so the rest mesh is ``M``
     applied to the bind-space mesh (one similarity). Joints that deform nothing keep their rest
     local transform (IK and pole targets stay where they were relative to their parent). Clips
     keep their keys; a joint whose rest local transform changed gets a one-key track holding
@@ -310,8 +311,14 @@ def rest_at_bind(character, *, rtol=1e-6):
         return character
     W = sk.rest_worlds()
     M = W @ sk.inverse_binds
-    ref = M[int(np.argmax(mass))]
-    tol = rtol * max(1.0, float(np.abs(ref).max()))
+    tol = rtol * max(1.0, float(np.abs(M[weighted]).max()))
+    # the reference: the weighted joint above the most skin weight (the body's root, not a
+    # heavy head posed apart from it), so the body stays where its rest pose put it
+    below = mass.copy()
+    for j in range(J - 1, 0, -1):  # children first (parents[j] < j)
+        if sk.parents[j] >= 0:
+            below[sk.parents[j]] += below[j]
+    ref = M[int(np.argmax(np.where(weighted, below, -1.0)))]
     if np.abs(M[weighted] - ref).max() <= tol:
         return character
     bind = ref @ np.linalg.inv(sk.inverse_binds)
@@ -325,7 +332,7 @@ def rest_at_bind(character, *, rtol=1e-6):
     L_new = np.linalg.inv(parent_worlds) @ worlds
     t, r, s = matrix_to_trs(L_new)
     scale = max(1.0, float(np.abs(L[:, :3, 3]).max()))
-    changed = np.flatnonzero(np.abs(L_new - L).reshape(J, -1).max(axis=1) > 1e-9 * scale)
+    changed = np.flatnonzero(np.abs(L_new - L).reshape(J, -1).max(axis=1) > 1e-6 * scale)  # above float32 noise
     if not len(changed):
         return character
     T, R, S = (np.array(a, np.float64) for a in (sk.translations, sk.rotations, sk.scales))

@@ -165,7 +165,9 @@ target_joint = "UpperArm.L"
 feature_field = false
 """)
     comp = compose(cfg)
-    original, donor = load_character(path), comp.inputs["donor"]
+    from rigmix.skinning import rest_at_bind
+
+    original, donor = rest_at_bind(load_character(path)), comp.inputs["donor"]  # composed in the bind pose
     plane = mirror_plane(original)
     # the donor is the mirrored Knight: its "UpperArm.L" is the original right arm, reflected
     jr = original.skeleton.index("UpperArm.R")

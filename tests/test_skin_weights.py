@@ -449,8 +449,12 @@ def test_dfd_with_feature_field_distills_the_field_of_the_fused_surface(tmp_path
     from rigmix.pipeline import compose
     from rigmix.weights.blend import FIELD_DISTILL
 
+    from rigmix.config import PositioningOptions, load_config
+
     asset("Horse"), asset("Knight")
-    comp = compose(ROOT / "tests" / "configs" / "centaur.toml", until="fusion")
+    # the stored rest pose, where the centaur's junction has rows to fill
+    config = load_config(ROOT / "tests" / "configs" / "centaur.toml")
+    comp = compose(config.model_copy(update={"positioning": PositioningOptions(pose="rest")}), until="fusion")
     ids = comp.fusion_ids
     args = (comp.surface, comp.fusion_inputs, [comp.maps[c] for c in ids],
             comp.skeleton.num_joints)
@@ -505,7 +509,9 @@ def test_mirrored_limb_harmonic_blend_keeps_the_artists_weights():
     from benchmarks.self_composition import LIMBS, mirror_case, mirrored_errors
 
     limbs = LIMBS["Velociraptor"]
-    comp, pair, _, _ = mirror_case(asset("Velociraptor"), limbs["leg.L"], limbs["leg.R"], until="fusion")
+    # in the file's stored rest pose, where the two paintings differ across the junction
+    comp, pair, _, _ = mirror_case(asset("Velociraptor"), limbs["leg.L"], limbs["leg.R"], until="fusion",
+                                   pose="rest")
     ids = comp.fusion_ids
     figs, skins = {}, {}
     for label, opts in {"nearest": {"method": "nearest"}, "dfd": {"method": "dfd"},
@@ -533,7 +539,8 @@ def test_mirrored_truth_only_where_the_junction_faces_the_original_surface():
     from benchmarks.self_composition import LIMBS, mirror_case, mirrored_errors
 
     limbs = LIMBS["Knight"]
-    comp, pair, _, _ = mirror_case(asset("Knight"), limbs["arm.L"], limbs["arm.R"], until="fusion")
+    comp, pair, _, _ = mirror_case(asset("Knight"), limbs["arm.L"], limbs["arm.R"], until="fusion",
+                                   pose="rest")  # the stored rest pose, thumb against the thigh
     ids = comp.fusion_ids
     skin = blend_weights(comp.surface, comp.fusion_inputs, [comp.maps[c] for c in ids],
                          comp.skeleton.num_joints, params=WeightParams(method="nearest"))
@@ -605,7 +612,8 @@ def test_posed_reflection_follows_the_bones_of_the_surface_around():
     from rigmix.pipeline import compose
     from rigmix.quality import self_composition_errors
 
-    comp = compose(self_config(asset("Knight"), "UpperArm.R", fusion=REBUILT), until="fusion")
+    # the stored rest pose, where the thumb touches the thigh
+    comp = compose(self_config(asset("Knight"), "UpperArm.R", fusion=REBUILT, pose="rest"), until="fusion")
     skin, _ = hidden_weights(comp, {"method": "dfd", "feature_field": False})
     figs = self_composition_errors(comp, skin, max_frames=20)
     assert figs["junction_weight_error_mean"] < 0.2 and figs["skinned_error_max"] < 0.06, figs
@@ -704,7 +712,7 @@ def test_hidden_junction_smoothed_only_where_no_prior_is_trusted():
     from rigmix.pipeline import compose
     from rigmix.quality import self_composition_errors
 
-    comp = compose(self_config(asset("Knight"), "UpperArm.L", fusion=REBUILT), until="fusion")
+    comp = compose(self_config(asset("Knight"), "UpperArm.L", fusion=REBUILT, pose="rest"), until="fusion")
     figs = {}
     for label, options in (("smoothed", {}), ("unsmoothed", {"iterations": 0})):
         skin, _ = hidden_weights(comp, {"method": "dfd", "feature_field": False, **options})
@@ -712,7 +720,7 @@ def test_hidden_junction_smoothed_only_where_no_prior_is_trusted():
     assert figs["smoothed"]["skinned_error_max"] < 0.05 < figs["unsmoothed"]["skinned_error_max"], figs
     assert figs["smoothed"]["junction_weight_error_mean"] < 0.16, figs
 
-    comp = compose(self_config(asset("Horse"), "FrontUpperLeg.L", fusion=REBUILT), until="fusion")
+    comp = compose(self_config(asset("Horse"), "FrontUpperLeg.L", fusion=REBUILT, pose="rest"), until="fusion")
     skin, _ = hidden_weights(comp, {"method": "dfd", "feature_field": False})
     figs = self_composition_errors(comp, skin, max_frames=20)
     assert figs["junction_weight_error_mean"] < 0.01 and figs["skinned_error_max"] < 0.005, figs

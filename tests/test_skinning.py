@@ -350,3 +350,57 @@ def test_real_character_lbs_matches_reference(name):
         D = dual_quaternion_skinning(mesh.positions, mesh.joints, mesh.weights, M)
         diag = np.linalg.norm(np.ptp(U.reshape(-1, 3), axis=0))
         assert np.abs(D - U).max() < 0.1 * diag
+
+
+def test_rest_at_bind_keeps_every_animation_exact():
+    """The Knight is bound in another pose than its stored rest (arms): composed in its bind
+    pose, every clip skins to the same vertices, and at rest all weighted joints share one
+    skinning matrix (the mesh is one similarity of its bind-space positions)."""
+    from conftest import asset
+
+    from rigmix.animation.sampling import clip_times, sample_clip
+    from rigmix.io import load_character
+    from rigmix.skinning import rest_at_bind, skin_character
+
+    knight = load_character(asset("Knight"))
+    bound = rest_at_bind(knight)
+    assert bound is not knight and bound.meshes == knight.meshes
+    M = bound.skeleton.rest_worlds() @ bound.skeleton.inverse_binds
+    mass = np.zeros(bound.skeleton.num_joints)
+    for m in bound.meshes:
+        np.add.at(mass, m.joints.ravel(), m.weights.ravel())
+    weighted = np.flatnonzero(mass > 0)
+    assert np.abs(M[weighted] - M[weighted[0]]).max() < 1e-3  # float32 inverse binds
+    M0 = knight.skeleton.rest_worlds() @ knight.skeleton.inverse_binds
+    assert np.abs(M0[weighted] - M0[weighted[0]]).max() > 1.0  # the stored rest is another pose
+    for before, after in zip(knight.clips, bound.clips):
+        t = clip_times(before, 30.0)[::7]
+        for a, b in zip(skin_character(knight, *sample_clip(knight.skeleton, before, t)),
+                        skin_character(bound, *sample_clip(bound.skeleton, after, t))):
+            assert np.allclose(a, b, atol=1e-9)
+
+
+def test_rest_at_bind_leaves_a_rig_bound_at_rest():
+    from conftest import asset
+
+    from rigmix.io import load_character
+    from rigmix.skinning import rest_at_bind
+
+    cesium = load_character(asset("CesiumMan"))
+    assert rest_at_bind(cesium) is cesium
+
+
+def test_positioning_pose_chooses_the_pose_composed_in(tmp_path):
+    from conftest import asset
+
+    from rigmix.config import load_config
+    from rigmix.io import load_character
+    from rigmix.pipeline import load_characters
+
+    path = asset("Knight")
+    stored = load_character(path).skeleton.rotations
+    for pose, same in (("bind", False), ("rest", True)):
+        cfg = tmp_path / f"{pose}.toml"
+        cfg.write_text(f'[characters.k]\npath = "{path}"\n[positioning]\npose = "{pose}"\n')
+        rotations = load_characters(load_config(cfg))["k"].skeleton.rotations
+        assert np.array_equal(rotations, stored) is same, pose
