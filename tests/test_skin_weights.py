@@ -446,10 +446,9 @@ def test_dfd_with_feature_field_distills_the_field_of_the_fused_surface(tmp_path
     """dfd with ``feature_field=True`` distills a field on the fused surface (with
     :data:`FIELD_DISTILL`) and the field changes the filled weights; the default distills nothing."""
     from dfd.field import load_field
+    from rigmix.config import PositioningOptions, load_config
     from rigmix.pipeline import compose
     from rigmix.weights.blend import FIELD_DISTILL
-
-    from rigmix.config import PositioningOptions, load_config
 
     asset("Horse"), asset("Knight")
     # the stored rest pose, where the centaur's junction has rows to fill
