@@ -7,17 +7,17 @@ OUT    ?= out/demo
 
 VDB_VENV ?= .venv-vdb
 SYSDEPS  := /usr/bin/chromium /usr/lib/python3/dist-packages/pyopenvdb.cpython-311-x86_64-linux-gnu.so \
-            /usr/lib/x86_64-linux-gnu/libEGL_mesa.so.0
+            /usr/lib/x86_64-linux-gnu/libEGL_mesa.so.0 /usr/bin/blender
 
 .PHONY: env demo test bench fuzz corpus clean
 
 # Debian packages: Chromium (headless preview tests) and python3-openvdb (the optional OpenVDB
-# field backend, tested for parity in CI), Mesa EGL (`rigmix render` on the CPU). Installed with apt
-# when missing; needs root.
+# field backend, tested for parity in CI), Mesa EGL (`rigmix render` on the CPU), Blender (the
+# glTF round-trip tests, rigmix/io/blender_check.py). Installed with apt when missing; needs root.
 $(SYSDEPS):
-	@if [ "$$(id -u)" != 0 ]; then echo "make: need root to install Debian packages chromium python3-openvdb libegl1 libegl-mesa0 libgl1-mesa-dri (or install them and re-run)"; exit 1; fi
+	@if [ "$$(id -u)" != 0 ]; then echo "make: need root to install Debian packages chromium python3-openvdb libegl1 libegl-mesa0 libgl1-mesa-dri blender (or install them and re-run)"; exit 1; fi
 	apt-get update -qq
-	DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium python3-openvdb libegl1 libegl-mesa0 libgl1-mesa-dri >/dev/null
+	DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium python3-openvdb libegl1 libegl-mesa0 libgl1-mesa-dri blender >/dev/null
 
 # The environment: a virtualenv with the package (editable) and its dev extras, pinned by
 # constraints.txt, plus the npm tools the tests use (Khronos glTF-Validator, three.js, playwright-core).

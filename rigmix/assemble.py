@@ -7,7 +7,8 @@
 * junction faces form one mesh ``<name>.junction`` with a plain material and vertex colours
   interpolated from the closest input points (textures baked to vertex colours first, as in the
   paper), smooth normals from the fused surface;
-* props on kept joints follow the output joint of that joint; static props are kept; props on
+* props on kept joints follow the output joint of that joint, at the same rest place (their
+  matrix re-expressed in the output joint's unit-scale frame); static props are kept; props on
   dropped joints are dropped with a warning naming them;
 * materials equal in everything but their name are written once, unused ones not at all;
 * the skeleton is S_R (its anchors are the plan's), the clips those of the completion stage.
@@ -183,8 +184,10 @@ def assemble_character(composition) -> Character:
                            material=len(materials) - 1))
 
     props, dropped = [], []
+    out_worlds = composition.skeleton.rest_worlds()
     for cid in ids:
         ch = plan.positioned[cid]
+        in_worlds = ch.skeleton.rest_worlds()
         for p in ch.props:
             mat = p.mesh.material
             mesh = Mesh(name=f"{cid}.{p.mesh.name}", positions=p.mesh.positions, faces=p.mesh.faces,
@@ -199,7 +202,8 @@ def assemble_character(composition) -> Character:
                                f"'{ch.skeleton.names[p.joint]}', which the composition removes: dropped")
                 log.warning(dropped[-1])
                 continue
-            props.append(Prop(mesh, o, p.matrix))
+            # relative to the output joint's frame, which is rigid where the input's was scaled
+            props.append(Prop(mesh, o, np.linalg.inv(out_worlds[o]) @ in_worlds[p.joint] @ p.matrix))
     warnings = tuple(w for cid in ids for w in composition.inputs[cid].warnings) + tuple(dropped)
     meshes, props, materials = deduplicate_materials(meshes, props, materials)
     return Character(name=composition.config.name, skeleton=composition.skeleton, meshes=tuple(meshes),

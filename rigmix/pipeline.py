@@ -136,23 +136,40 @@ def completion_stage(composition: Composition, progress: Progress | None = None)
     """A_R: the clips of S_R (options: the config's ``[animation]`` section).
 
     Completes the clips of the inputs as loaded (rest-relative deltas carry them onto S_R,
-    whatever scale and rest pose the positioning chose), with the plan's provenance less the
-    replaced limb roots whose rest bones disagree
+    whatever scale and rest pose the positioning chose; translation keys go through
+    :func:`rigmix.animation.completion.translation_maps`, into S_R's unit-scale frames), with the
+    plan's provenance less the replaced limb roots whose rest bones disagree
     (:func:`rigmix.animation.completion.completion_provenance`).
 
-    Returns the composition with ``clips`` (tuple of Clip on S_R) and ``report["animation"]``
-    (``sources``: the ``[character id, clip name]`` each output clip of ``clips`` completes).
+    Returns the composition with ``clips`` (tuple of Clip on S_R) and ``report["animation"]``:
+    ``sources`` (the ``[character id, clip name]`` each output clip of ``clips`` completes) and,
+    per input, ``fidelity_max`` (:func:`rigmix.animation.fidelity.clip_fidelity`: the largest
+    distance between a joint it keeps in the output clips and in its own clips, over the output's
+    bounding-box diagonal), where it is (``fidelity_worst``) and the joints its clips drive by a
+    confidence blend, not measured (``fidelity_blended_joints``).
     """
-    from .animation.completion import complete_clips, completion_provenance, selected_clips
+    from .animation.completion import complete_clips, completion_provenance, selected_clips, translation_maps
+    from .animation.fidelity import clip_fidelity
+    from .geometry import bounding_box_diagonal
 
     options = composition.config.animation.to_params()
     plan = composition.plan
     sources = selected_clips(composition.inputs, options)
+    provenance = completion_provenance(plan, options.rest_mismatch)
     clips = complete_clips(plan.skeleton, composition.inputs, composition.maps, selection=sources,
-                           options=options, provenance=completion_provenance(plan, options.rest_mismatch))
+                           options=options, provenance=provenance,
+                           translations=translation_maps(plan, composition.maps, composition.inputs))
+    fidelity = clip_fidelity(plan.skeleton, clips, sources, composition.inputs, plan.positioned, plan.transforms,
+                             provenance, composition.maps,
+                             diagonal=bounding_box_diagonal(composition.surface.V if composition.surface is not None
+                                                            else plan.skeleton.rest_worlds()[:, :3, 3]))
     report = {"clips": [c.name for c in clips], "sources": [list(k) for k in sources], "fps": options.fps,
               "frames": [int(len(c.tracks[0].times)) if c.tracks else 0 for c in clips],
-              "jump_penalty": options.jump_penalty, "metric": options.metric}
+              "jump_penalty": options.jump_penalty, "metric": options.metric,
+              "fidelity_max": {cid: f.max for cid, f in fidelity.items()},
+              "fidelity_worst": {cid: {"clip": f.clip, "joint": f.joint, "frame": f.frame}
+                                 for cid, f in fidelity.items() if f.clip is not None},
+              "fidelity_blended_joints": {cid: f.blended_joints for cid, f in fidelity.items()}}
     return replace(composition, clips=tuple(clips),
                    report={**composition.report, "animation": report})
 

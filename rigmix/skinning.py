@@ -16,7 +16,7 @@ import logging
 
 import numpy as np
 
-from .transforms import matrix_to_quat, quat_conjugate, quat_multiply, trs_to_matrix
+from .transforms import matrix_to_quat, polar_decomposition, quat_conjugate, quat_multiply, trs_to_matrix
 
 __all__ = [
     "skinning_matrices",
@@ -124,24 +124,6 @@ def linear_blend_skinning(V, joints, weights, M):
     return out.reshape(lead + (n, 3))
 
 
-def _polar(A):
-    """Polar decomposition ``A = Q @ P`` of ``(..., 3, 3)`` matrices.
-
-    ``Q`` is a rotation (det +1) and ``P`` is symmetric; a mirroring ``A`` puts the reflection
-    into ``P`` so that ``Q`` stays a proper rotation.
-    """
-    U, s, Vt = np.linalg.svd(A)
-    d = np.sign(np.linalg.det(U @ Vt))
-    d = np.where(d == 0, 1.0, d)
-    U = U.copy()
-    U[..., :, 2] *= d[..., None]
-    s = s.copy()
-    s[..., 2] *= d
-    Q = U @ Vt
-    P = np.swapaxes(Vt, -1, -2) @ (s[..., :, None] * Vt)
-    return Q, P
-
-
 def _matrix_to_dual_quat(M):
     """Rigid part of ``(..., 4, 4)`` matrices as dual quaternions, plus the non-rigid part.
 
@@ -151,7 +133,7 @@ def _matrix_to_dual_quat(M):
     dual : (..., 4) quaternion ``0.5 * t * real`` (translation ``t = M[:3, 3]``).
     P : (..., 3, 3) symmetric matrix (scale/shear applied before the rigid motion).
     """
-    Q, P = _polar(M[..., :3, :3])
+    Q, P = polar_decomposition(M[..., :3, :3])
     real = matrix_to_quat(Q)
     t = np.concatenate([M[..., :3, 3], np.zeros(M.shape[:-2] + (1,))], axis=-1)
     dual = 0.5 * quat_multiply(t, real)

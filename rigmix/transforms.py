@@ -23,6 +23,8 @@ __all__ = [
     "trs_to_matrix",
     "matrix_to_trs",
     "transform_points",
+    "polar_decomposition",
+    "unit_scale",
 ]
 
 
@@ -199,3 +201,30 @@ def transform_points(m, p):
     m = np.asarray(m, dtype=np.float64)
     p = np.asarray(p, dtype=np.float64)
     return p @ np.swapaxes(m[..., :3, :3], -1, -2) + m[..., None, :3, 3]
+
+
+def polar_decomposition(A):
+    """Polar decomposition ``A = Q @ P`` of ``(..., 3, 3)`` matrices.
+
+    ``Q`` is a rotation (det +1) and ``P`` is symmetric; a mirroring ``A`` puts the reflection
+    into ``P`` so that ``Q`` stays a proper rotation.
+    """
+    U, s, Vt = np.linalg.svd(A)
+    d = np.sign(np.linalg.det(U @ Vt))
+    d = np.where(d == 0, 1.0, d)
+    U = U.copy()
+    U[..., :, 2] *= d[..., None]
+    s = s.copy()
+    s[..., 2] *= d
+    Q = U @ Vt
+    P = np.swapaxes(Vt, -1, -2) @ (s[..., :, None] * Vt)
+    return Q, P
+
+
+def unit_scale(M):
+    """Affine matrices ``(..., 4, 4)`` with their scale (and shear) removed: ``[Q | t]``, ``Q``
+    the rotation of :func:`polar_decomposition`, ``t`` the translation unchanged."""
+    M = np.asarray(M, dtype=np.float64)
+    out = M.copy()
+    out[..., :3, :3] = polar_decomposition(M[..., :3, :3])[0]
+    return out

@@ -605,3 +605,108 @@ def test_replaced_limb_root_is_completed_when_the_rest_bones_disagree():
     old = arm_swing(completion_stage(dataclasses.replace(comp, config=old_cfg)))
     assert old.min() > 60.0, old.min()  # the human's lowered T-pose arm on the hanging leg
     assert new.max() < 45.0, new.max()  # the quadruped's own walk swing
+
+
+# --------------------------------------------------------------------------------------------
+# clip fidelity (issue 25): the joints an input keeps replay its own clips
+
+
+def test_map_pose_replays_kept_joints_exactly():
+    """A joint kept from the input (confidence 1) takes its own rotation, not accumulated with a
+    dropped joint the propagation also put there (a removed thumb on the palm), and translation
+    keys keep their size (without maps: the bone-length ratio, 1 here)."""
+    rng = np.random.default_rng(7)
+    src = _chain(4, random_quats(rng, (4,)))
+    out = _chain(3, src.rotations[:3])
+    F = 6
+    R = random_quats(rng, (F, 4))
+    T = src.translations + rng.normal(scale=0.1, size=(F, 4, 3))
+    S = np.ones((F, 4, 3))
+    m = BoneMap("x", np.array([0, 1, 2, 2]), np.array([1.0, 1.0, 1.0, 0.6]))
+    To, Ro, _, _ = map_pose(out, src, m, T, R, S)
+    np.testing.assert_allclose(quat_angle(Ro, R[:, :3]), 0.0, atol=1e-6)
+    np.testing.assert_allclose(To, T[:, :3], atol=1e-12)
+    # with maps: each key goes through its joint's linear map
+    L = np.stack([np.eye(3) * (k + 1) for k in range(4)])
+    To, _, _, _ = map_pose(out, src, m, T, R, S, translation_maps=L)
+    np.testing.assert_allclose(To - out.translations, (T[:, :3] - src.translations[:3]) * [[[1.0], [2.0], [3.0]]],
+                               atol=1e-12)
+
+
+def _completed(config_path):
+    import rigmix
+    from rigmix.pipeline import completion_stage
+
+    return completion_stage(rigmix.compose(config_path, until="mapping"))
+
+
+def test_body_clips_replay_after_a_cross_rig_graft():
+    """three_characters: the Knight (armature x100) keeps its body and gets the Fox's head and
+    CesiumMan's arm. Its own clips must move its own joints as in the file: translation keys of
+    its feet and hips once came out 14 times too large and the palm was twisted by the removed
+    thumb (fidelity 9 and 0.07 diagonals)."""
+    for name in ("Knight", "Fox", "CesiumMan"):
+        asset(name)
+    comp = _completed(Path(__file__).parent / "configs" / "three_characters.toml")
+    a = comp.report["animation"]
+    assert set(a["fidelity_max"]) == {"knight", "fox", "cesium"}
+    assert max(a["fidelity_max"].values()) <= 1e-4, (a["fidelity_max"], a["fidelity_worst"])
+
+
+def test_fidelity_sees_a_moved_joint():
+    """The measure itself: moving the body's root by 1 cm in one frame of its clip shows as
+    1 cm over the diagonal; the grafted arm, measured from its fused ancestor, does not move."""
+    import dataclasses
+
+    from rigmix.animation.completion import completion_provenance, selected_clips
+    from rigmix.animation.fidelity import clip_fidelity
+    from rigmix.character import Track
+
+    for name in ("Knight", "CesiumMan"):
+        asset(name)
+    comp = _completed(Path(__file__).parent / "configs" / "knight_arm.toml")
+    plan = comp.plan
+    clips = list(comp.clips)
+    keys = selected_clips(comp.inputs, CompletionOptions())
+    k = keys.index(("man", "clip_0"))
+    tracks = list(clips[k].tracks)
+    i = next(n for n, t in enumerate(tracks) if t.joint == 0 and t.path == "translation")
+    values = np.array(tracks[i].values)
+    values[3] += [0.01, 0.0, 0.0]
+    tracks[i] = Track(0, "translation", tracks[i].times, values, "LINEAR")
+    clips[k] = dataclasses.replace(clips[k], tracks=tuple(tracks))
+    prov = completion_provenance(plan)
+    before = clip_fidelity(plan.skeleton, comp.clips, keys, comp.inputs, plan.positioned, plan.transforms, prov,
+                           comp.maps, diagonal=2.0)
+    after = clip_fidelity(plan.skeleton, clips, keys, comp.inputs, plan.positioned, plan.transforms, prov,
+                          comp.maps, diagonal=2.0)
+    # the root's anchor turns the offset, lengths stay
+    assert before["man"].max < 1e-9 and after["man"].max == pytest.approx(0.005, rel=1e-6)
+    assert after["man"].frame == 3 and after["man"].clip == "clip_0"
+    assert after["knight"].max == before["knight"].max < 1e-6
+    assert after["knight"].measured_joints == 7  # the arm from UpperArm.L down, the fused joint included
+
+
+def test_completed_joints_take_their_own_clip():
+    """A mirrored arm swap (the humanoid's right arm, mirrored, on its left): in the body's walk
+    the new arm replays the mirrored character's walk frame by frame, not frames scored from
+    other clips."""
+    import rigmix
+    from rigmix.config import Config
+    from rigmix.pipeline import completion_stage
+
+    cfg = Config(name="mirrored_arm", characters={"body": {"path": "builtin:humanoid"},
+                                                  "donor": {"path": "builtin:humanoid", "mirror": True}},
+                 actions=[{"op": "replace", "source": "donor", "source_joint": "UpperArm.L",
+                           "target": "body", "target_joint": "UpperArm.L"}])
+    comp = completion_stage(rigmix.compose(cfg, until="mapping"))
+    S = comp.plan.skeleton
+    arm = [o for o, prov in enumerate(comp.plan.provenance) if [c for c, _ in prov] == ["donor"]]
+    assert len(arm) >= 2  # LowerArm.L, Hand.L (UpperArm.L is fused)
+    by_name = {c.name: c for c in comp.clips}
+    for clip in ("walk", "idle"):
+        body, donor = by_name[f"body:{clip}"], by_name[f"donor:{clip}"]
+        t = clip_times(body, 30.0)
+        _, Rb, _ = sample_clip(S, body, t)
+        _, Rd, _ = sample_clip(S, donor, t)
+        np.testing.assert_allclose(quat_angle(Rb[:, arm], Rd[:, arm]), 0.0, atol=1e-7)

@@ -401,6 +401,26 @@ def test_real_configs_give_valid_skeletons(real, name):
         [f for f in plan.fused_pairs if f.source != f.target or f.source_joint != f.target_joint])
 
 
+@pytest.mark.parametrize("name", ["knight_arm.toml", "centaur.toml", "three_characters.toml"])
+def test_output_skeleton_has_unit_scale(real, name):
+    """Issue 25: the Quaternius armatures' x100 (and the composed scale) are baked into S_R's rest
+    translations; every joint and anchor keeps its rest place and orientation with world scale 1."""
+    plan = plan_config(name, real)
+    sk = plan.skeleton
+    W = sk.rest_worlds()
+    assert np.abs(np.linalg.norm(W[:, :3, :3], axis=1) - 1).max() <= 1e-6
+    assert np.abs(np.linalg.norm(sk.anchor_worlds()[:, :3, :3], axis=1) - 1).max(initial=0) <= 1e-6
+    assert_valid_skeleton(sk)
+    scaled = False
+    for o, ((cid, j), *_) in enumerate(plan.provenance):  # the primary member's rest frame
+        src = plan.positioned[cid].skeleton.rest_worlds()[j]
+        s = np.linalg.norm(src[:3, :3], axis=0)
+        scaled |= bool(np.abs(s - 1).max() > 1e-3)
+        np.testing.assert_allclose(W[o, :3, 3], src[:3, 3], atol=1e-9 * max(1.0, np.abs(src[:3, 3]).max()))
+        np.testing.assert_allclose(W[o, :3, :3], src[:3, :3] / s, atol=1e-5)  # float32 shear
+    assert scaled  # the config mixes scaled frames in: the test sees what it is about
+
+
 # --------------------------------------------------------------------------------------------
 # The compose entry point
 # --------------------------------------------------------------------------------------------

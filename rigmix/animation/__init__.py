@@ -7,6 +7,8 @@ stage. The modules:
 ``keyframes``    keyframe scores: forward kinematics, pose mapping, continuity
 ``transitions``  frame choice and seam blending
 ``completion``   completing every clip for the output skeleton
+``fidelity``     how closely the output clips replay each input's own joints (the report's
+                 ``animation.fidelity_max``)
 """
 
 from .completion import CompletionOptions, complete_clips

@@ -7,7 +7,10 @@ frame, among all frames of all clips of the other input(s) Y:
 1. resample every clip to ``fps`` (30) with :func:`rigmix.animation.sample_clip`;
 2. map every keyframe onto S_R through the bone maps (:func:`map_pose`): rest-relative local
    rotations, unmapped joints at rest (identity delta), several input joints on one output
-   joint accumulate, confidence ``c < 1`` blends the delta toward identity by ``1 - c``;
+   joint accumulate (only its own where the joint is kept from that input), confidence
+   ``c < 1`` blends the delta toward identity by ``1 - c``; translation keys through
+   :func:`translation_maps` (composed scale, the input's own armature scale, S_R's unit-scale
+   frames);
 3. global rotations and positions by forward kinematics on S_R;
 4. score all pairs (query frame of X, candidate frame of Y) with one matrix product
    (:func:`keyframe_scores`), add the temporal continuity terms as shifted-diagonal sums
@@ -29,6 +32,8 @@ Choices where the method leaves room (all options of :class:`CompletionOptions`)
   ratio at 0.96 (3.43 with the source's T-pose swing).
 * Joint weights: prototype hop weights from the merge joint(s) (the joints fused between the
   clip's input and the completing one) times the confidence masses of both sides.
+* A completing input that is the same asset as the clip's input (a file listed twice, or
+  mirrored) has the clip itself: its joints replay it frame by frame (:func:`_own_clip`).
 * Frame choice: the paper takes the best frame per output frame (``jump_penalty=0``); a
   positive ``jump_penalty`` runs a Viterbi pass where continuing to the next frame of the same
   clip is free and any other jump costs the penalty (fewer seams, smoother completed part).
@@ -76,6 +81,8 @@ __all__ = [
     "CompletionOptions",
     "complete_clips",
     "selected_clips",
+    "same_asset",
+    "translation_maps",
     # the kernels, re-exported
     "map_pose",
     "global_rotations",
@@ -216,8 +223,9 @@ class _Frames:
         return slice(int(self.start[c]), int(self.start[c + 1]))
 
 
-def _sample_input(skeleton_out, character, bone_map, fps, blend):
-    """All clips of one input resampled at ``fps``, mapped onto S_R, with forward kinematics."""
+def _sample_input(skeleton_out, character, bone_map, fps, blend, maps=None):
+    """All clips of one input resampled at ``fps``, mapped onto S_R, with forward kinematics
+    (``maps``: its translation maps, see :func:`translation_maps`)."""
     n = character.skeleton.num_joints
     times = tuple(clip_times(clip, fps) for clip in character.clips)
     sampled = [sample_clip(character.skeleton, clip, t) for clip, t in zip(character.clips, times)]
@@ -225,7 +233,8 @@ def _sample_input(skeleton_out, character, bone_map, fps, blend):
         T, R, S = (np.concatenate([x[k] for x in sampled]) for k in range(3))
     else:
         T, R, S = np.zeros((0, n, 3)), np.zeros((0, n, 4)), np.zeros((0, n, 3))
-    T, R, S, mass = map_pose(skeleton_out, character.skeleton, bone_map, T, R, S, blend=blend)
+    T, R, S, mass = map_pose(skeleton_out, character.skeleton, bone_map, T, R, S, blend=blend,
+                             translation_maps=maps)
     start = np.concatenate([[0], np.cumsum([len(t) for t in times])]).astype(np.int64)
     G, P = forward_kinematics(skeleton_out, T, R, S)
     return _Frames(tuple(c.name for c in character.clips), start, times, T, R, S, G, P, mass)
@@ -341,7 +350,8 @@ def _pair(fx, fy, pool_rows, parents, owners, x, y, options, length):
 def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps: Mapping, *,
                    selection: Sequence[tuple[str, str]] | None = None,
                    options: CompletionOptions | None = None,
-                   provenance: Sequence[Sequence[tuple[str, int]]] | None = None) -> tuple[Clip, ...]:
+                   provenance: Sequence[Sequence[tuple[str, int]]] | None = None,
+                   translations: Mapping[str, np.ndarray] | None = None) -> tuple[Clip, ...]:
     """Complete the selected clips of every input on the output skeleton S_R.
 
     Parameters
@@ -359,6 +369,10 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
     provenance : sequence of sequence of (str, int), optional
         Per output joint, the (character id, input joint) it comes from (the plan's); without
         it, a joint comes from the inputs that reach it with confidence 1.
+    translations : mapping of str to (J_in, 3, 3) float array, optional
+        Per id, the translation maps of :func:`translation_maps` (the plan's scales and frames);
+        without them translation keys are rescaled by a bone-length ratio
+        (:func:`rigmix.animation.keyframes.map_pose`).
 
     Returns
     -------
@@ -383,8 +397,8 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
     J = skeleton_out.num_joints
     parents = skeleton_out.parents
     owners = _owners(skeleton_out, maps, ids, provenance)
-    frames = {cid: _sample_input(skeleton_out, inputs[cid], maps[cid], options.fps,
-                                 options.confidence_blend) for cid in ids}
+    frames = {cid: _sample_input(skeleton_out, inputs[cid], maps[cid], options.fps, options.confidence_blend,
+                                 None if translations is None else translations[cid]) for cid in ids}
     rest_world = skeleton_out.rest_worlds()[:, :3, 3]
     length = float(np.linalg.norm(rest_world.max(0) - rest_world.min(0))) if J else 1.0
     length = length if length > 1e-9 else 1.0
@@ -409,10 +423,12 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
                 logger.warning("completion: character %r has no clip to complete %r of %r; its "
                                "joints keep that clip's mapped pose (rest where unmapped)", y, clip_name, cid)
                 continue
-            if (cid, y) not in pairs:
-                pairs[(cid, y)] = _pair(fx, fy, pool_rows, parents, owners, cid, y, options, length)
             fixed = _fixed_rows(fixed_by_clip.get((cid, clip_name), ()), y, fy, seg, options.fps)
-            choice = _choose(fx, rows, fy, pool_rows, seg, pairs[(cid, y)], options, length, fixed)
+            choice = None if fixed else _own_clip(inputs[cid], inputs[y], fy, clip_name, seg, rows)
+            if choice is None:
+                if (cid, y) not in pairs:
+                    pairs[(cid, y)] = _pair(fx, fy, pool_rows, parents, owners, cid, y, options, length)
+                choice = _choose(fx, rows, fy, pool_rows, seg, pairs[(cid, y)], options, length, fixed)
             ix = np.ix_(pool_rows[choice], joints)
             T[:, joints], R[:, joints], S[:, joints] = fy.T[ix], fy.R[ix], fy.S[ix]
             jumps = np.flatnonzero(segments_next(seg)[choice[:-1]] != choice[1:])
@@ -433,6 +449,26 @@ def _completing_inputs(completed, owners, frames):
         best = max(owners[o], key=lambda y: frames[y].mass[o])
         by_owner.setdefault(best, []).append(int(o))
     return {y: np.asarray(j, dtype=np.int64) for y, j in by_owner.items()}
+
+
+def same_asset(x: Character, y: Character) -> bool:
+    """Whether two inputs are one asset: the same file or built-in (listed twice, or mirrored)."""
+    return (x.source, x.name) == (y.source, y.name)
+
+
+def _own_clip(x, y, fy, clip_name, seg, rows):
+    """Candidate columns that replay ``y``'s own clip ``clip_name`` frame by frame, or None.
+
+    When ``y`` is the asset ``x`` is (:func:`same_asset`), the clip being completed exists for
+    ``y``'s joints too: they take it as it is (a mirrored arm swap then punches with the copied
+    arm as the original punches) rather than frames scored from other clips. Other characters'
+    clips of the same name are not the same motion.
+    """
+    if not same_asset(x, y) or clip_name not in fy.names:
+        return None
+    cols = np.flatnonzero(seg == fy.names.index(clip_name))
+    n = rows.stop - rows.start
+    return cols if cols.size == n else None
 
 
 def _fixed_rows(fixed_frames, y, fy, seg, fps):
@@ -541,3 +577,55 @@ def completion_provenance(plan, rest_mismatch=60.0):
     for o, target in limb_roots_to_complete(plan, rest_mismatch):
         provenance[o] = [(cid, j) for cid, j in provenance[o] if cid != target]
     return provenance
+
+
+def translation_maps(plan, maps, inputs) -> dict:
+    """Per input, the linear map of each joint's translation keys onto S_R.
+
+    A translation key of input joint ``i`` is a displacement in its parent's frame (its anchor's
+    for a root), in the input's units. As composed it is ``E_i`` times that in the positioned
+    parent frame (``E_i``: the composed scale ``s``; for a root, the scale and placement seen
+    from its anchor, as :func:`rigmix.operations.positioning.position_character` moves root
+    keys). The positioned parent frame ``P_i`` carries the input's own scale (an armature's
+    x100); S_R's joints are rigid (unit scale), so in the frame ``Q_o`` of the parent of the
+    output joint ``o`` it maps to, the same displacement is ``Q_o^-1 P_i E_i`` (linear parts).
+    For a joint copied with its parent that is ``s`` times the parent's world scale; for a
+    grafted root it also turns the key from the source parent's orientation to the target's.
+
+    Parameters
+    ----------
+    plan : rigmix.operations.Plan
+    maps : mapping of str -> BoneMap
+    inputs : mapping of str -> Character
+        The inputs as loaded (the skeletons the clips are keyed on).
+
+    Returns
+    -------
+    dict of str -> (J_in, 3, 3) float64
+        Identity rows for unmapped joints.
+    """
+    S = plan.skeleton
+    Q = S.root_parent_worlds()
+    worlds = S.rest_worlds()
+    has = S.parents >= 0
+    Q[has] = worlds[S.parents[has]]
+    Qinv = np.linalg.inv(Q[:, :3, :3])
+    out = {}
+    for cid, ch in inputs.items():
+        sk = ch.skeleton
+        ps = plan.positioned[cid].skeleton
+        P = ps.root_parent_worlds()
+        pw = ps.rest_worlds()
+        inner = ps.parents >= 0
+        P[inner] = pw[ps.parents[inner]]
+        G = np.asarray(plan.transforms[cid], dtype=np.float64)
+        E = np.broadcast_to(plan.scales[cid] * np.eye(3), (sk.num_joints, 3, 3)).copy()
+        anchor = sk.root_parent_worlds()
+        for r in sk.roots:
+            E[r] = (np.linalg.inv(anchor[r]) @ G @ anchor[r])[:3, :3]
+        target = np.asarray(maps[cid].target)
+        L = np.broadcast_to(np.eye(3), (sk.num_joints, 3, 3)).copy()
+        ok = target >= 0
+        L[ok] = Qinv[target[ok]] @ P[ok, :3, :3] @ E[ok]
+        out[cid] = L
+    return out

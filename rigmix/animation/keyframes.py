@@ -59,6 +59,8 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 _IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])
+#: Confidence of an input joint kept in S_R (copied or fused), up to rounding.
+_KEPT = 1.0 - 1e-9
 
 
 # --------------------------------------------------------------------------------------------
@@ -82,20 +84,26 @@ def _map_scale(skeleton_out, skeleton_in, contributors, confidence):
         for i in ins:
             a = np.linalg.norm(skeleton_in.translations[i])
             b = np.linalg.norm(skeleton_out.translations[o])
-            if confidence[i] >= 1.0 - 1e-9 and a > 1e-9 and b > 1e-9:
+            if confidence[i] >= _KEPT and a > 1e-9 and b > 1e-9:
                 ratios.append(b / a)
     return float(np.median(ratios)) if ratios else 1.0
 
 
-def map_pose(skeleton_out: Skeleton, skeleton_in: Skeleton, bone_map, T, R, S, *, blend=True):
+def map_pose(skeleton_out: Skeleton, skeleton_in: Skeleton, bone_map, T, R, S, *, blend=True,
+             translation_maps=None):
     """Keyframes of one input expressed as local transforms of the output skeleton S_R.
 
     Rotations move as rest-relative deltas in the joint frame: an output joint ``o`` reached
     by input joints ``i_1 < ... < i_k`` gets ``R_o = rest_o * D`` with
     ``D = (rest_i1 ... rest_ik)^-1 (R_i1 ... R_ik)`` (exact for a chain), blended toward
-    identity by ``1 - c`` (``c``: the largest confidence among them). Translations and scales
-    come from the first of them with that confidence, as deltas from its rest value
-    (translations rescaled by the bone-length ratio of the confidence-1 copies). Output joints
+    identity by ``1 - c`` (``c``: the largest confidence among them). When some of them have
+    confidence 1 (the joint is kept from this input) only those form the chain: the joint
+    replays its own animation. Translations and scales
+    come from the first of them with that confidence, as deltas from its rest value; a
+    translation delta goes through that input joint's ``translation_maps`` entry (its parent's
+    frame in the input -> the output joint's parent frame: the composed scale, the input's own
+    armature scale, the placement), or without maps is rescaled by the median bone-length ratio
+    of the confidence-1 copies. Scale keys act as ratios to the rest scale. Output joints
     reached by nothing stay at rest.
 
     Parameters
@@ -114,6 +122,9 @@ def map_pose(skeleton_out: Skeleton, skeleton_in: Skeleton, bone_map, T, R, S, *
         Local scales.
     blend : bool
         Apply the confidence blend toward identity.
+    translation_maps : (J_in, 3, 3) float array, optional
+        Per input joint, the linear map of its local translation deltas into the local frame of
+        the output joint it maps to (:func:`rigmix.animation.completion.translation_maps`).
 
     Returns
     -------
@@ -131,7 +142,11 @@ def map_pose(skeleton_out: Skeleton, skeleton_in: Skeleton, bone_map, T, R, S, *
     F = T.shape[0]
     conf = np.clip(np.asarray(bone_map.confidence, dtype=np.float64), 0.0, 1.0)
     contributors = _contributors(bone_map, J)
-    k = _map_scale(skeleton_out, skeleton_in, contributors, conf)
+    if translation_maps is None:
+        L = np.broadcast_to(_map_scale(skeleton_out, skeleton_in, contributors, conf) * np.eye(3),
+                            (skeleton_in.num_joints, 3, 3))
+    else:
+        L = np.asarray(translation_maps, dtype=np.float64).reshape(skeleton_in.num_joints, 3, 3)
     rest_in = quat_normalize(skeleton_in.rotations)
     rest_out = quat_normalize(skeleton_out.rotations)
 
@@ -144,16 +159,19 @@ def map_pose(skeleton_out: Skeleton, skeleton_in: Skeleton, bone_map, T, R, S, *
         return T_out, R_out, S_out, mass
     # per output joint: the delta of its chain of input joints (vectorized for single ones)
     delta = np.empty((F, outs.size, 4))
-    single = np.array([len(contributors[o]) == 1 for o in outs])
-    first = np.array([contributors[o][0] for o in outs])
+    # a joint kept from this input (a confidence-1 contributor) replays that joint alone: the
+    # dropped joints that propagation also put there (a removed thumb on the palm) must not twist it
+    chains = [[i for i in contributors[o] if conf[i] >= _KEPT] or contributors[o] for o in outs]
+    single = np.array([len(c) == 1 for c in chains])
+    first = np.array([c[0] for c in chains])
     delta[:, single] = quat_multiply(quat_conjugate(rest_in[first[single]]), R[:, first[single]])
-    for k in np.flatnonzero(~single):
-        ins = contributors[outs[k]]
+    for m in np.flatnonzero(~single):
+        ins = chains[m]
         anim, rest = R[:, ins[0]], rest_in[ins[0]]
         for i in ins[1:]:
             anim = quat_multiply(anim, R[:, i])
             rest = quat_multiply(rest, rest_in[i])
-        delta[:, k] = quat_multiply(quat_conjugate(rest), anim)
+        delta[:, m] = quat_multiply(quat_conjugate(rest), anim)
     cs = [conf[contributors[o]] for o in outs]
     mass[outs] = [min(1.0, float(c.sum())) for c in cs]
     cmax = np.array([float(c.max()) for c in cs])
@@ -163,7 +181,7 @@ def map_pose(skeleton_out: Skeleton, skeleton_in: Skeleton, bone_map, T, R, S, *
         low = np.flatnonzero(cmax < 1.0)
         delta[:, low] = quat_slerp(delta[:, low], _IDENTITY, np.broadcast_to(1.0 - cmax[low], (F, low.size)))
     R_out[:, outs] = quat_multiply(rest_out[outs], delta)
-    T_out[:, outs] += (f * k)[:, None] * (T[:, lead] - skeleton_in.translations[lead])
+    T_out[:, outs] += f[:, None] * np.einsum("jab,fjb->fja", L[lead], T[:, lead] - skeleton_in.translations[lead])
     s_rest = skeleton_in.scales[lead]
     s_rest = np.where(np.abs(s_rest) > 1e-12, s_rest, 1.0)
     S_out[:, outs] *= np.clip(S[:, lead] / s_rest, 1e-9, None) ** f[:, None]

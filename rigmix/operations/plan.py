@@ -33,7 +33,7 @@ from ..character import Anchor, Skeleton
 from ..config import Config, closest_names
 from ..errors import InputError
 from ..rig import topological_order, unique_names
-from ..transforms import matrix_to_trs
+from ..transforms import matrix_to_trs, unit_scale
 from .positioning import position_inputs
 
 __all__ = ["FusedPair", "Plan", "ResolvedAction", "plan_operations", "resolve_actions", "resolve_rotations"]
@@ -126,6 +126,9 @@ class Plan:
         Each input after scale, placement, rest-pose rotations and preliminary translation,
         rebased (mesh in world space at rest, bind = rest). Later stages start from these.
     scales : dict of str -> float
+    transforms : dict of str -> (4, 4) float64 array
+        The scale and rigid placement given to each input (input world -> composed world,
+        ``placement @ diag(s, s, s, 1)``), before rest-pose rotations and translations.
     translations : dict of str -> (J_in, 3) float64 array
         The preliminary per-joint translations (world space, after scaling).
     report : dict
@@ -140,6 +143,7 @@ class Plan:
     actions: tuple
     positioned: dict
     scales: dict
+    transforms: dict
     translations: dict
     report: dict = field(default_factory=dict)
 
@@ -539,7 +543,63 @@ def output_joint_names(names, owners, level) -> list[str]:
     return unique_names(prefixed, suffix="_{}", start=2, priority=level)
 
 
+#: A rest world matrix whose linear part ``L`` has ``|L^T L - I| <= UNIT_TOLERANCE`` (every entry) is
+#: rigid already: its scale is 1 within about half that (float32 files store scales of 1 +- 4e-7).
+UNIT_TOLERANCE = 2e-6
+
+
+def rigid(M, tol=UNIT_TOLERANCE):
+    """``(...,)`` bool: whether affine matrices ``(..., 4, 4)`` have a rotation as linear part
+    (within ``tol``, see :data:`UNIT_TOLERANCE`)."""
+    L = np.asarray(M, dtype=np.float64)[..., :3, :3]
+    G = np.swapaxes(L, -1, -2) @ L - np.eye(3)
+    return np.all(np.abs(G) <= tol, axis=(-2, -1)) & (np.linalg.det(L) > 0)
+
+
+def _unit_anchors(anchors):
+    """Anchors whose world matrices are rigid: a scaled anchor (the Quaternius armatures' x100)
+    keeps its rotation and position, its scale goes into the joints below (baked by
+    :func:`_build_skeleton`).
+
+    Returns
+    -------
+    anchors : tuple of Anchor
+    worlds : (A, 4, 4) float64
+        Their world matrices.
+    changed : (A,) bool
+        Anchors whose world matrix changed.
+    """
+    if not anchors:
+        return (), np.zeros((0, 4, 4)), np.zeros(0, dtype=bool)
+    aw = np.zeros((len(anchors), 4, 4))
+    for i, a in enumerate(anchors):  # parents first
+        aw[i] = a.matrix if a.parent < 0 else aw[a.parent] @ a.matrix
+    changed = ~rigid(aw)
+    U = aw.copy()
+    U[changed] = unit_scale(aw[changed])
+    out = []
+    for a, (i, anchor) in zip(U, enumerate(anchors)):
+        if changed[i] or (anchor.parent >= 0 and changed[anchor.parent]):
+            P = U[anchor.parent] if anchor.parent >= 0 else np.eye(4)
+            anchor = Anchor(anchor.name, np.linalg.inv(P) @ a, anchor.parent)
+        out.append(anchor)
+    changed = changed | np.array([a.parent >= 0 and changed[a.parent] for a in anchors])
+    return tuple(out), U, changed
+
+
 def _build_skeleton(structure, positioned, config):
+    """S_R from the positioned inputs: names made unique, rest locals, unit-scale frames.
+
+    Every joint keeps its input's rest world position and orientation; a world matrix with a
+    scale (an armature scale, a composed ``scale``, a graft under a differently scaled parent)
+    becomes rigid (:func:`rigmix.transforms.unit_scale`), and the locals of the joints concerned
+    are recomputed, with scale exactly 1. The scale is then in the joints' rest translations
+    (metres of the composed world) and, since bind = rest on the positioned meshes, in nothing
+    else: the mesh is in world space and the inverse bind matrices invert the rigid frames.
+    Blender's bones cannot hold a rest scale; a skeleton mixing world scales of 1 and 100
+    imports with mesh parts scaled apart. Joints and anchors rigid already (within
+    :data:`UNIT_TOLERANCE`) keep their input locals exactly.
+    """
     order = structure.order
     N = len(order)
     out_of_node = np.empty(N, dtype=np.int64)
@@ -550,7 +610,7 @@ def _build_skeleton(structure, positioned, config):
     T, R, S = np.zeros((N, 3)), np.zeros((N, 4)), np.zeros((N, 3))
     anchors, anchor_offset = [], {}
     root_anchor = np.full(N, -1, dtype=np.int64)
-    computed = []
+    computed = np.zeros(N, dtype=bool)
     for o, n in enumerate(order):
         cid, j = structure.members[n][0]
         sk = positioned[cid].skeleton
@@ -559,7 +619,7 @@ def _build_skeleton(structure, positioned, config):
         T[o], R[o], S[o] = sk.translations[j], sk.rotations[j], sk.scales[j]
         if parents[o] < 0:
             if sk.parents[j] >= 0:
-                computed.append(o)  # a root here but not in its file: local = world
+                computed[o] = True  # a root here but not in its file: local = world
             elif sk.root_anchor[j] >= 0:
                 if cid not in anchor_offset:
                     anchor_offset[cid] = len(anchors)
@@ -569,19 +629,29 @@ def _build_skeleton(structure, positioned, config):
         else:
             pcid, pj = structure.members[structure.parent[n]][0]
             if pcid != cid or sk.parents[j] != pj:
-                computed.append(o)  # a grafted joint: its local is relative to a new parent
-    if computed:
-        comp = np.asarray(computed)
-        P = np.where(parents[comp, None, None] >= 0, worlds[np.maximum(parents[comp], 0)], np.eye(4))
-        t, r, s = matrix_to_trs(np.linalg.inv(P) @ worlds[comp])
-        T[comp], R[comp], S[comp] = t, r, s
+                computed[o] = True  # a grafted joint: its local is relative to a new parent
+    anchors, anchor_worlds, anchor_changed = _unit_anchors(tuple(anchors))
+    scaled = ~rigid(worlds)
+    U = worlds.copy()
+    U[scaled] = unit_scale(worlds[scaled])
+    has_anchor = root_anchor >= 0
+    P = np.broadcast_to(np.eye(4), (N, 4, 4)).copy()  # each joint's parent frame (unit)
+    P[parents >= 0] = U[parents[parents >= 0]]
+    P[has_anchor] = anchor_worlds[root_anchor[has_anchor]]
+    rebuilt = scaled.copy()  # new frames on both sides: rigid locals, scale exactly 1
+    rebuilt[parents >= 0] |= scaled[parents[parents >= 0]]
+    rebuilt[has_anchor] |= anchor_changed[root_anchor[has_anchor]]
+    redo = np.flatnonzero(computed | rebuilt)
+    if redo.size:
+        t, r, s = matrix_to_trs(np.linalg.inv(P[redo]) @ U[redo])
+        T[redo], R[redo], S[redo] = t, r, np.where(rebuilt[redo, None], 1.0, s)
     level = [structure.level[n] for n in order]
     unique = output_joint_names(names, [structure.members[n][0][0] for n in order], level)
     # in the order the names were made unique: a body's joints first (level 0), then grafts
     renamed = {unique[o]: names[o] for o in sorted(range(N), key=lambda o: (level[o], o)) if unique[o] != names[o]}
     skeleton = Skeleton(
         names=tuple(unique), parents=parents, translations=T, rotations=R, scales=S,
-        inverse_binds=np.linalg.inv(worlds), anchors=tuple(anchors), root_anchor=root_anchor,
+        inverse_binds=np.linalg.inv(U), anchors=anchors, root_anchor=root_anchor,
     )
     # bind = rest exactly for the skeleton as stored (TRS cannot hold the ~1e-7 shear of float32
     # input matrices, so the stored locals' forward kinematics is the reference)
@@ -631,7 +701,7 @@ def plan_operations(inputs, config: Config) -> Plan:
         removes = [f"actions[{a.index}]" for a in actions if a.op == "remove"]
         raise InputError(f"config {config.source}: the actions remove every joint ({', '.join(removes)}): nothing "
                          "is left to compose; remove a subtree below the root instead")
-    positioned, scales, translations, info = position_inputs(
+    positioned, scales, transforms, translations, info = position_inputs(
         inputs, actions, config, body=structure.body, part=structure.part, rotations=rotations)
     skeleton, out_of_node, renamed = _build_skeleton(structure, positioned, config)
 
@@ -665,5 +735,5 @@ def plan_operations(inputs, config: Config) -> Plan:
     }
     logger.debug("operations: %d output joints, %d fused pairs", skeleton.num_joints, len(fused))
     return Plan(skeleton=skeleton, provenance=provenance, used=used, image=image, fused_pairs=fused,
-                actions=actions, positioned=positioned, scales=scales, translations=translations,
-                report=report)
+                actions=actions, positioned=positioned, scales=scales, transforms=transforms,
+                translations=translations, report=report)

@@ -555,10 +555,12 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
 
     Returns
     -------
-    positioned, scales, translations, info : dicts by character id, in the config's order
-        ``info`` holds the report entry (scale, how it was chosen, the pair ratios, role).
+    positioned, scales, transforms, translations, info : dicts by character id, in the config's order
+        ``transforms`` holds the scale and placement of each input, ``(4, 4)`` (world -> composed
+        world, before rest-pose rotations and translations); ``info`` the report entry (scale, how
+        it was chosen, the pair ratios, role).
     """
-    positioned, scales, translations, info = {}, {}, {}, {}
+    positioned, scales, transforms, translations, info = {}, {}, {}, {}, {}
     for cid in config.characters:
         check_rig(inputs[cid], cid)
     for cid in positioning_order(actions, config):
@@ -596,6 +598,7 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
             t = smooth_translations(sk.parents, fixed, np.asarray(values))
         positioned[cid] = position_character(ch, scale=s, placement=placement, rotations=rot, translations=t)
         scales[cid] = s
+        transforms[cid] = (np.eye(4) if placement is None else placement) @ np.diag([s, s, s, 1.0])
         translations[cid] = t
         info[cid] = {
             "scale": s,
@@ -608,5 +611,5 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
             logger.info("positioning: %s scaled by %.4g (%s)", cid, s, method)
     check_positioned(positioned, config)
     ids = list(config.characters)  # report in the config's order
-    return ({c: positioned[c] for c in ids}, {c: scales[c] for c in ids},
+    return ({c: positioned[c] for c in ids}, {c: scales[c] for c in ids}, {c: transforms[c] for c in ids},
             {c: translations[c] for c in ids}, {c: info[c] for c in ids})
