@@ -27,6 +27,9 @@ saying why; every gate is always listed, in this order (:data:`GATE_NAMES`):
 ``junction_stretch_ratio`` <= :data:`MAX_STRETCH_RATIO`
     Report ``quality`` (:func:`rigmix.quality.junction_stretch_ratio`); null (pass) when no input
     has a clip, no clip was completed, or no joint is fused; null otherwise fails (not measured).
+``clip_fidelity_max`` <= :data:`MAX_CLIP_FIDELITY`
+    Report ``animation.fidelity_max``, the largest over the sources
+    (:func:`rigmix.animation.fidelity.clip_fidelity`); null (pass) without a measured source.
 ``weights_min`` >= 0, ``weights_unnormalized_vertices`` <= 0, ``weights_max_influences`` <= :data:`MAX_INFLUENCES`
     On the ``WEIGHTS_n`` accessors as written (:func:`rigmix.io.accessors.load_document`, no
     repair): the smallest weight; the vertices whose weights, summed in float32 slot by slot,
@@ -38,6 +41,9 @@ saying why; every gate is always listed, in this order (:data:`GATE_NAMES`):
     animation completing them (named as the report's ``animation`` says) over the same time
     span (within half a frame at :data:`GATE_FPS`); written animations having a sampler whose
     key times (float32, as stored) are not strictly increasing.
+``joint_world_scale_error`` <= :data:`MAX_WORLD_SCALE_ERROR`
+    The written skeleton read back: the largest ``|s - 1|`` of the axis scales of every joint's
+    world rest matrix (Blender bones hold no rest scale).
 ``identity_surface_error``, ``identity_skinned_error`` <= :data:`IDENTITY_TOLERANCE`
     Only for an identity composition (:func:`identity_mismatch`): the output, read back by
     :func:`rigmix.io.gltf.read_gltf`, against its input (:func:`rigmix.quality.identity_errors`):
@@ -85,12 +91,19 @@ WEIGHT_SUM_TOLERANCE = 2e-7
 VALIDATOR_TIMEOUT = 60.0
 #: Scales this close to 1 are unit scales (identity compositions).
 SCALE_TOLERANCE = 1e-9
+#: Largest distance between a joint kept from a source in an output clip and in the source's own
+#: clip, relative to the output's bounding-box diagonal (``animation.fidelity_max``).
+MAX_CLIP_FIDELITY = 1e-4
+#: Largest departure from 1 of a joint's world rest scale in the written skeleton: Blender bones
+#: cannot hold a rest scale, and its importer bakes one into the mesh.
+MAX_WORLD_SCALE_ERROR = 1e-6
 
 #: Every gate, in report order.
 GATE_NAMES = ("wall_seconds", "validator_errors", "junction_boundary_edges", "open_seam_edges",
               "new_non_manifold_edges", "junction_self_intersections", "junction_min_angle_p05",
-              "junction_stretch_ratio", "weights_min", "weights_unnormalized_vertices", "weights_max_influences",
-              "clips_missing", "clips_non_increasing_times", "identity_surface_error", "identity_skinned_error")
+              "junction_stretch_ratio", "clip_fidelity_max", "weights_min", "weights_unnormalized_vertices",
+              "weights_max_influences", "clips_missing", "clips_non_increasing_times", "joint_world_scale_error",
+              "identity_surface_error", "identity_skinned_error")
 
 
 @dataclass(frozen=True)
@@ -459,6 +472,7 @@ def evaluate_gates(composition, path, *, seconds: float) -> list[dict]:
     gates = [wall_time_gate(seconds, bounds.max_seconds)]
     gates += mesh_gates(report.get("mesh", {}))
     gates.append(stretch_gate(composition))
+    gates.append(fidelity_gate(report.get("animation", {})))
     if path is None:
         gates += [_not_evaluated(name, ">=" if name == "weights_min" else "<=", _bound(name), "no glTF file written")
                   for name in GATE_NAMES[len(gates) + 1:]]
@@ -499,7 +513,8 @@ def _file_gates(composition, path) -> list[Gate]:
 
     try:
         document = load_document(path)
-        return weight_gates(document) + clip_gates(document, composition) + identity_gates(composition, path)
+        return (weight_gates(document) + clip_gates(document, composition) + [world_scale_gate(path)]
+                + identity_gates(composition, path))
     except RigmixError as exc:
         start = GATE_NAMES.index("weights_min")
         return [Gate(name, None, ">=" if name == "weights_min" else "<=", _bound(name), False,
@@ -509,7 +524,31 @@ def _file_gates(composition, path) -> list[Gate]:
 def _bound(name: str) -> float:
     """The fixed bound of a gate read from the written file."""
     return {"weights_max_influences": MAX_INFLUENCES, "identity_surface_error": IDENTITY_TOLERANCE,
-            "identity_skinned_error": IDENTITY_TOLERANCE}.get(name, 0)
+            "identity_skinned_error": IDENTITY_TOLERANCE,
+            "joint_world_scale_error": MAX_WORLD_SCALE_ERROR}.get(name, 0)
+
+
+def fidelity_gate(animation: dict, *, bound: float = MAX_CLIP_FIDELITY) -> Gate:
+    """``clip_fidelity_max``: the largest ``animation.fidelity_max`` over the sources (each the
+    farthest a kept joint strays from its source clip, over the output's diagonal); not
+    applicable without a measured source."""
+    figures = {cid: v for cid, v in (animation.get("fidelity_max") or {}).items() if v is not None}
+    if not figures:
+        return _not_applicable("clip_fidelity_max", "<=", bound, "no source clip to compare with")
+    worst = max(figures, key=figures.get)
+    return Gate.measure("clip_fidelity_max", float(figures[worst]), "<=", bound, f"worst source: {worst}")
+
+
+def world_scale_gate(path, *, bound: float = MAX_WORLD_SCALE_ERROR) -> Gate:
+    """``joint_world_scale_error``: the largest ``|s - 1|`` over the axis scales ``s`` of every
+    joint's world rest matrix in the written file (read back)."""
+    from .io import load_character
+
+    worlds = load_character(path).skeleton.rest_worlds()
+    if not len(worlds):
+        return _not_applicable("joint_world_scale_error", "<=", bound, "no joint")
+    scales = np.linalg.norm(worlds[:, :3, :3], axis=1)
+    return Gate.measure("joint_world_scale_error", float(np.abs(scales - 1.0).max()), "<=", bound)
 
 
 def failed_gates(gates: list[dict]) -> list[dict]:

@@ -23,12 +23,14 @@ from rigmix.gates import (
     clip_gates,
     evaluate_gates,
     failure_text,
+    fidelity_gate,
     identity_gates,
     identity_mismatch,
     mesh_gates,
     stretch_gate,
     validator_gate,
     weight_gates,
+    world_scale_gate,
 )
 from rigmix.io.accessors import load_document
 from rigmix.io.validator import validator_available
@@ -317,3 +319,27 @@ def test_batch_exit_status_orders_failures_before_gates():
     assert exit_status([ok, gated]) == 0 and exit_status([ok, gated], strict=True) == 3
     assert exit_status([gated, bad_input], strict=True) == 2
     assert exit_status([ok, {"status": "ok"}], strict=True) == 0  # an entry written before the gates
+
+
+def test_fidelity_gate_takes_the_worst_source():
+    g = fidelity_gate({"fidelity_max": {"horse": 2e-3, "knight": 1e-7}})
+    assert g.passed is False and g.value == 2e-3 and "horse" in g.note
+    assert fidelity_gate({"fidelity_max": {"horse": 3e-6}}).passed is True
+    none = fidelity_gate({"fidelity_max": {}})
+    assert none.value is None and none.passed is True and none.note
+
+
+def test_world_scale_gate_fails_on_a_scaled_joint(written, tmp_path):
+    """A joint carrying a rest scale (a Quaternius armature's 100) fails; the output passes."""
+    _, path, _, report = written
+    assert by_name(report["gates"])["joint_world_scale_error"]["pass"] is True
+    js, _ = split_glb(path.read_bytes())
+    joint = js["skins"][0]["joints"][0]
+
+    def scale(js, data):
+        js["nodes"][joint]["scale"] = [100.0, 100.0, 100.0]
+        js["nodes"][joint].pop("matrix", None)
+        return data
+
+    g = world_scale_gate(edit(path, tmp_path / "scaled.glb", scale))
+    assert g.passed is False and g.value == pytest.approx(99.0)
