@@ -357,6 +357,7 @@ FUSION_RANGES: dict[str, dict] = {
     "copy_coincident": {},
     "bridge_recuts": {"ge": 0},
     "untangle_move": {"ge": 0},
+    "crossing_rounds": {"ge": 0, "le": MAX_ITERATIONS},
     "backend": {},
     "keep_fields": {},
 }

@@ -10,11 +10,13 @@ Stages, each a function of :mod:`rigmix.fusion`:
 4. local signed distance fields and their blend per action (:mod:`.fields`);
 5. isosurface, cut by the preserved faces, loops bridged, remeshed and smoothed
    (:mod:`.junction`, :mod:`.remesh`);
-6. assembly: preserved faces copied bit-identically, junction vertices appended.
+6. crossing faces repaired: junction faces that cross the surface are smoothed or pushed apart,
+   kept faces in the way joining the junction (:mod:`.crossings`);
+7. assembly: preserved faces copied bit-identically, junction vertices appended.
 
 :func:`fuse_surfaces` runs them as named steps: :func:`_partition` (1 to 3),
 :func:`_fuse_cluster` per junction cluster (4, 5: :func:`.stitch.junction_for_cluster`),
-:func:`_assemble` (6) and :func:`_surface_report`.
+:func:`_repair_crossings` (6), :func:`_assemble` (7) and :func:`_surface_report`.
 """
 
 from __future__ import annotations
@@ -187,6 +189,13 @@ class FusionParams:
         0.23% with it).
     min_island_faces : preserved parts bordering a junction with fewer faces join it (specks
         left by the presence pattern have no isosurface hole to meet).
+    crossing_rounds : rounds of the repair of junction faces that cross the surface
+        (:func:`.crossings.repair_crossings`: smoothing and pushing junction vertices apart, kept
+        faces in the way joining the junction; 0 disables it). Where the junction band is
+        narrow, the remeshed junction folds through itself or through a kept face (9 pairs on
+        the Horse + Knight centaur, 14 on the built-in centaur); the report's
+        ``junction_crossings_repaired``, ``junction_faces_released`` and
+        ``junction_crossings_layered`` say what the repair did and what it left.
     backend : "numpy" (numpy + libigl) or "openvdb".
     keep_fields : keep the blended grids in the result (for ``dump_fields``).
     """
@@ -223,6 +232,7 @@ class FusionParams:
     copy_coincident: bool = True
     bridge_recuts: int = 6
     untangle_move: float = 2.0
+    crossing_rounds: int = 6
     backend: str = "numpy"
     keep_fields: bool = False
 
@@ -273,7 +283,8 @@ class FusedSurface:
         ``mesh`` (vertices, faces, non_manifold_edges, new_non_manifold_edges,
         junction_boundary_edges, junction_min_angle_p05 and junction_min_angle_min (degrees, over
         the junction faces that are not copied; None without any), junction_faces, copied_faces,
-        unmatched_loops),
+        unmatched_loops, junction_self_intersections, and what the repair of crossing faces did:
+        junction_crossings_repaired, junction_faces_released, junction_crossings_layered),
         ``fields`` (voxel_size, voxels, backend, grids), ``timings`` (seconds per stage).
     """
 
@@ -594,35 +605,42 @@ def _junction_sources(inputs, pres, Q, n_generated, h0, with_colors):
     return sources, colors
 
 
-def _assemble(inputs, part: _Partition, selected, clusters) -> FusedSurface:
-    """The output surface, without its report: each input's parts (:class:`_InputPart`), then
-    the junction surfaces of the ``clusters``, with their attributes.
+def _output_parts(inputs, part: _Partition, selected) -> list:
+    """Each input's faces in the output (:class:`_InputPart`), numbered one input after the other.
 
     ``selected``: per input, the ``(m_i,)`` bool faces kept by the face-selection fallback.
     """
-    import igl
-
-    pres, preserved, copied, h0 = part.pres, part.preserved, part.copied, part.h0
-    has_uv = all(x.uvs is not None for x in inputs)
-    has_n = all(x.normals is not None for x in inputs)
-    has_c = any(x.colors is not None for x in inputs)
     parts = []
     base = face_base = 0
     for i, x in enumerate(inputs):
-        parts.append(_input_part(x, pres[i], preserved[i], selected[i], copied[i], base, face_base))
+        parts.append(_input_part(x, part.pres[i], part.preserved[i], selected[i], part.copied[i], base, face_base))
         base += len(parts[-1].vertices)
         face_base += len(parts[-1].faces)
-    Vs = [np.asarray(x.V, np.float64)[q.vertices] for x, q in zip(inputs, parts)]
-    Fs_out = [q.F for q in parts]
-    n_pres_faces = sum(len(f) for f in Fs_out)
+    return parts
+
+
+def _assemble(inputs, part: _Partition, selected, JV, JF, fields) -> FusedSurface:
+    """The output surface, without its report: each input's parts (:func:`_output_parts`), then
+    the junction surface ``JV`` (k, 3), ``JF`` (q, 3), with their attributes.
+
+    ``selected``: per input, the ``(m_i,)`` bool faces kept by the face-selection fallback;
+    ``fields``: the kept blended fields (:attr:`FusedSurface.fields`).
+    """
+    import igl
+
+    pres, h0 = part.pres, part.h0
+    has_uv = all(x.uvs is not None for x in inputs)
+    has_n = all(x.normals is not None for x in inputs)
+    has_c = any(x.colors is not None for x in inputs)
+    parts = _output_parts(inputs, part, selected)
+    Vs = [np.asarray(x.V, np.float64)[q.vertices] for x, q in zip(inputs, parts)] + [JV]
+    base = sum(len(q.vertices) for q in parts)
+    Fs_out = [q.F for q in parts] + [np.asarray(JF, np.int64).reshape(-1, 3) + base]
+    n_pres_faces = sum(len(q.faces) for q in parts)
     jstart = base
-    for c in clusters:
-        Vs.append(c.V)
-        Fs_out.append(c.F + base)
-        base += len(c.V)
-    nJ = base - jstart
-    V_out = np.concatenate(Vs) if Vs else np.zeros((0, 3))
-    F_out = np.concatenate(Fs_out).astype(np.int64) if Fs_out else np.zeros((0, 3), np.int64)
+    nJ = len(JV)
+    V_out = np.concatenate(Vs)
+    F_out = np.concatenate(Fs_out).astype(np.int64)
     n_generated_faces = len(F_out) - n_pres_faces
     junction_faces = np.zeros(len(F_out), bool)
     junction_faces[n_pres_faces:] = True
@@ -657,12 +675,98 @@ def _assemble(inputs, part: _Partition, selected, clusters) -> FusedSurface:
         face_origin_input=np.concatenate([np.full(len(q.faces), i) for i, q in enumerate(parts)]
                                          + [np.full(n_generated_faces, -1)]).astype(np.int64),
         face_origin_face=np.concatenate([q.faces for q in parts] + [np.full(n_generated_faces, -1)]).astype(np.int64),
-        junction_faces=junction_faces, preserved=tuple(preserved), presence=tuple(P.p for P in pres),
+        junction_faces=junction_faces, preserved=tuple(part.preserved), presence=tuple(P.p for P in pres),
         mesh_of_vertex=np.concatenate(mesh_of_vertex + [np.full(nJ, -1)]).astype(np.int64),
         uvs=uvs, normals=normals, colors=colors, junction_sources=tuple(sources),
-        fields=tuple(c.field for c in clusters if c.field is not None),
-        junction_vertices=junction_vertices, copied_faces=copied_faces,
+        fields=tuple(fields), junction_vertices=junction_vertices, copied_faces=copied_faces,
     )
+
+
+def _junction_geometry(clusters):
+    """The clusters' junction surfaces as one: ``(JV (k, 3), JF (q, 3))``."""
+    JV = np.concatenate([c.V for c in clusters]) if clusters else np.zeros((0, 3))
+    offsets = np.cumsum([0] + [len(c.V) for c in clusters])
+    JF = (np.concatenate([c.F + o for c, o in zip(clusters, offsets)]).astype(np.int64) if clusters
+          else np.zeros((0, 3), np.int64))
+    return JV, JF
+
+
+@dataclass(frozen=True)
+class _Repaired:
+    """The fused surface after the repair of crossing faces (:func:`_repair_crossings`).
+
+    Attributes
+    ----------
+    part : _Partition
+        With the released kept faces no longer preserved nor copied.
+    selected : list of (m_i,) bool arrays
+        Fallback-selected faces, released ones excepted.
+    JV : (k, 3) float64, JF : (q, 3) int64
+        The junction surface, released faces included.
+    found, left, layered, released : int
+        Crossing pairs before and after, those left with overlapping input parts
+        (:attr:`.crossings.CrossingRepair.layered`); kept faces that joined the junction.
+    """
+
+    part: _Partition
+    selected: list
+    JV: np.ndarray
+    JF: np.ndarray
+    found: int
+    left: int
+    layered: int
+    released: int
+
+
+def _crossing_own_input(part: _Partition, parts, faces):
+    """``(k,) bool``: whether each kept output face of ``faces`` ``(k,)`` (numbered as
+    :func:`_output_parts` numbers them) crosses a face of its own input (overlapping parts)."""
+    from .meshutil import intersecting_face_pairs
+
+    out = np.zeros(len(faces), bool)
+    face_base = 0
+    for i, q in enumerate(parts):
+        mine = np.flatnonzero((faces >= face_base) & (faces < face_base + len(q.faces)))
+        if len(mine):
+            W_ = part.pres[i].welded
+            src = q.faces[faces[mine] - face_base]
+            out[mine] = np.isin(src, intersecting_face_pairs(W_.V, W_.F, src)[:, 0])
+        face_base += len(q.faces)
+    return out
+
+
+def _repair_crossings(inputs, part: _Partition, selected, JV, JF, params) -> _Repaired:
+    """Junction faces that cross the surface, repaired (:func:`.crossings.repair_junction`):
+    junction vertices move, and kept faces in the way may join the junction (their input faces
+    stop being preserved, copied or selected). Nothing changes where nothing crosses."""
+    from functools import partial
+
+    from .crossings import repair_junction
+
+    parts = _output_parts(inputs, part, selected)
+    KV = np.concatenate([np.asarray(x.V, np.float64)[q.vertices] for x, q in zip(inputs, parts)])
+    KF = np.concatenate([q.F for q in parts])
+    counted = np.zeros(len(KF), bool)  # fallback-selected faces count as junction, copied ones do not
+    for q in parts:
+        start, count = q.extra
+        counted[start:start + count] = True
+        counted[q.copied_faces] = False
+    rep = repair_junction(KV, KF, JV, JF, counted=counted, layered=partial(_crossing_own_input, part, parts),
+                          rounds=params.crossing_rounds, min_angle=params.min_angle_p05)
+    counts = {"found": rep.found, "left": rep.left, "layered": rep.layered, "released": int(rep.released.sum())}
+    if not rep.released.any():
+        return _Repaired(part=part, selected=selected, JV=rep.JV, JF=rep.JF, **counts)
+    preserved = [p.copy() for p in part.preserved]
+    copied = [c.copy() for c in part.copied]
+    selected = [s_.copy() for s_ in selected]
+    face_base = 0
+    for i, q in enumerate(parts):
+        gone = q.faces[rep.released[face_base:face_base + len(q.faces)]]
+        preserved[i][gone] = copied[i][gone] = selected[i][gone] = False
+        face_base += len(q.faces)
+    kept = [preserved[i] | copied[i] for i in range(len(preserved))]
+    return _Repaired(part=replace(part, preserved=preserved, copied=copied, kept=kept), selected=selected,
+                     JV=rep.JV, JF=rep.JF, **counts)
 
 
 def _surface_report(surface, inputs, infos, h0, backend_name, open_chain_edges):
@@ -736,11 +840,19 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
             selected = [s | c.selected[i] for i, s in enumerate(selected)]
 
     t0 = time.perf_counter()
-    surface = _assemble(inputs, part, selected, clusters)
+    JV, JF = _junction_geometry(clusters)
+    repaired = _repair_crossings(inputs, part, selected, JV, JF, params)
+    timings["crossings"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    surface = _assemble(inputs, repaired.part, repaired.selected, repaired.JV, repaired.JF,
+                        [c.field for c in clusters if c.field is not None])
     timings["assembly"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     infos = [c.info for c in clusters]
     mrep, fields = _surface_report(surface, inputs, infos, part.h0, backend.name, open_chain_edges)
+    mrep["junction_crossings_repaired"] = repaired.found - repaired.left
+    mrep["junction_faces_released"] = repaired.released
+    mrep["junction_crossings_layered"] = repaired.layered
     timings["report"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all
     report = {"mesh": mrep, "fields": fields, "timings": {k: round(v, 4) for k, v in timings.items()}}

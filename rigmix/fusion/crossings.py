@@ -1,0 +1,522 @@
+"""Crossing faces at the junction, repaired: the fused surface must not pass through itself.
+
+Helper of :func:`rigmix.fusion.fuse_surfaces`. The remeshed junction can fold through itself
+(a projection or an inserted feature point pulls a vertex across its neighbours), slice a
+nearly parallel kept face (the junction a hair from the input surface), or wrap around a thin
+kept part between two seams. :func:`repair_crossings` finds the crossing pairs with a broad
+phase over the junction faces against the junction and the kept faces near it
+(:func:`.meshutil.intersecting_face_pairs`, the report's own count) and resolves them in a
+bounded number of rounds, each step kept only if the surface crosses itself less after it and
+the junction's triangles stay as good (5th percentile of the minimum angles):
+
+1. untangle (:func:`_smooth_apart`): the movable corners of the crossing faces, and from the
+   third round their neighbours, take umbrella-smoothing steps, as few as remove the
+   crossings: a fold opens with the least change of shape;
+2. push (:func:`_push_apart`): the movable corners of a face that slices another go across the
+   other face's plane, to the side where most of the face lies;
+3. release (:func:`_release`, from the second round): kept faces in the way of what is left
+   (the kept faces crossed, those around junction corners that cannot move, and a ring more
+   each round) join the junction, so that the two steps above may move their vertices; they
+   stay in the junction only if that lowers the count.
+
+Only vertices move: faces, and so the surface's closedness and manifoldness, never change. A
+vertex on a kept face, on an open border or on a non-manifold edge never moves. Pairs with a
+kept face that crosses its own input (overlapping parts of a modular character: a shoulder
+pad through the arm it covered, which the junction replaces) are counted but not worked on.
+Every step is deterministic (no threads, no random choice).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from .meshutil import edge_counts, intersecting_face_pairs, triangle_min_angles, vertex_adjacency
+
+log = logging.getLogger(__name__)
+
+__all__ = ["CrossingRepair", "JunctionRepair", "repair_crossings", "repair_junction"]
+
+#: Faces within this many target edges of the junction are looked at (the broad phase's reach:
+#: a repair moves vertices by about an edge).
+NEAR_EDGES = 3.0
+
+#: A smoothing or push sequence stops after this many steps that do no better than the best.
+PATIENCE = 3
+
+#: Halvings of an untangling move in search of the least move that does as well.
+BISECTIONS = 4
+
+#: Pushed corners end this many target edges beyond the other face's plane.
+PUSH_MARGIN = 0.05
+
+
+@dataclass(frozen=True)
+class CrossingRepair:
+    """The surface after :func:`repair_crossings` (same faces, vertices moved).
+
+    Attributes
+    ----------
+    V : (n, 3) float64
+        Positions; only movable vertices differ from the input's.
+    released : (m,) bool
+        Kept faces that joined the junction (their vertices may have moved).
+    found, left : int
+        Crossing pairs before and after.
+    layered : int
+        Of those left, pairs with a kept face that crosses its own input (not worked on).
+    rounds, steps : int
+        Rounds run; smoothing and push steps that stood.
+    """
+
+    V: np.ndarray
+    released: np.ndarray
+    found: int
+    left: int
+    layered: int
+    rounds: int
+    steps: int
+
+
+class _State:
+    """What a repair changes: positions, movable vertices, junction (``check``) faces; and what
+    it looks at: faces near the junction, kept faces that cross their own input."""
+
+    def __init__(self, V, F, movable, check, layered, releasable, pinned, reach, span):
+        self.V, self.F = V, F
+        self.movable, self.check = movable, check
+        self.layered, self.releasable, self.pinned = layered, releasable, pinned
+        self.reach = reach  # a moved face is tested against the faces within about this distance
+        self.span = span  # the faces within about this distance of the junction are looked at
+        self.look()
+
+    def look(self):
+        """The faces looked at: those within ``span`` of a ``check`` face, at the current
+        positions (every face that crosses a ``check`` face is among them)."""
+        self.near = _near_faces(self.V, self.F, self.check, self.span)
+
+    def snapshot(self):
+        return self.V, self.movable, self.check, self.near
+
+    def restore(self, snap):
+        self.V, self.movable, self.check, self.near = snap
+
+    def pairs(self, V=None, old=None, moved=None):
+        """Crossing pairs among the faces near the junction, at least one a ``check`` face.
+
+        With ``old`` (the pairs before) and ``moved`` (``(n,)`` bool, the vertices that moved
+        since), only the faces on moved vertices are tested again.
+        """
+        V = self.V if V is None else V
+        sub = np.flatnonzero(self.near)
+        if old is None or moved is None:
+            p = intersecting_face_pairs(V, self.F[sub], np.flatnonzero(self.check[sub]))
+            return _canonical(sub[p])
+        touched = moved[self.F].any(axis=1)
+        keep = old[~(touched[old[:, 0]] | touched[old[:, 1]])]
+        sub = sub[_near_faces(V, self.F[sub], touched[sub], self.reach)]  # what the moved faces may reach
+        fresh = sub[intersecting_face_pairs(V, self.F[sub], np.flatnonzero(touched[sub]))]
+        fresh = fresh[self.check[fresh[:, 0]] | self.check[fresh[:, 1]]]
+        return _canonical(np.concatenate([keep, fresh]))
+
+    def targets(self, pairs):
+        """The pairs the repair works on: those without a ``layered`` face."""
+        return pairs[~(self.layered[pairs[:, 0]] | self.layered[pairs[:, 1]])]
+
+    def angle_p05(self, V):
+        """5th percentile of the minimum angles of the junction faces (degrees)."""
+        T = self.F[self.check]
+        return float(np.percentile(triangle_min_angles(V, T), 5)) if len(T) else 90.0
+
+    def better(self, V, p, best_pairs, floor):
+        """Whether ``V`` (crossing pairs ``p``) beats the best so far: fewer pairs, and the
+        junction's angles no worse than ``floor``."""
+        return len(p) < len(best_pairs) and self.angle_p05(V) >= floor
+
+
+def _canonical(P):
+    """Pairs ``(p, 2)`` as sorted rows, each once, in order."""
+    if len(P) == 0:
+        return np.zeros((0, 2), np.int64)
+    return np.unique(np.sort(np.asarray(P, np.int64), axis=1), axis=0)
+
+
+def _box_cells(lo, hi, cell):
+    """Cells of a grid of ``cell``-sized cells (from the origin) that each box touches.
+
+    Returns
+    -------
+    box : (k,) int64, ijk : (k, 3) int64
+        Box ``box[i]`` touches cell ``ijk[i]``.
+    """
+    c0 = np.floor(lo / cell).astype(np.int64)
+    n = np.floor(hi / cell).astype(np.int64) - c0 + 1
+    count = n.prod(axis=1)
+    box = np.repeat(np.arange(len(lo)), count)
+    k = np.arange(len(box)) - np.repeat(np.cumsum(count) - count, count)
+    nx, ny = n[box, 0], n[box, 1]
+    ijk = c0[box] + np.stack([k % nx, (k // nx) % ny, k // (nx * ny)], axis=1)
+    return box, ijk
+
+
+def _boxes_meet(lo, hi, qlo, qhi, margin):
+    """``(len(lo),) bool``: boxes within ``margin`` of one of the boxes ``qlo``, ``qhi`` (dense,
+    in chunks: for the few boxes much larger than the grid's cells)."""
+    out = np.zeros(len(lo), bool)
+    if len(lo) == 0 or len(qlo) == 0:
+        return out
+    chunk = max(1, 4_000_000 // len(qlo))
+    for s in range(0, len(lo), chunk):
+        sl = slice(s, s + chunk)
+        meet = (lo[sl, None] <= qhi[None] + margin) & (qlo[None] <= hi[sl, None] + margin)
+        out[sl] = meet.all(axis=2).any(axis=1)
+    return out
+
+
+#: Boxes wider than this many grid cells are met densely (:func:`_boxes_meet`), not by cells.
+BIG_CELLS = 4
+
+
+def _near_faces(V, F, query, margin):
+    """``(m,)`` bool: the ``query`` faces and the faces within about ``margin`` of one (their
+    boxes touch a cell of a ``margin`` grid next to one a ``query`` face touches; a box much
+    larger than a cell is compared with the query boxes directly)."""
+    T = V[F]
+    lo, hi = T.min(axis=1), T.max(axis=1)
+    near = query.copy()
+    if not query.any() or margin <= 0:
+        return near
+    big = ((hi - lo) / margin).max(axis=1) > BIG_CELLS
+    q_small, q_big = np.flatnonzero(query & ~big), np.flatnonzero(query & big)
+    small = np.flatnonzero(~big)
+    if len(q_small):
+        _, qc = _box_cells(lo[q_small], hi[q_small], margin)
+        box, ijk = _box_cells(lo[small], hi[small], margin)
+        base = qc.min(axis=0) - 1  # integer keys of the cells around the query's, all non-negative
+        dims = qc.max(axis=0) - base + 2
+        inside = np.all((ijk >= base) & (ijk < base + dims), axis=1)
+        box, ijk = box[inside], ijk[inside]
+        off = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+
+        def key(c):
+            c = c - base
+            return (c[..., 0] * dims[1] + c[..., 1]) * dims[2] + c[..., 2]
+
+        marked = np.unique(key(qc[:, None, :] + off[None]))
+        near[small[box[np.isin(key(ijk), marked)]]] = True
+    qi = np.flatnonzero(query)
+    bigs = np.flatnonzero(big)
+    near[bigs] |= _boxes_meet(lo[bigs], hi[bigs], lo[qi], hi[qi], margin)
+    near[small] |= _boxes_meet(lo[small], hi[small], lo[q_big], hi[q_big], margin)
+    return near
+
+
+def _smooth_apart(S: _State, pairs, work, *, ring, steps, step, floor):
+    """Umbrella-smoothing steps on the movable corners of the faces of the crossing pairs
+    ``work`` (of ``pairs``, all of them) and ``ring`` rings of neighbours; the first step with
+    no pair of ``work`` left, or else the one with fewest pairs (:data:`PATIENCE`).
+
+    Returns
+    -------
+    V : (n, 3) float64, pairs : (p, 2) int64, steps : int
+        Unchanged with ``steps == 0`` when no step does better.
+    """
+    A = vertex_adjacency(S.F, len(S.V)).astype(np.float64).tocsr()
+    deg = np.maximum(np.asarray(A.sum(axis=1)).ravel(), 1.0)
+    move = np.zeros(len(S.V), bool)
+    move[S.F[work.ravel()].ravel()] = True
+    for _ in range(ring):
+        move |= (A @ move.astype(np.float64)) > 0
+    move &= S.movable
+    best = (S.V, pairs, 0)
+    if not move.any():
+        return best
+    U = S.V.copy()
+    for k in range(1, steps + 1):
+        mean = (A @ U) / deg[:, None]
+        U[move] += step * (mean[move] - U[move])
+        p = S.pairs(U, pairs, move)
+        if S.better(U, p, best[1], floor):
+            best = (U.copy(), p, k)
+        if len(S.targets(p)) == 0 or k - best[2] >= PATIENCE:
+            break
+    return best
+
+
+def _push_apart(S: _State, pairs, work, *, margin, steps, floor):
+    """Push the movable corners of each face of the crossing pairs ``work`` (of ``pairs``, all
+    of them) across the other face's plane, to the side where most of the face lies, by the
+    corner's distance and ``margin``; the first of ``steps`` pushes with no pair of ``work``
+    left, or else the one with fewest pairs (:data:`PATIENCE`).
+
+    A junction face that slices a nearly parallel face (the two surfaces a hair apart) has no
+    fold for smoothing to open; a push along the normal separates them with the least move.
+
+    Returns
+    -------
+    V : (n, 3) float64, pairs : (p, 2) int64, steps : int
+        Unchanged with ``steps == 0`` when no push does better.
+    """
+    best = (S.V, pairs, 0)
+    U, p = S.V.copy(), pairs
+    for k in range(1, steps + 1):
+        move = np.zeros_like(U)
+        hits = np.zeros(len(U))
+        for x, y in ((work[:, 0], work[:, 1]), (work[:, 1], work[:, 0])):
+            P = U[S.F[y]]
+            n = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+            d = np.einsum("pkc,pc->pk", U[S.F[x]] - P[:, :1], n)  # (p, 3): x's corners from y's plane
+            side = np.where(d.sum(axis=1) >= 0, 1.0, -1.0)  # where most of x lies
+            wrong = (d * side[:, None] < margin) & S.movable[S.F[x]]
+            shift = (side[:, None] * margin - d)[:, :, None] * n[:, None, :]  # (p, 3, 3)
+            np.add.at(move, S.F[x][wrong], shift[wrong])
+            np.add.at(hits, S.F[x][wrong], 1.0)
+        if not hits.any():
+            break
+        U = U + move / np.maximum(hits, 1.0)[:, None]
+        p = S.pairs(U, p, hits > 0)
+        if S.better(U, p, best[1], floor):
+            best = (U.copy(), p, k)
+        work = S.targets(p)
+        if len(work) == 0 or k - best[2] >= PATIENCE:
+            break
+    return best
+
+
+def _release(S: _State, work, ring):
+    """Kept faces in the way join the junction: the kept faces of the crossing pairs ``work``,
+    those around the corners of their junction faces that cannot move, and ``ring`` rings of
+    kept faces around those (``releasable`` ones only). Their vertices that no other kept face
+    uses, on no open border nor non-manifold edge, become movable.
+
+    Returns
+    -------
+    int
+        Faces released.
+    """
+    f = np.unique(work.ravel())
+    corners = S.F[f[S.check[f]]].ravel()
+    corners = np.unique(corners[~S.movable[corners]])
+    rel = np.zeros(len(S.F), bool)
+    rel[f] = True
+    rel |= np.isin(S.F, corners).any(axis=1)
+    rel &= S.releasable & ~S.check
+    for _ in range(ring):
+        touch = np.zeros(len(S.V), bool)
+        touch[S.F[rel].ravel()] = True
+        rel |= touch[S.F].any(axis=1) & S.releasable & ~S.check
+    if not rel.any():
+        return 0
+    S.check = S.check | rel
+    S.look()
+    on_kept = np.zeros(len(S.V), bool)
+    on_kept[S.F[~S.check].ravel()] = True
+    touched = np.zeros(len(S.V), bool)
+    touched[S.F[rel].ravel()] = True
+    S.movable = S.movable | (touched & ~on_kept & ~S.pinned)
+    return int(rel.sum())
+
+
+def _least_move(S: _State, pairs, U, p, floor):
+    """The shortest way towards ``U`` (crossing pairs ``p``) from ``S.V`` (``pairs``) that does
+    as well: bisection on the fraction ``t`` of the move (:data:`BISECTIONS` halvings).
+
+    Returns
+    -------
+    U : (n, 3) float64, p : (q, 2) int64
+    """
+    moved = np.any(U != S.V, axis=1)
+    lo, hi = 0.0, 1.0
+    for _ in range(BISECTIONS):
+        t = 0.5 * (lo + hi)
+        W = S.V + t * (U - S.V)
+        q = S.pairs(W, pairs, moved)
+        if len(q) <= len(p) and S.angle_p05(W) >= floor:
+            hi, U, p = t, W, q
+        else:
+            lo = t
+    return U, p
+
+
+def _untangle(S: _State, pairs, *, ring, steps, step, margin, floor):
+    """Smoothing then pushing (:func:`_smooth_apart`, :func:`_push_apart`) on the pairs the
+    repair works on, each move cut back to the least that does as well (:func:`_least_move`).
+    Returns ``(pairs, steps that stood)`` and updates ``S.V``."""
+    done = 0
+    for tier in ("smooth", "push"):
+        work = S.targets(pairs)
+        if len(work) == 0:
+            break
+        if tier == "smooth":
+            U, p, k = _smooth_apart(S, pairs, work, ring=ring, steps=steps, step=step, floor=floor)
+        else:
+            U, p, k = _push_apart(S, pairs, work, margin=margin, steps=steps, floor=floor)
+        if k:
+            U, p = _least_move(S, pairs, U, p, floor)
+            S.V, pairs, done = U, p, done + k
+    return pairs, done
+
+
+def repair_crossings(V, F, movable, check, *, target, releasable=None, layered=None, rounds=6, steps=8,
+                     step=0.5, min_angle=20.0) -> CrossingRepair:
+    """Resolve the pairs of faces that cross each other at the junction (see the module).
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+        The surface welded by position (a crossing is counted, and a corner shared, by index).
+    F : (m, 3) int array
+    movable : (n,) bool
+        Vertices that may move (generated junction vertices that no kept face uses).
+    check : (m,) bool
+        Faces whose crossings count (the report's junction faces).
+    target : float
+        The junction's edge length, same unit as ``V``: the reach of the broad phase and the
+        push margin are in these.
+    releasable : (m,) bool, optional
+        Kept faces that may join the junction (default none).
+    layered : callable, optional
+        ``layered(faces)``: ``(k,) bool`` for the kept faces ``faces`` ``(k,)``, whether each
+        crosses a face of its own input; asked once, about the kept faces near the junction,
+        and only when something crosses (default: none does).
+    rounds : int
+        Rounds at most (fewer after two rounds in a row that lower nothing); round ``r`` smooths
+        ``r // 2`` rings beyond the crossing faces and releases ``r - 1`` rings of kept faces
+        around them.
+    steps, step : int, float
+        Smoothing and push steps per round at most; smoothing step size (fraction of the way
+        to the mean of the neighbours).
+    min_angle : float
+        Degrees; a step stands only if the junction's 5th percentile of minimum angles stays at
+        least the smaller of this and its value before the repair.
+
+    Returns
+    -------
+    CrossingRepair
+    """
+    V = np.array(V, np.float64)
+    F = np.asarray(F, np.int64).reshape(-1, 3)
+    m = len(F)
+    check = np.asarray(check, bool).copy()
+    releasable = np.zeros(m, bool) if releasable is None else np.asarray(releasable, bool) & ~check
+    uE, cnt = edge_counts(F)
+    pinned = np.zeros(len(V), bool)  # borders and non-manifold edges keep their positions
+    pinned[uE[cnt != 2].ravel()] = True
+    S = _State(V, F, np.asarray(movable, bool) & ~pinned, check, np.zeros(m, bool), releasable, pinned,
+               reach=target, span=NEAR_EDGES * target)
+    pairs = S.pairs()
+    found = len(pairs)
+    if found and layered is not None:
+        ask = np.flatnonzero(S.near & ~check)
+        S.layered[ask] = np.asarray(layered(ask), bool)
+        S.releasable = releasable & ~S.layered
+    floor = min(min_angle, S.angle_p05(V))
+    kw = {"steps": steps, "step": step, "margin": PUSH_MARGIN * target}
+    n_steps = done = idle = 0
+    for r in range(rounds):
+        if len(S.targets(pairs)) == 0 or idle == 2:  # two rounds in a row lowered nothing
+            break
+        done, start = r + 1, len(pairs)
+        pairs, k = _untangle(S, pairs, ring=r // 2, floor=floor, **kw)
+        n_steps += k
+        if r > 0 and len(S.targets(pairs)):
+            snap = S.snapshot()
+            if _release(S, S.targets(pairs), r - 1):
+                # released faces count from now on: whatever they cross is counted again
+                p, k = _untangle(S, S.pairs(), ring=r // 2, floor=min(floor, S.angle_p05(S.V)), **kw)
+                if len(p) < len(pairs):
+                    pairs, n_steps = p, n_steps + k
+                else:  # the released faces did not help: kept again
+                    S.restore(snap)
+        idle = idle + 1 if len(pairs) >= start else 0
+    if n_steps:  # counted again where the moves took the junction
+        S.look()
+        pairs = S.pairs()
+    left = len(pairs)
+    n_layered = left - len(S.targets(pairs))
+    released = S.check & ~check
+    if found:
+        log.info("fusion: %d crossing face pairs at the junction, %d left (%d with a kept face crossing its input; "
+                 "%d rounds, %d steps, %d kept faces released)", found, left, n_layered, done, n_steps,
+                 int(released.sum()))
+    return CrossingRepair(V=S.V, released=released, found=int(found), left=int(left), layered=int(n_layered),
+                          rounds=done, steps=n_steps)
+
+
+@dataclass(frozen=True)
+class JunctionRepair:
+    """A junction surface after :func:`repair_junction`.
+
+    Attributes
+    ----------
+    JV : (k, 3) float64, JF : (q, 3) int64
+        The junction: its faces, then the released kept faces, over its own vertices (those it
+        shares with kept faces at their exact positions).
+    released : (mK,) bool
+        Kept faces that joined the junction.
+    found, left, layered : int
+        As :class:`CrossingRepair`.
+    moved : bool
+        Whether anything changed (else ``JV``, ``JF`` are the input's).
+    """
+
+    JV: np.ndarray
+    JF: np.ndarray
+    released: np.ndarray
+    found: int
+    left: int
+    layered: int
+    moved: bool
+
+
+def repair_junction(KV, KF, JV, JF, *, counted, layered=None, rounds=6, min_angle=20.0) -> JunctionRepair:
+    """Repair the crossings of a junction surface with itself and the kept faces around it
+    (:func:`repair_crossings` on the two welded by position, as the report counts crossings).
+
+    Parameters
+    ----------
+    KV : (nK, 3) float array, KF : (mK, 3) int array
+        The kept faces (copied from the inputs): they may join the junction, never move otherwise.
+    JV : (nJ, 3) float array, JF : (mJ, 3) int array
+        The junction; its vertices at a kept vertex's position are that vertex.
+    counted : (mK,) bool
+        Kept faces whose crossings count as the junction's (the report's junction faces).
+    layered : callable, optional
+        ``layered(faces)`` for kept faces ``faces`` (indices into ``KF``), see
+        :func:`repair_crossings`.
+    rounds, min_angle
+        See :func:`repair_crossings`.
+
+    Returns
+    -------
+    JunctionRepair
+    """
+    from ..geometry import weld
+    from .junction import remove_unreferenced
+
+    JV = np.asarray(JV, np.float64).reshape(-1, 3)
+    JF = np.asarray(JF, np.int64).reshape(-1, 3)
+    KF = np.asarray(KF, np.int64).reshape(-1, 3)
+    nK, mK = len(KV), len(KF)
+    unchanged = JunctionRepair(JV=JV, JF=JF, released=np.zeros(mK, bool), found=0, left=0, layered=0, moved=False)
+    if rounds <= 0 or len(JF) == 0:
+        return unchanged
+    Vw, index, Fw = weld(np.concatenate([np.asarray(KV, np.float64).reshape(-1, 3), JV]),
+                         np.concatenate([KF, JF + nK]))
+    movable = np.ones(len(Vw), bool)
+    movable[index[:nK]] = False
+    check = np.concatenate([np.asarray(counted, bool), np.ones(len(JF), bool)])
+    E = np.concatenate([JF[:, [0, 1]], JF[:, [1, 2]], JF[:, [2, 0]]])
+    target = float(np.median(np.linalg.norm(JV[E[:, 0]] - JV[E[:, 1]], axis=1)))
+    kept = np.arange(len(Fw)) < mK
+    rep = repair_crossings(Vw, Fw, movable, check, target=target, releasable=kept, layered=layered, rounds=rounds,
+                           min_angle=min_angle)
+    counts = {"found": rep.found, "left": rep.left, "layered": rep.layered}
+    if rep.steps == 0:
+        return JunctionRepair(JV=JV, JF=JF, released=np.zeros(mK, bool), moved=False, **counts)
+    faces = np.concatenate([np.arange(mK, len(Fw)), np.flatnonzero(rep.released)])
+    JV2, JF2, _ = remove_unreferenced(rep.V, Fw[faces])
+    return JunctionRepair(JV=JV2, JF=JF2, released=rep.released[:mK], moved=True, **counts)

@@ -1,0 +1,138 @@
+"""Crossing faces at the junction are repaired (:mod:`rigmix.fusion.crossings`), not tolerated.
+
+Synthetic cases with known crossings (a junction vertex pulled through the surface, a kept
+seam vertex raised through the junction, an overlapping part of an input) and a real
+composition (CesiumMan's arm and leg replaced by RiggedFigure's), with and without the repair.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from conftest import ROOT, asset
+from fusion_shapes import sphere
+
+from rigmix.fusion import fuse_surfaces
+from rigmix.fusion.crossings import repair_crossings
+from rigmix.fusion.meshutil import intersecting_face_pairs
+
+
+@pytest.fixture(scope="module")
+def capped_sphere():
+    """A sphere whose cap (faces above z = 0.5) is the junction: ``(V, F, cap, movable)``."""
+    V, F = sphere(3)
+    cap = (V[F][:, :, 2] > 0.5).all(axis=1)
+    on_kept = np.zeros(len(V), bool)
+    on_kept[F[~cap].ravel()] = True
+    return V, F, cap, ~on_kept
+
+
+def _crossings(V, F, junction):
+    return len(intersecting_face_pairs(V, F, np.flatnonzero(junction)))
+
+
+def test_a_fold_through_the_surface_is_smoothed_open(capped_sphere):
+    V, F, cap, movable = capped_sphere
+    V = V.copy()
+    V[np.argmax(V[:, 2])] = [0.05, 0.02, -1.2]  # the cap's top pulled through the bottom
+    assert _crossings(V, F, cap) > 0
+    rep = repair_crossings(V, F, movable, cap, target=0.15)
+    assert rep.found == _crossings(V, F, cap) and rep.left == 0
+    assert _crossings(rep.V, F, cap) == 0
+    assert np.array_equal(rep.V[~movable], V[~movable])  # kept vertices bit-identical
+    assert not rep.released.any()
+    again = repair_crossings(V, F, movable, cap, target=0.15)
+    assert np.array_equal(again.V, rep.V)  # deterministic
+
+
+def test_a_kept_part_in_the_way_joins_the_junction(capped_sphere):
+    """A seam vertex raised through the cap: no junction vertex can move the kept faces out of
+    the way; released into the junction, they can."""
+    V, F, cap, movable = capped_sphere
+    seam = np.flatnonzero(~movable & np.isin(np.arange(len(V)), F[cap].ravel()))
+    v = seam[np.argmax(V[seam, 0])]
+    V = V.copy()
+    V[v] = 0.3 * V[v] + [0.0, 0.0, 0.9]
+    assert _crossings(V, F, cap) > 0
+    assert repair_crossings(V, F, movable, cap, target=0.15).left > 0  # nothing to move without release
+    rep = repair_crossings(V, F, movable, cap, target=0.15, releasable=~cap)
+    assert rep.left == 0 and rep.released.any()
+    junction = cap | rep.released
+    assert _crossings(rep.V, F, junction) == 0
+    on_kept = np.zeros(len(V), bool)
+    on_kept[F[~junction].ravel()] = True
+    assert np.array_equal(rep.V[on_kept], V[on_kept])  # what stays kept is untouched
+
+
+def test_an_overlapping_part_of_an_input_is_counted_not_worked_on(capped_sphere):
+    """A kept plate through the cap that crosses its own input too (a pad through the arm it
+    covered): the junction is left as it is and the pairs are reported as layered."""
+    V, F, cap, movable = capped_sphere
+    plate = np.array([[-0.3, -0.3, 0.95], [0.3, -0.3, 0.95], [0.3, 0.3, 0.95], [-0.3, 0.3, 0.95]])
+    V2 = np.concatenate([V, plate])
+    n = len(V)
+    F2 = np.concatenate([F, [[n, n + 1, n + 2], [n, n + 2, n + 3]]])
+    cap2 = np.concatenate([cap, [False, False]])
+    movable2 = np.concatenate([movable, [False] * 4])
+    found = _crossings(V2, F2, cap2)
+    assert found > 0
+    rep = repair_crossings(V2, F2, movable2, cap2, target=0.15, releasable=~cap2,
+                           layered=lambda faces: faces >= len(F))
+    assert rep.found == rep.left == rep.layered == found
+    assert np.array_equal(rep.V, V2) and not rep.released.any()
+
+
+def test_open_borders_never_move(capped_sphere):
+    """A vertex on an open border keeps its position even when it is free to move: moving it
+    would open a gap the report counts as a new boundary edge."""
+    V, F, cap, movable = capped_sphere
+    top = int(np.argmax(V[:, 2]))
+    ring = np.flatnonzero((F == top).any(axis=1))
+    F_open = np.delete(F, ring[:1], axis=0)  # a hole at the top: its corners are on the border
+    cap_open = np.delete(cap, ring[:1])
+    V = V.copy()
+    V[top] = [0.05, 0.02, -1.2]
+    rep = repair_crossings(V, F_open, movable, cap_open, target=0.15)
+    border = np.unique(F[ring[0]])
+    assert np.array_equal(rep.V[border], V[border])
+
+
+def test_no_rounds_repair_nothing(capped_sphere):
+    V, F, cap, movable = capped_sphere
+    V = V.copy()
+    V[np.argmax(V[:, 2])] = [0.05, 0.02, -1.2]
+    rep = repair_crossings(V, F, movable, cap, target=0.15, rounds=0)
+    assert rep.found > 0 and rep.left == rep.found and np.array_equal(rep.V, V)
+
+
+@pytest.fixture(scope="module")
+def limb_swap():
+    """The fusion of tests/configs/limb_swap.toml, with and without the repair."""
+    from rigmix.fusion.inputs import fusion_inputs_from_plan
+    from rigmix.pipeline import compose
+
+    for name in ("CesiumMan", "RiggedFigure"):
+        asset(name)
+    comp = compose(ROOT / "tests" / "configs" / "limb_swap.toml", until="fusion")
+    inputs, actions, _ = fusion_inputs_from_plan(comp.plan)
+    bare = fuse_surfaces(inputs, actions, params=replace(comp.config.fusion.to_params(), crossing_rounds=0))
+    return inputs, comp.surface, bare
+
+
+def test_a_real_junction_crosses_nothing_after_the_repair(limb_swap):
+    inputs, out, bare = limb_swap
+    m, m0 = out.report["mesh"], bare.report["mesh"]
+    assert m["junction_self_intersections"] == 0
+    # the figures the repair reports are those of the surface it repaired
+    assert m0["junction_self_intersections"] == m["junction_crossings_repaired"] + m["junction_self_intersections"]
+    for key in ("boundary_edges", "junction_boundary_edges", "new_non_manifold_edges", "open_seam_edges"):
+        assert m[key] <= m0[key], key
+    if m0["junction_min_angle_p05"] is not None and m0["junction_min_angle_p05"] >= 20.0:
+        assert m["junction_min_angle_p05"] >= 20.0
+    # kept vertices are the inputs' own, bit for bit
+    kept = out.origin_input >= 0
+    for i, x in enumerate(inputs):
+        mine = kept & (out.origin_input == i)
+        assert np.array_equal(out.V[mine], np.asarray(x.V)[out.origin_vertex[mine]])
