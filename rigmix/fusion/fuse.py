@@ -6,7 +6,9 @@ Stages, each a function of :mod:`rigmix.fusion`:
 2. for attach, faces of one input inside or against the present part of the other stop being
    preserved (the union must cut through them);
 3. junction clusters: boxes around the faces that are neither preserved nor absent; a cluster
-   whose every face two inputs share is copied as it is (:func:`.seams.coincident_faces`);
+   whose every face two inputs share is copied as it is (:func:`.seams.coincident_faces`), and a
+   face both inputs preserve (skinned to the fused joint alone) is kept once
+   (:func:`.seams.shared_preserved`);
 4. local signed distance fields and their blend per action (:mod:`.fields`);
 5. isosurface, cut by the preserved faces, loops bridged, remeshed and smoothed
    (:mod:`.junction`, :mod:`.remesh`);
@@ -45,6 +47,7 @@ from .seams import (
     open_notches,
     preserved_loops,
     separate_seams,
+    shared_preserved,
     unpinch_preserved,
 )
 from .stitch import junction_for_cluster
@@ -176,7 +179,8 @@ class FusionParams:
         for face: measured on the 37 limb self-compositions of the shared characters, Hausdorff
         0 and every face kept, where rebuilding from the fields gives a Hausdorff distance of
         at most 0.44% and keeps at least 90% of the faces on 24 of them. A partly shared
-        junction is rebuilt from the fields.
+        junction is rebuilt from the fields. (Preserved faces both inputs have are kept once
+        whatever this says: :func:`.seams.shared_preserved`.)
     bridge_recuts : times the isosurface may be cut back and the seam loops bridged again where
         a bridge strip crosses the isosurface or the fan that closes a hole no seam claims
         (without recuts, 8 bridge triangles of the Horse + Knight centaur, spanning 0.26 to 0.33
@@ -370,7 +374,8 @@ def _partition(inputs, actions, params) -> _Partition:
 
     Preserved faces that conflict with the other input (attach, burial), that leave the
     junction a thin wedge, that come too close to another seam, that form specks or pinch the
-    seam join the junction; a junction cluster that two inputs share face for face is copied.
+    seam join the junction; a preserved face two inputs share is kept from one of them; a
+    junction cluster that two inputs share face for face is copied.
     """
     pres = [compute_presence(x.V, x.F, x.W, x.used, snap=params.snap, iterations=params.smooth_iterations,
                              alpha=params.smooth_alpha, preserve_threshold=params.preserve_threshold,
@@ -393,6 +398,8 @@ def _partition(inputs, actions, params) -> _Partition:
         if params.min_seam_wedge > 0:
             preserved = [open_notches(P, preserved[i], min_wedge=params.min_seam_wedge) for i, P in enumerate(pres)]
         junction = [~preserved[i] & ~(P.absent & ~P.preserved) for i, P in enumerate(pres)]
+    if len(pres) > 1:
+        preserved = shared_preserved(pres, preserved, actions)
     copied = [np.zeros(len(P.welded.F), bool) for P in pres]
     if params.copy_coincident and len(pres) > 1:
         copied, dropped = coincident_faces(pres, preserved, junction, actions, params.margin_voxels * h0)
@@ -403,11 +410,12 @@ def _partition(inputs, actions, params) -> _Partition:
 
 
 def _seam_loops(part: _Partition):
-    """Seam loops of every input (:func:`.seams.preserved_loops` on its kept faces) and the
-    number of seam edges on open chains."""
+    """Seam loops of every input (:func:`.seams.preserved_loops` on its kept faces, less the
+    edges the other inputs' kept faces close) and the number of seam edges on open chains."""
     loops_all, open_chain_edges = [], 0
+    kept = [(P.welded.V, P.welded.F[part.kept[i]]) for i, P in enumerate(part.pres)]
     for i, P in enumerate(part.pres):
-        L, c = preserved_loops(P, part.kept[i], i)
+        L, c = preserved_loops(P, part.kept[i], i, others=kept[:i] + kept[i + 1:])
         loops_all += L
         open_chain_edges += c
     return loops_all, open_chain_edges

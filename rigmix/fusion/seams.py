@@ -28,6 +28,7 @@ __all__ = [
     "most_present_faces",
     "local_edge_length",
     "coincident_faces",
+    "shared_preserved",
 ]
 
 
@@ -367,8 +368,21 @@ def cluster_grid(lo, hi, h0, params, diagonal=0.0):
     return Grid(glo, float(h), shape)
 
 
-def preserved_loops(P: Presence, preserved, source):
+def _halfedge_keys(V, H):
+    """Keys of directed half-edges ``H`` (k, 2) by their endpoint positions (bit-exact, start
+    then end): ``(k,)`` numpy void array."""
+    V = np.asarray(V, np.float64)
+    K = np.ascontiguousarray(np.concatenate([V[H[:, 0]], V[H[:, 1]]], axis=1))
+    return K.view(np.dtype((np.void, K.dtype.itemsize * 6))).ravel()
+
+
+def preserved_loops(P: Presence, preserved, source, others=()):
     """Closed boundary loops of the preserved faces that run through the input's interior.
+
+    A boundary edge where a kept face of another input continues the surface (the same two
+    corner positions, bit for bit, in the opposite direction) is no seam: the output is closed
+    there. That is where a shared face is kept from the other input
+    (:func:`shared_preserved`, :func:`coincident_faces`).
 
     Parameters
     ----------
@@ -378,6 +392,8 @@ def preserved_loops(P: Presence, preserved, source):
         Its preserved (or copied) welded faces.
     source : int
         Input index recorded in each loop.
+    others : sequence of (V, F)
+        The other inputs' kept faces: positions ``(n_j, 3)`` and faces ``(f_j, 3)``.
 
     Returns
     -------
@@ -397,6 +413,12 @@ def preserved_loops(P: Presence, preserved, source):
     key = Bs[:, 0] * (len(P.welded.V) + 1) + Bs[:, 1]
     pos = np.searchsorted(key_all, key)
     interior = cnt[np.clip(pos, 0, len(cnt) - 1)] >= 2
+    covering = [np.asarray(F, np.int64).reshape(-1, 3) for _, F in others]
+    if any(len(F) for F in covering):
+        # the other inputs' half-edges reversed: one of them equal to ours continues the surface
+        rev = np.concatenate([_halfedge_keys(V, np.concatenate([F[:, [1, 0]], F[:, [2, 1]], F[:, [0, 2]]]))
+                              for (V, _), F in zip(others, covering)])
+        interior &= ~np.isin(_halfedge_keys(P.welded.V, B), rev)
     loops, chains = boundary_loops(P.welded.V, None, source, halfedges=B[interior])
     return loops, int(sum(len(c) - 1 for c in chains))
 
@@ -488,6 +510,43 @@ def _face_pairs(Va, Fa, Vb, Fb):
     ia, ib = ok[hit], ib[hit]
     _, u = np.unique(ib, return_index=True)  # duplicate faces of a: one pair per face of b
     return ia[u], ib[u]
+
+
+def shared_preserved(pres: list[Presence], preserved, actions):
+    """Preserved faces that another input of an action preserves too, each kept from one input.
+
+    The joint an action fuses belongs to both inputs' kept joints, so the faces skinned to it
+    alone (the upper arm of a limb replaced by itself, a shoulder pad or a robot's rigid part on
+    that joint, a whole secondary component) have presence 1 in both. Where the two inputs have
+    such a face with the same corners bit for bit in the same orientation, both copies would
+    give the output every face twice and every edge around them three or four faces; one copy
+    is kept, from the input more present on it (the action's first input, ``a``, on a tie).
+    Faces that merely overlap (two different characters' upper arms) are left to the union.
+
+    Parameters
+    ----------
+    pres : list of Presence
+    preserved : list of (m_i,) bool arrays
+        Per input, preserved welded faces.
+    actions : sequence of FusionAction
+
+    Returns
+    -------
+    list of (m_i,) bool arrays
+        New masks, each shared face in one of them; the inputs are not modified.
+    """
+    out = [m.copy() for m in preserved]
+    for act in actions:
+        a, b = act.a, act.b
+        Pa, Pb = pres[a], pres[b]
+        ia, ib = _face_pairs(Pa.welded.V, Pa.welded.F, Pb.welded.V, Pb.welded.F)
+        both = out[a][ia] & out[b][ib]
+        pa = Pa.p_welded[Pa.welded.F[ia]].mean(axis=1)
+        pb = Pb.p_welded[Pb.welded.F[ib]].mean(axis=1)
+        keep_a = pa >= pb
+        out[b][ib[both & keep_a]] = False
+        out[a][ia[both & ~keep_a]] = False
+    return out
 
 
 def coincident_faces(pres: list[Presence], preserved, junction, actions, margin):

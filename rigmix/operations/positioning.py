@@ -233,7 +233,8 @@ def pair_scale(op, target, target_joint, source, source_joint, *, eps=1e-9):
     ----------
     op : {"attach", "replace"}
     target, source : Character
-        ``target`` already in its final units (positioned), ``source`` as loaded.
+        ``target`` already in its final units (positioned), ``source`` at its own scale, both
+        with bind pose = rest pose (:func:`rebase`) so that equal characters measure equal.
     target_joint, source_joint : int
 
     Returns
@@ -572,7 +573,11 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
         if cc.scale != "auto":
             s, method, ratios = float(cc.scale), "override", []
         elif moved:
-            ratios = [pair_scale(a.op, positioned[a.target], a.target_joint, ch, a.source_joint) for a in moved]
+            # measured at rest in world space, as the targets are: a character matched with
+            # itself then measures exactly 1 and keeps its positions bit for bit (its faces are
+            # the same faces, copied once: rigmix.fusion.seams.coincident_faces)
+            rest = rebase(ch)
+            ratios = [pair_scale(a.op, positioned[a.target], a.target_joint, rest, a.source_joint) for a in moved]
             s = float(np.exp(np.mean(np.log([r for r, _ in ratios]))))
             method = "+".join(sorted({m for _, m in ratios}))
             _check_scale(s, cid, method, config)

@@ -1,0 +1,84 @@
+"""Identity compositions of real characters through the whole pipeline: a limb replaced by
+itself gives back the input, face for face, and passes the mesh and identity gates.
+
+The donor is measured as the body is (at rest in world space), so its scale is exactly 1 and its
+positions are the body's bit for bit: the faces both share are recognised and copied once.
+
+The fused joint is kept by both inputs (the output's one joint stands for the target's and the
+source's), so whatever is skinned to it alone has presence 1 in both: part of the upper arm of
+a many-primitive humanoid, shoulder pads and sleeves that are parts of their own, a robot's
+rigid leg parts, a whole crab on its root joint. Each such face must come back once
+(:func:`rigmix.fusion.seams.shared_preserved`), not once per input beside itself.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from conftest import corpus
+
+from rigmix.gates import IDENTITY_TOLERANCE
+
+#: case -> (corpus character, the fused joints: a limb and, for a robot, its detached IK foot)
+CASES = {
+    # 10 primitives, split at UV seams; shoulder pads and sleeve parts skinned to UpperArm.L alone
+    "cyberpunk_arm": ("CyberpunkCharacter", ("UpperArm.L",)),
+    # a robot of 9 part meshes on one skin; the leg's rigid parts on Leg1.L and on the IK foot
+    "enemy_large_leg": ("EnemyLarge", ("Leg1.L", "Foot.L")),
+    # a leaf joint: no limb length, the donor's scale is the ratio of two mesh sizes, which must
+    # come out exactly 1 for the positions (and so the faces) to stay bit for bit the same
+    "enemy_large_head": ("EnemyLarge", ("Head",)),
+    # copied faces meet the other input's kept faces along chains running into open borders:
+    # no seam left open there, the other input closes it
+    "rat_front_leg": ("Rat", ("FrontUpLeg.L",)),
+}
+
+
+def identity_config(tmp_path, name: str, character: str, joints) -> str:
+    """A config replacing ``joints`` of a corpus character by the same joints of a second copy."""
+    path = corpus(character)
+    text = f'name = "{name}"\n'
+    for cid in ("body", "donor"):
+        text += f'[characters.{cid}]\npath = "{path.as_posix()}"\n'
+    for j in joints:
+        text += (f'[[actions]]\nop = "replace"\nsource = "donor"\nsource_joint = "{j}"\n'
+                 f'target = "body"\ntarget_joint = "{j}"\nmode = "blend"\n')
+    cfg = tmp_path / f"{name}.toml"
+    cfg.write_text(text)
+    return cfg
+
+
+def canonical_faces(V, F):
+    """Faces as rows of their nine corner coordinates, sorted (a multiset, order-free)."""
+    T = np.asarray(V, np.float64)[np.asarray(F, np.int64)].reshape(len(F), 9)
+    return T[np.lexsort(T.T[::-1])]
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_identity_composition_gives_back_every_face_once(case, tmp_path):
+    from rigmix.export import write_outputs
+    from rigmix.fusion.meshutil import nondegenerate
+    from rigmix.pipeline import compose
+
+    character, joints = CASES[case]
+    comp = compose(identity_config(tmp_path, case, character, joints))
+    write_outputs(comp, glb=tmp_path / "out.glb", report=tmp_path / "out.json")
+    report = json.loads((tmp_path / "out.json").read_text())
+    mesh = report["mesh"]
+    assert mesh["new_non_manifold_edges"] == 0
+    assert mesh["junction_boundary_edges"] == 0 and mesh["open_seam_edges"] == 0
+    gates = {g["name"]: g for g in report["gates"]}
+    for name in ("new_non_manifold_edges", "junction_boundary_edges", "open_seam_edges",
+                 "identity_surface_error", "identity_skinned_error"):
+        assert gates[name]["pass"] is True, gates[name]
+    assert gates["identity_surface_error"]["value"] <= IDENTITY_TOLERANCE
+
+    # every face of the input (collapsed faces aside) comes back exactly once, none beside it
+    body = comp.fusion_inputs[comp.fusion_ids.index("body")]
+    keep = nondegenerate(body.F)
+    out = comp.surface
+    assert len(out.F) == int(keep.sum())
+    assert np.array_equal(canonical_faces(out.V, out.F), canonical_faces(body.V, body.F[keep]))
+    assert np.all(out.face_origin_input >= 0)  # copied from the inputs, nothing generated
