@@ -209,8 +209,13 @@ def _load_file(path: str, mtime: float, pose: str = "bind") -> Character:
     from .skinning import rest_at_bind
 
     character = load_character(path)
+    if pose == "rest":
+        return character
+    from .operations.positioning import check_rig
+
+    check_rig(character)  # the stored rest pose is refused before the bind pose replaces it
     # composed in the pose its mesh is bound in: animations stay exact (rest_at_bind)
-    return rest_at_bind(character) if pose == "bind" else character
+    return rest_at_bind(character)
 
 
 def load_characters(config: Config) -> dict:
