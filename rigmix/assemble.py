@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import io
 import logging
+from dataclasses import replace
 from functools import lru_cache
 
 import numpy as np
@@ -240,8 +241,6 @@ def deduplicate_materials(meshes, props, materials):
         The same meshes and props, their ``material`` re-indexed into the returned materials
         (first-use order of the original indices kept).
     """
-    from dataclasses import replace
-
     used = sorted({m.material for m in meshes if m.material >= 0} | {p.mesh.material for p in props
                                                                       if p.mesh.material >= 0})
     new_index, kept, by_key = {}, [], {}

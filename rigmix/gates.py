@@ -339,24 +339,22 @@ def _missing_clips(spans: dict, composition) -> list[str]:
     return missing
 
 
-def identity_gates(composition, path, *, tolerance: float = IDENTITY_TOLERANCE) -> list[Gate]:
+def identity_gates(composition, written, *, tolerance: float = IDENTITY_TOLERANCE) -> list[Gate]:
     """``identity_surface_error`` and ``identity_skinned_error`` (see the module docstring).
 
     Parameters
     ----------
     composition : rigmix.pipeline.Composition
-    path : str or Path
-        The written file, read back by :func:`rigmix.io.gltf.read_gltf` when the composition
-        is an identity composition.
+    written : rigmix.character.Character
+        The written file, read back by :func:`rigmix.io.gltf.read_gltf`; used only when the
+        composition is an identity composition.
     """
-    from .io.gltf import read_gltf
     from .quality import identity_errors
 
     names = ("identity_surface_error", "identity_skinned_error")
     why = identity_mismatch(composition)
     if why is not None:
         return [_not_applicable(n, "<=", tolerance, f"not an identity composition: {why}") for n in names]
-    written = read_gltf(path)
     inputs = composition.inputs
     original = next(iter(inputs.values()))
     animation = composition.report.get("animation", {})
@@ -513,8 +511,11 @@ def _file_gates(composition, path) -> list[Gate]:
 
     try:
         document = load_document(path)
-        return (weight_gates(document) + clip_gates(document, composition) + [world_scale_gate(path)]
-                + identity_gates(composition, path))
+        from .io.gltf import read_gltf
+
+        written = read_gltf(path)  # once, for the skeleton's scales and the identity comparison
+        return (weight_gates(document) + clip_gates(document, composition) + [world_scale_gate(written)]
+                + identity_gates(composition, written))
     except RigmixError as exc:
         start = GATE_NAMES.index("weights_min")
         return [Gate(name, None, ">=" if name == "weights_min" else "<=", _bound(name), False,
@@ -539,12 +540,10 @@ def fidelity_gate(animation: dict, *, bound: float = MAX_CLIP_FIDELITY) -> Gate:
     return Gate.measure("clip_fidelity_max", float(figures[worst]), "<=", bound, f"worst source: {worst}")
 
 
-def world_scale_gate(path, *, bound: float = MAX_WORLD_SCALE_ERROR) -> Gate:
+def world_scale_gate(written, *, bound: float = MAX_WORLD_SCALE_ERROR) -> Gate:
     """``joint_world_scale_error``: the largest ``|s - 1|`` over the axis scales ``s`` of every
-    joint's world rest matrix in the written file (read back)."""
-    from .io import load_character
-
-    worlds = load_character(path).skeleton.rest_worlds()
+    joint's world rest matrix of ``written`` (the written file read back, a Character)."""
+    worlds = written.skeleton.rest_worlds()
     if not len(worlds):
         return _not_applicable("joint_world_scale_error", "<=", bound, "no joint")
     scales = np.linalg.norm(worlds[:, :3, :3], axis=1)

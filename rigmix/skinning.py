@@ -13,6 +13,7 @@ temporary storage at once.
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import numpy as np
 
@@ -277,8 +278,6 @@ def rest_at_bind(character, *, rtol=1e-6):
         transform); otherwise the skeleton's rest TRS and the clips change, meshes and inverse
         bind matrices are kept.
     """
-    from dataclasses import replace
-
     from .character import Clip, Track
     from .transforms import matrix_to_trs
 

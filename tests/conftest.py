@@ -75,10 +75,10 @@ def corpus(name: str) -> Path:
     return path
 
 
-def tail_config(scale: float = 0.65, extra: str = "") -> str:
-    """A composition config: the built-in humanoid with the quadruped's tail attached, nearest
-    junction weights (a few seconds); ``extra`` is TOML inserted before the actions."""
-    return f"""name = "tail"
+def tail_config(scale: float = 0.65, extra: str = "", name: str = "tail") -> str:
+    """A composition config ``name``: the built-in humanoid with the quadruped's tail attached,
+    nearest junction weights (a few seconds); ``extra`` is TOML inserted before the actions."""
+    return f"""name = "{name}"
 [characters.human]
 path = "builtin:humanoid"
 [characters.animal]

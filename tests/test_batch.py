@@ -9,7 +9,7 @@ import subprocess
 import sys
 
 import pytest
-from conftest import ROOT, require
+from conftest import ROOT, require, tail_config
 
 from rigmix.batch import MANIFEST, plan_batch, read_manifest, run_batch, run_one
 from rigmix.errors import InputError
@@ -19,21 +19,6 @@ from rigmix.safety import file_digest
 EXAMPLES = ROOT / "examples"
 
 #: Cheap variations of the built-in example configs: (example, scale of the second character).
-_TAIL = """name = "tail_{k}"
-[characters.human]
-path = "builtin:humanoid"
-[characters.animal]
-path = "builtin:quadruped"
-scale = {scale}
-[[actions]]
-op = "attach"
-source = "animal"
-source_joint = "Tail.1"
-target = "human"
-target_joint = "Hips"
-[weights]
-method = "nearest"  # the junction weights by the cheapest method: the batch is what is tested
-"""
 _ARM = """name = "arm_{k}"
 [characters.body]
 path = "builtin:humanoid"
@@ -67,7 +52,7 @@ def make_configs(folder, n=20, broken=7):
         if k == broken:
             text = _BROKEN
         elif k % 2:
-            text = _TAIL.format(k=k, scale=round(0.6 + 0.05 * k, 3))
+            text = tail_config(round(0.6 + 0.05 * k, 3), name=f"tail_{k}")
         else:
             text = _ARM.format(k=k, scale=round(0.9 + 0.01 * k, 3), side="LR"[k % 4 // 2])
         p = folder / f"c{k:02d}.toml"

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import ROOT, asset
+from conftest import ROOT, asset, tail_config
 
 from rigmix.examples import humanoid
 from rigmix.io.gltf import read_gltf, write_gltf
@@ -59,21 +59,7 @@ def test_usd_written_twice_is_identical(name, suffix, characters, tmp_path):
     assert sorted(p.name for p in a.parent.iterdir()) == sorted(p.name for p in b.parent.iterdir())
 
 
-CONFIG = """name = "tail"
-[characters.human]
-path = "builtin:humanoid"
-[characters.animal]
-path = "builtin:quadruped"
-scale = 0.7
-[[actions]]
-op = "attach"
-source = "animal"
-source_joint = "Tail.1"
-target = "human"
-target_joint = "Hips"
-[weights]
-method = "nearest"
-"""
+CONFIG = tail_config(0.7)
 
 
 def _without_timings(obj):

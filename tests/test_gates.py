@@ -33,6 +33,7 @@ from rigmix.gates import (
     world_scale_gate,
 )
 from rigmix.io.accessors import load_document
+from rigmix.io.gltf import read_gltf
 from rigmix.io.validator import validator_available
 
 SELF = ROOT / "tests" / "configs" / "self_composition.toml"
@@ -213,7 +214,7 @@ def test_identity_gates_fail_on_a_moved_vertex(written, tmp_path):
         return set_floats(js, data, prim["attributes"]["POSITION"],
                           lambda i, p: [p[0] + 0.05 * diag, p[1], p[2]] if i == 0 else p)
 
-    gates = by_name([g.as_dict() for g in identity_gates(comp, edit(path, tmp_path / "moved.glb", move))])
+    gates = by_name([g.as_dict() for g in identity_gates(comp, read_gltf(edit(path, tmp_path / "moved.glb", move)))])
     for name in ("identity_surface_error", "identity_skinned_error"):
         assert gates[name]["pass"] is False and gates[name]["value"] > IDENTITY_TOLERANCE, gates[name]
 
@@ -341,5 +342,5 @@ def test_world_scale_gate_fails_on_a_scaled_joint(written, tmp_path):
         js["nodes"][joint].pop("matrix", None)
         return data
 
-    g = world_scale_gate(edit(path, tmp_path / "scaled.glb", scale))
+    g = world_scale_gate(read_gltf(edit(path, tmp_path / "scaled.glb", scale)))
     assert g.passed is False and g.value == pytest.approx(99.0)
