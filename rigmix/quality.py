@@ -33,8 +33,10 @@ must give that character back. :func:`identity_errors` measures it on the files 
 (the output as read back): the rest surfaces of the skinned meshes, both ways (each output
 vertex to the input surface and each input vertex to the output surface), and every frame of
 every output clip (30 fps), where an output vertex skinned by the output's weights and clip is
-compared with the input surface point closest to it at rest, skinned by the input's weights
-and the clip it was completed from. Both are relative to the input's rest bounding-box
+compared with the input point it was copied from, skinned by the input's weights and the clip
+it was completed from: an input vertex at its rest position (the closest of them over the clip,
+as glTF splits vertices at seams, :func:`identity_origins`), or else the closest input surface
+point at rest. Both are relative to the input's rest bounding-box
 diagonal. :func:`self_composition_errors` measures the weight stage of a self-composition
 against a truth on the fused surface instead (before anything is written).
 """
@@ -53,7 +55,7 @@ from .skinning import linear_blend_skinning, rest_skinning_matrices, skinning_ma
 
 __all__ = ["face_stretch", "vertex_stretch", "band_stretch", "junction_stretch_ratio", "weight_roughness",
            "junction_weight_roughness", "self_composition_truth", "self_composition_errors", "skinned_surface",
-           "identity_errors"]
+           "identity_errors", "identity_origins"]
 
 log = logging.getLogger(__name__)
 
@@ -446,6 +448,54 @@ def skinned_surface(character):
     return np.concatenate(V), np.concatenate(F), np.concatenate(J), np.concatenate(W)
 
 
+#: Input vertices this close to an output vertex at rest (relative to the diagonal) are its
+#: possible origins (:func:`identity_origins`).
+IDENTITY_COINCIDENT = 1e-6
+
+
+def identity_origins(Ro, Ri, Fi, face, bary, *, tol):
+    """The input points each output vertex of an identity composition may have been copied from.
+
+    glTF splits a vertex at every UV or normal seam, and the copies may carry different weights;
+    an output vertex reproduces one of them, not necessarily the one whose face is closest. So
+    every input vertex within ``tol`` of an output vertex at rest is a candidate origin; an output
+    vertex with none is compared with its closest input surface point.
+
+    Parameters
+    ----------
+    Ro : (n, 3) float64
+        Output vertices at rest (world space).
+    Ri : (m, 3) float64
+        Input vertices at rest (world space).
+    Fi : (f, 3) int64
+        Input faces.
+    face, bary : (n,) int64 and (n, 3) float64
+        Each output vertex's closest input face and barycentric coordinates on it.
+    tol : float
+        Distance at which an input vertex coincides with an output vertex (world units).
+
+    Returns
+    -------
+    rows : (p,) int64
+        The output vertex of each candidate pair (every output vertex appears at least once).
+    corners : (p, 3) int64
+        The input vertices each pair interpolates.
+    bary : (p, 3) float64
+        Their weights (a vertex candidate is ``(i, i, i)`` with weights ``(1, 0, 0)``).
+    """
+    from scipy.spatial import cKDTree
+
+    near = cKDTree(Ri).query_ball_point(Ro, r=tol)
+    counts = np.fromiter((len(c) for c in near), np.int64, len(Ro))
+    coincident = np.concatenate([np.asarray(c, np.int64) for c in near] + [np.zeros(0, np.int64)])
+    free = np.flatnonzero(counts == 0)
+    rows = np.concatenate([np.repeat(np.arange(len(Ro)), counts), free])
+    corners = np.concatenate([np.repeat(coincident[:, None], 3, axis=1), Fi[face[free]]])
+    weights = np.zeros((len(coincident), 3))
+    weights[:, 0] = 1.0
+    return rows, corners, np.concatenate([weights, bary[free]])
+
+
 def identity_errors(original, output, clips, *, fps=30.0) -> dict:
     """How far a composition's output is from its input, when it should be that input.
 
@@ -481,13 +531,14 @@ def identity_errors(original, output, clips, *, fps=30.0) -> dict:
     d_out, face, bary = closest_surface_points(Ro, Ri, Fi)  # output vertex -> input surface
     d_in, _, _ = closest_surface_points(Ri, Ro, Fo)  # input vertex -> output surface
     out["surface_error"] = float(max(d_out.max(), d_in.max()) / diag)
-    corners = Fi[face]  # (n_out, 3): the input vertices each output vertex is compared with
+    rows, corners, bary = identity_origins(Ro, Ri, Fi, face, bary, tol=IDENTITY_COINCIDENT * diag)
     used = np.unique(corners)
     local = np.searchsorted(used, corners)
-    worst, frames = 0.0, 0
+    pair_worst = np.zeros(len(rows))
+    frames = 0
     for clip_out, clip_in in clips:
         times = clip_times(clip_out, fps)
-        step = max(1, IDENTITY_CHUNK // (len(Vo) + len(used)))
+        step = max(1, IDENTITY_CHUNK // (len(Vo) + len(used) + len(rows)))
         for k in range(0, len(times), step):
             t = times[k:k + step]
             Uo = linear_blend_skinning(Vo, Jo, Wo, skinning_matrices(output.skeleton,
@@ -495,8 +546,13 @@ def identity_errors(original, output, clips, *, fps=30.0) -> dict:
             Ui = linear_blend_skinning(Vi[used], Ji[used], Wi[used],
                                        skinning_matrices(original.skeleton,
                                                          *sample_clip(original.skeleton, clip_in, t)))
-            P = np.einsum("qk,fqkc->fqc", bary, Ui[:, local])  # the closest input point, skinned
-            worst = max(worst, float(np.linalg.norm(Uo - P, axis=2).max()))
+            P = np.einsum("qk,fqkc->fqc", bary, Ui[:, local])  # each pair's input point, skinned
+            err = np.linalg.norm(Uo[:, rows] - P, axis=2).max(axis=0)
+            np.maximum(pair_worst, err, out=pair_worst)
             frames += len(t)
+    # an output vertex is as far from its input as its best origin is
+    best = np.full(len(Vo), np.inf)
+    np.minimum.at(best, rows, pair_worst)
+    worst = float(best.max()) if frames else 0.0
     out.update(skinned_error=worst / diag, frames=frames)
     return out

@@ -14,6 +14,7 @@ rigid leg parts, a whole crab on its root joint. Each such face must come back o
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -33,6 +34,8 @@ CASES = {
     # copied faces meet the other input's kept faces along chains running into open borders:
     # no seam left open there, the other input closes it
     "rat_front_leg": ("Rat", ("FrontUpLeg.L",)),
+    # a blink: the Eye's Run clip scales through zero (a negative key scale); replayed, not clamped
+    "enemy_two_legs_head": ("EnemyTwoLegs", ("Head",)),
 }
 
 
@@ -82,3 +85,57 @@ def test_identity_composition_gives_back_every_face_once(case, tmp_path):
     assert len(out.F) == int(keep.sum())
     assert np.array_equal(canonical_faces(out.V, out.F), canonical_faces(body.V, body.F[keep]))
     assert np.all(out.face_origin_input >= 0)  # copied from the inputs, nothing generated
+
+
+def split_weight_seams(character) -> int:
+    """Pairs of input vertices at one rest position whose weights differ (glTF seam copies)."""
+    from scipy.spatial import cKDTree
+
+    from rigmix.quality import skinned_surface
+    from rigmix.skinning import linear_blend_skinning, rest_skinning_matrices
+
+    V, _, J, W = skinned_surface(character)
+    R = linear_blend_skinning(V, J, W, rest_skinning_matrices(character.skeleton))
+    tol = 1e-7 * np.linalg.norm(R.max(axis=0) - R.min(axis=0))
+    pairs = cKDTree(R).query_pairs(tol, output_type="ndarray")
+    dense = np.zeros((len(V), len(character.skeleton.names)))
+    for k in range(J.shape[1]):
+        np.add.at(dense, (np.arange(len(V)), J[:, k]), W[:, k])
+    return int((np.abs(dense[pairs[:, 0]] - dense[pairs[:, 1]]).sum(axis=1) > 0.05).sum())
+
+
+def test_identity_errors_compare_a_split_vertex_with_its_own_copy():
+    """A character against a copy of itself moved by rounding noise (as writing a file does) is
+    exact, even where glTF seam copies at one position carry different weights: the Apatosaurus
+    has such pairs, and the closest input face may belong to the other copy. A vertex whose
+    weights did change is still found."""
+    from rigmix.io.gltf import read_gltf
+    from rigmix.quality import identity_errors
+    from rigmix.skinning import rest_at_bind
+
+    character = rest_at_bind(read_gltf(corpus("Apatosaurus")))  # as compose reads it
+    assert split_weight_seams(character) > 0  # the case this test is about exists
+    rng = np.random.default_rng(0)
+
+    def rounded(mesh, joints=None, weights=None):
+        P = np.asarray(mesh.positions, np.float64)
+        noise = rng.normal(scale=1e-8 * np.linalg.norm(P.max(axis=0) - P.min(axis=0)), size=P.shape)
+        return replace(mesh, positions=P + noise, joints=mesh.joints if joints is None else joints,
+                       weights=mesh.weights if weights is None else weights)
+
+    clips = [(c, c) for c in character.clips]
+    copy = replace(character, meshes=tuple(rounded(m) if m.skinned else m for m in character.meshes))
+    same = identity_errors(character, copy, clips)
+    assert same["frames"] > 0
+    assert same["surface_error"] < 1e-6 and same["skinned_error"] < 1e-6
+
+    # the vertex farthest from the root at bind, re-bound to the root: it stops following its limb
+    mesh = next(m for m in character.meshes if m.skinned)
+    root = np.linalg.inv(character.skeleton.inverse_binds[0])[:3, 3]
+    moving = int(np.argmax(np.linalg.norm(np.asarray(mesh.positions) - root, axis=1)))
+    joints, weights = np.array(mesh.joints), np.array(mesh.weights, np.float64)
+    joints[moving] = 0
+    weights[moving] = (1.0,) + (0.0,) * (weights.shape[1] - 1)
+    changed = replace(character, meshes=tuple(rounded(m, joints, weights) if m is mesh else m
+                                              for m in character.meshes))
+    assert identity_errors(character, changed, clips)["skinned_error"] > IDENTITY_TOLERANCE

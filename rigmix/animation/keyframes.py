@@ -184,7 +184,9 @@ def map_pose(skeleton_out: Skeleton, skeleton_in: Skeleton, bone_map, T, R, S, *
     T_out[:, outs] += f[:, None] * np.einsum("jab,fjb->fja", L[lead], T[:, lead] - skeleton_in.translations[lead])
     s_rest = skeleton_in.scales[lead]
     s_rest = np.where(np.abs(s_rest) > 1e-12, s_rest, 1.0)
-    S_out[:, outs] *= np.clip(S[:, lead] / s_rest, 1e-9, None) ** f[:, None]
+    # a key may scale through zero (a blink squashes an eye to a negative scale): keep the sign
+    ratio = S[:, lead] / s_rest
+    S_out[:, outs] *= np.sign(ratio) * np.abs(ratio) ** f[:, None]
     return T_out, quat_normalize(R_out), S_out, mass
 
 
