@@ -10,11 +10,12 @@ mean over its faces. The figure of a band is the 95th percentile over its vertic
 every frame (30 fps, at most ``max_frames`` per clip, evenly spaced) of every clip.
 
 Bands. On the output: the vertices within ``r`` of a fused joint (rest pose), where ``r`` is the
-reach of the junction (the largest distance from a junction vertex to its nearest fused joint).
-On the sources: each input's own vertices within ``r / scale`` of its joint of that fused pair
-(``scale`` the input's scale in the composition), over the input's own clips. The ratio is the
-output figure over the sources' (pooled) figure: about 1 when the seam deforms like the source
-characters deform near the same joints.
+reach of the junction (the largest distance from a junction vertex to its nearest fused joint),
+and at least the distance to the nearest vertex (a mesh coarser than the junction). On the
+sources: each input's own vertices within ``r / scale`` of its joint of that fused pair
+(``scale`` the input's scale in the composition), at least the nearest one, over the input's
+own clips. The ratio is the output figure over the sources' (pooled) figure: about 1 when the
+seam deforms like the source characters deform near the same joints.
 
 Junction weight roughness
 -------------------------
@@ -196,7 +197,9 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
         r = float(d.max())
     else:
         r = 0.1 * float(np.linalg.norm(np.ptp(V, axis=0)))
-    band = np.flatnonzero(np.linalg.norm(V[:, None, :] - P[None], axis=2).min(axis=1) <= r)
+    to_joints = np.linalg.norm(V[:, None, :] - P[None], axis=2).min(axis=1)
+    r = max(r, float(to_joints.min()))  # a coarse mesh: the band holds at least the nearest vertex
+    band = np.flatnonzero(to_joints <= r)
     J, W = to_influences(skin.W, 4)
     s_out = band_stretch(ch.skeleton, ch.clips, V, J, W, surface.F, band, rest=V, fps=fps, max_frames=max_frames)
     samples, nsrc = [], 0
@@ -212,7 +215,8 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
                 if not m.skinned or not len(m.faces):
                     continue
                 rest = linear_blend_skinning(m.positions, m.joints, m.weights, M0)
-                b = np.flatnonzero(np.linalg.norm(rest - c, axis=1) <= r / scale)
+                d = np.linalg.norm(rest - c, axis=1)
+                b = np.flatnonzero(d <= max(r / scale, float(d.min())))
                 nsrc += len(b)
                 samples.append(band_stretch(src.skeleton, src.clips, m.positions, m.joints, m.weights, m.faces, b,
                                             rest=rest, fps=fps, max_frames=max_frames))

@@ -18,7 +18,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from conftest import corpus
+from conftest import asset, corpus
 
 from rigmix.gates import IDENTITY_TOLERANCE
 
@@ -139,3 +139,21 @@ def test_identity_errors_compare_a_split_vertex_with_its_own_copy():
     changed = replace(character, meshes=tuple(rounded(m, joints, weights) if m is mesh else m
                                               for m in character.meshes))
     assert identity_errors(character, changed, clips)["skinned_error"] > IDENTITY_TOLERANCE
+
+
+def test_coarse_mesh_identity_measures_its_junction_stretch(tmp_path):
+    """SimpleSkin's 10 vertices lie farther from its joints than its copied junction reaches:
+    the stretch band still holds the nearest vertex, so the gate is measured (1 for a copy)."""
+    from rigmix.export import write_outputs
+    from rigmix.pipeline import compose
+
+    cfg = tmp_path / "simple.toml"
+    path = asset("SimpleSkin").as_posix()
+    cfg.write_text(f'[characters.body]\npath = "{path}"\n[characters.donor]\npath = "{path}"\n'
+                   '[[actions]]\nop = "replace"\nsource = "donor"\nsource_joint = "joint_2"\n'
+                   'target = "body"\ntarget_joint = "joint_2"\nmode = "blend"\n')
+    comp = compose(cfg)
+    write_outputs(comp, glb=tmp_path / "out.glb", report=tmp_path / "out.json")
+    gates = {g["name"]: g for g in json.loads((tmp_path / "out.json").read_text())["gates"]}
+    assert gates["junction_stretch_ratio"]["value"] is not None
+    assert all(g["pass"] for g in gates.values()), [g for g in gates.values() if not g["pass"]]
