@@ -20,7 +20,10 @@ saying why; every gate is always listed, in this order (:data:`GATE_NAMES`):
     written file; the note names the first error codes.
 ``junction_boundary_edges``, ``open_seam_edges``, ``new_non_manifold_edges``, ``junction_self_intersections`` <= 0
     The fusion's counts (report ``mesh``): holes along the junction, open seam chains, edges
-    shared by more than two faces that no input had, pairs of crossing faces at the junction.
+    shared by more than two faces that no input had, pairs of crossing faces at the junction
+    that the inputs did not already have (:func:`crossing_gate`: a kept part of a modular
+    character that, in its own input, passed through what the junction replaced, passes through
+    the junction too; those pairs are ``junction_crossings_inherited``, named in the note).
 ``junction_min_angle_p05`` >= :data:`MIN_ANGLE_P05` degrees
     The 5th percentile of the smallest angle of the generated junction triangles; null (pass)
     when no junction triangle was generated (the junction faces were copied from the inputs).
@@ -66,9 +69,9 @@ from .errors import RigmixError
 
 __all__ = ["MAX_SECONDS", "MIN_ANGLE_P05", "MAX_STRETCH_RATIO", "MAX_INFLUENCES", "IDENTITY_TOLERANCE", "GATE_FPS",
            "WEIGHT_SUM_TOLERANCE", "VALIDATOR_TIMEOUT", "GATE_NAMES", "GateBounds", "Gate", "evaluate_gates",
-           "wall_time_gate", "validator_gate", "mesh_gates", "stretch_gate", "weight_gates", "clip_gates",
-           "identity_gates", "identity_mismatch", "clip_fingerprint", "character_fingerprint", "failed_gates",
-           "failure_items", "failure_text", "gate_summary"]
+           "wall_time_gate", "validator_gate", "mesh_gates", "crossing_gate", "stretch_gate", "weight_gates",
+           "clip_gates", "identity_gates", "identity_mismatch", "clip_fingerprint", "character_fingerprint",
+           "failed_gates", "failure_items", "failure_text", "gate_summary"]
 
 logger = logging.getLogger(__name__)
 
@@ -200,11 +203,11 @@ def validator_gate(path) -> Gate:
 def mesh_gates(mesh: dict, *, min_angle: float = MIN_ANGLE_P05) -> list[Gate]:
     """The fusion's gates from the report's ``mesh``: the four counts, then the junction angle."""
     gates = []
-    for name in ("junction_boundary_edges", "open_seam_edges", "new_non_manifold_edges",
-                 "junction_self_intersections"):
+    for name in ("junction_boundary_edges", "open_seam_edges", "new_non_manifold_edges"):
         value = mesh.get(name)
         gates.append(_not_evaluated(name, "<=", 0, "not in the report") if value is None
                      else Gate.measure(name, int(value), "<=", 0))
+    gates.append(crossing_gate(mesh))
     angle = mesh.get("junction_min_angle_p05")
     name = "junction_min_angle_p05"
     if angle is None:
@@ -213,6 +216,20 @@ def mesh_gates(mesh: dict, *, min_angle: float = MIN_ANGLE_P05) -> list[Gate]:
     else:
         gates.append(Gate.measure(name, float(angle), ">=", min_angle))
     return gates
+
+
+def crossing_gate(mesh: dict) -> Gate:
+    """``junction_self_intersections``: the crossing pairs at the junction that the composition
+    made, those the inputs already had (``junction_crossings_inherited``: a kept part of a modular
+    character through what the junction replaced) left out and named in the note."""
+    name = "junction_self_intersections"
+    total = mesh.get(name)
+    if total is None:
+        return _not_evaluated(name, "<=", 0, "not in the report")
+    inherited = int(mesh.get("junction_crossings_inherited") or 0)
+    note = (f"{total} crossing pairs, {inherited} of them inherited from overlapping input parts"
+            if inherited else None)
+    return Gate.measure(name, int(total) - inherited, "<=", 0, note)
 
 
 def stretch_gate(composition, *, max_ratio: float = MAX_STRETCH_RATIO) -> Gate:

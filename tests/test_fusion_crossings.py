@@ -11,7 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from conftest import ROOT, asset
+from conftest import ROOT, asset, corpus
 from fusion_shapes import sphere
 
 from rigmix.fusion import fuse_surfaces
@@ -136,3 +136,51 @@ def test_a_real_junction_crosses_nothing_after_the_repair(limb_swap):
     for i, x in enumerate(inputs):
         mine = kept & (out.origin_input == i)
         assert np.array_equal(out.V[mine], np.asarray(x.V)[out.origin_vertex[mine]])
+
+
+def test_crossings_with_overlapping_input_parts_are_inherited_not_new(tmp_path):
+    """The Adventurer is modular: its head shell and backpack pass through its body. Swapping in
+    CesiumMan's arm remeshes the shoulder they passed through, so they pass through the junction:
+    those pairs are inherited (each kept face there belongs to a part that crosses another part
+    of its own input), and the gate counts none of them; the report keeps the total."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from dfd.mesh import weld
+    from rigmix.gates import crossing_gate
+    from rigmix.pipeline import compose
+
+    cfg = tmp_path / "arm.toml"
+    cfg.write_text(f'[characters.body]\npath = "{corpus("Adventurer").as_posix()}"\n'
+                   f'[characters.donor]\npath = "{asset("CesiumMan").as_posix()}"\nscale = "auto"\n'
+                   '[[actions]]\nop = "replace"\nsource = "donor"\nsource_joint = "Skeleton_arm_joint_L__4_"\n'
+                   'target = "body"\ntarget_joint = "Shoulder.L"\nmode = "blend"\n')
+    comp = compose(cfg, until="fusion")
+    out, mesh = comp.surface, comp.surface.report["mesh"]
+    assert mesh["junction_self_intersections"] > 0  # the case this test is about
+    assert mesh["junction_crossings_inherited"] == mesh["junction_self_intersections"]
+    gate = crossing_gate(mesh)
+    assert gate.value == 0 and gate.passed and "inherited" in gate.note
+
+    Vw, _, Fw = weld(out.V, out.F)
+    junction = out.junction_faces & ~out.copied_faces
+    pairs = intersecting_face_pairs(Vw, Fw, np.flatnonzero(junction))
+    kept = np.where(junction[pairs[:, 0]], pairs[:, 1], pairs[:, 0])
+    assert not junction[kept].any() and (out.face_origin_input[kept] == 0).all()
+    body = comp.fusion_inputs[0]
+    V, _, F = weld(body.V, body.F)
+    n = len(V)
+    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    _, part = connected_components(coo_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(n, n)), directed=False)
+    own = intersecting_face_pairs(V, F)
+    overlapping = set(part[F[own[part[F[own[:, 0], 0]] != part[F[own[:, 1], 0]]].ravel(), 0]].tolist())
+    assert set(part[F[out.face_origin_face[kept], 0]].tolist()) <= overlapping
+
+
+def test_crossing_gate_counts_what_the_inputs_did_not_have():
+    from rigmix.gates import crossing_gate
+
+    assert crossing_gate({"junction_self_intersections": 82, "junction_crossings_inherited": 79}).value == 3
+    assert not crossing_gate({"junction_self_intersections": 82, "junction_crossings_inherited": 79}).passed
+    assert crossing_gate({"junction_self_intersections": 0}).passed
+    assert crossing_gate({}).value is None

@@ -30,6 +30,8 @@ from typing import Literal, Sequence
 
 import numpy as np
 
+from dfd.mesh import weld
+
 from ..errors import InputError
 from ..geometry import bounding_box_diagonal, check_coordinates
 from .fields import get_backend, prepare_surface
@@ -743,6 +745,52 @@ def _crossing_own_input(part: _Partition, parts, faces):
     return out
 
 
+def _inherited_crossings(surface, part: _Partition) -> int:
+    """Crossing pairs at the junction that the inputs already had.
+
+    A pair is inherited when its face outside the junction is a kept input face that, in its own
+    input, crosses a face the junction replaced: overlapping parts of a modular character (a head
+    shell through the neck, a backpack through the back) pass through the junction that remeshed
+    what they passed through. Pairs of two junction faces are never inherited.
+
+    Parameters
+    ----------
+    surface : FusedSurface
+        The assembled surface (``face_origin_input`` and ``face_origin_face`` number each input's
+        welded faces).
+    part : _Partition
+        The partition the surface was assembled from (``kept`` after the crossing repair).
+
+    Returns
+    -------
+    int
+        Of the pairs that ``junction_self_intersections`` counts, the inherited ones.
+    """
+    from .meshutil import intersecting_face_pairs
+
+    junction = surface.junction_faces & ~surface.copied_faces
+    if not junction.any():
+        return 0
+    Vw, _, Fw = weld(surface.V, surface.F)
+    pairs = intersecting_face_pairs(Vw, Fw, np.flatnonzero(junction))
+    if not len(pairs):
+        return 0
+    outside = np.where(junction[pairs[:, 0]], pairs[:, 1], pairs[:, 0])
+    outside = outside[~junction[outside]]  # pairs of two junction faces are never inherited
+    inherited = np.zeros(len(surface.F), bool)
+    for i, P in enumerate(part.pres):
+        faces = np.unique(outside[surface.face_origin_input[outside] == i])
+        if not len(faces):
+            continue
+        src = surface.face_origin_face[faces]
+        own = intersecting_face_pairs(P.welded.V, P.welded.F, src)
+        mine = np.isin(own[:, 0], src)
+        me, other = np.where(mine, own[:, 0], own[:, 1]), np.where(mine, own[:, 1], own[:, 0])
+        crossed_replaced = np.unique(me[~part.kept[i][other]])
+        inherited[faces[np.isin(src, crossed_replaced)]] = True
+    return int(inherited[outside].sum())
+
+
 def _repair_crossings(inputs, part: _Partition, selected, JV, JF, params) -> _Repaired:
     """Junction faces that cross the surface, repaired (:func:`.crossings.repair_junction`):
     junction vertices move, and kept faces in the way may join the junction (their input faces
@@ -861,6 +909,8 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     mrep["junction_crossings_repaired"] = repaired.found - repaired.left
     mrep["junction_faces_released"] = repaired.released
     mrep["junction_crossings_layered"] = repaired.layered
+    mrep["junction_crossings_inherited"] = (_inherited_crossings(surface, repaired.part)
+                                            if mrep["junction_self_intersections"] else 0)
     timings["report"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all
     report = {"mesh": mrep, "fields": fields, "timings": {k: round(v, 4) for k, v in timings.items()}}
