@@ -14,8 +14,11 @@ reach of the junction (the largest distance from a junction vertex to its neares
 and at least the distance to the nearest vertex (a mesh coarser than the junction). On the
 sources: each input's own vertices within ``r / scale`` of its joint of that fused pair
 (``scale`` the input's scale in the composition), at least the nearest one, over the input's
-own clips. The ratio is the output figure over the sources' (pooled) figure: about 1 when the
-seam deforms like the source characters deform near the same joints.
+own clips; an input without clips (it moves only as completion animates it) by its own
+vertices in the output band, which keep its weights, under the output's clips. Each input's
+figure is taken over its band alone, and the ratio is the output figure over the largest of
+them: about 1 when the seam deforms like the more supple of the parts it joins, whatever their
+vertex counts (a tiny rigid wing scaled onto a body must not outweigh the body around it).
 
 Junction weight roughness
 -------------------------
@@ -175,7 +178,8 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
     -------
     dict
         ``junction_stretch_ratio`` (None without clips or fused joints), ``output_p95``,
-        ``source_p95``, ``band_radius``, ``output_band_vertices``, ``source_band_vertices``.
+        ``source_p95`` (the largest input figure), ``source_p95_by_input`` (input id -> figure),
+        ``band_radius``, ``output_band_vertices``, ``source_band_vertices``.
     """
     from .weights import to_influences
 
@@ -185,7 +189,7 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
     ch = composition.character
     V = np.asarray(surface.V)
     out = {"junction_stretch_ratio": None, "output_p95": None, "source_p95": None, "band_radius": None,
-           "output_band_vertices": 0, "source_band_vertices": 0}
+           "output_band_vertices": 0, "source_band_vertices": 0, "source_p95_by_input": {}}
     pairs = plan.fused_pairs
     jv = np.flatnonzero(surface.junction_vertices)
     if not pairs or ch is None or not ch.clips:
@@ -202,7 +206,7 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
     band = np.flatnonzero(to_joints <= r)
     J, W = to_influences(skin.W, 4)
     s_out = band_stretch(ch.skeleton, ch.clips, V, J, W, surface.F, band, rest=V, fps=fps, max_frames=max_frames)
-    samples, nsrc = [], 0
+    samples, nsrc = {}, 0  # per input: stretch samples of its band, under its own clips
     for p in pairs:
         for cid, j in ((p.target, p.target_joint), (p.source, p.source_joint)):
             src = composition.inputs[cid]
@@ -218,12 +222,25 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
                 d = np.linalg.norm(rest - c, axis=1)
                 b = np.flatnonzero(d <= max(r / scale, float(d.min())))
                 nsrc += len(b)
-                samples.append(band_stretch(src.skeleton, src.clips, m.positions, m.joints, m.weights, m.faces, b,
-                                            rest=rest, fps=fps, max_frames=max_frames))
-    s_src = np.concatenate(samples) if samples else np.zeros(0)
-    out.update(band_radius=r, output_band_vertices=int(len(band)), source_band_vertices=int(nsrc))
-    if len(s_out) and len(s_src):
-        a, b = float(np.percentile(s_out, percentile)), float(np.percentile(s_src, percentile))
+                samples.setdefault(cid, []).append(
+                    band_stretch(src.skeleton, src.clips, m.positions, m.joints, m.weights, m.faces, b,
+                                 rest=rest, fps=fps, max_frames=max_frames))
+    # an input without clips moves only as completion animates it: its figure is that of its
+    # own vertices in the output band, which keep its weights, under the output's clips
+    for cid in dict.fromkeys(c for p in pairs for c in (p.target, p.source)):
+        if composition.inputs[cid].clips or cid not in composition.fusion_ids:
+            continue
+        own = band[(surface.origin_input[band] == composition.fusion_ids.index(cid))
+                   & ~np.asarray(surface.junction_vertices)[band]]
+        nsrc += len(own)
+        samples.setdefault(cid, []).append(band_stretch(ch.skeleton, ch.clips, V, J, W, surface.F, own, rest=V,
+                                                        fps=fps, max_frames=max_frames))
+    figures = {cid: float(np.percentile(np.concatenate(x), percentile)) for cid, x in samples.items()
+               if sum(len(y) for y in x)}
+    out.update(band_radius=r, output_band_vertices=int(len(band)), source_band_vertices=int(nsrc),
+               source_p95_by_input=figures)
+    if len(s_out) and figures:
+        a, b = float(np.percentile(s_out, percentile)), max(figures.values())
         out.update(output_p95=a, source_p95=b, junction_stretch_ratio=a / max(b, 1e-12))
     return out
 
