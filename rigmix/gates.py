@@ -27,6 +27,17 @@ saying why; every gate is always listed, in this order (:data:`GATE_NAMES`):
 ``junction_min_angle_p05`` >= :data:`MIN_ANGLE_P05` degrees
     The 5th percentile of the smallest angle of the generated junction triangles; null (pass)
     when no junction triangle was generated (the junction faces were copied from the inputs).
+``grafted_visible`` >= :data:`MIN_GRAFTED_VISIBLE`
+    Report ``mesh.grafted_visible_min`` (:func:`rigmix.quality.grafted_visibility`): of each
+    grafted part, the share of its output area outside the other inputs' surfaces, over the
+    share of the same faces outside the rest of its own character (at most 1), the smallest over
+    the parts; null (pass) without a grafted part (one character, or only bodies).
+``junction_dihedral_ratio`` <= :data:`MAX_DIHEDRAL_RATIO`
+    Report ``mesh.junction_dihedral_ratio`` (:func:`rigmix.quality.junction_dihedral`): the 95th
+    percentile of the angle between neighbouring junction faces (those ``junction_min_angle_p05``
+    measures) over the same figure on the inputs near the fused joints; null (pass) when there
+    are none (the junction copied, or none) or nothing is fused between the fusion's inputs (a
+    capped removal).
 ``junction_stretch_ratio`` <= :data:`MAX_STRETCH_RATIO`
     Report ``quality`` (:func:`rigmix.quality.junction_stretch_ratio`); null (pass) when no input
     has a clip, no clip was completed, or no joint is fused; null otherwise fails (not measured).
@@ -67,11 +78,12 @@ import numpy as np
 
 from .errors import RigmixError
 
-__all__ = ["MAX_SECONDS", "MIN_ANGLE_P05", "MAX_STRETCH_RATIO", "MAX_INFLUENCES", "IDENTITY_TOLERANCE", "GATE_FPS",
-           "WEIGHT_SUM_TOLERANCE", "VALIDATOR_TIMEOUT", "GATE_NAMES", "GateBounds", "Gate", "evaluate_gates",
-           "wall_time_gate", "validator_gate", "mesh_gates", "crossing_gate", "stretch_gate", "weight_gates",
-           "clip_gates", "identity_gates", "identity_mismatch", "clip_fingerprint", "character_fingerprint",
-           "failed_gates", "failure_items", "failure_text", "gate_summary"]
+__all__ = ["MAX_SECONDS", "MIN_ANGLE_P05", "MIN_GRAFTED_VISIBLE", "MAX_DIHEDRAL_RATIO", "MAX_STRETCH_RATIO",
+           "MAX_INFLUENCES", "IDENTITY_TOLERANCE", "GATE_FPS", "WEIGHT_SUM_TOLERANCE", "VALIDATOR_TIMEOUT",
+           "GATE_NAMES", "GateBounds", "Gate", "evaluate_gates", "wall_time_gate", "validator_gate", "mesh_gates",
+           "crossing_gate", "visibility_gate", "dihedral_gate", "stretch_gate", "weight_gates", "clip_gates",
+           "identity_gates", "identity_mismatch", "clip_fingerprint", "character_fingerprint", "failed_gates",
+           "failure_items", "failure_text", "gate_summary"]
 
 logger = logging.getLogger(__name__)
 
@@ -79,6 +91,10 @@ logger = logging.getLogger(__name__)
 MAX_SECONDS = 60.0
 #: Least 5th percentile of the junction triangles' smallest angle, degrees.
 MIN_ANGLE_P05 = 20.0
+#: Least share of each grafted part's output area outside the other inputs (issue 25).
+MIN_GRAFTED_VISIBLE = 0.9
+#: Most junction dihedral p95 over the sources' (1: the seam creases as the inputs' surface does there).
+MAX_DIHEDRAL_RATIO = 1.5
 #: Most junction stretch ratio (1: the seam deforms as the inputs deform near the same joints).
 MAX_STRETCH_RATIO = 1.5
 #: Most influences per vertex (glTF's one ``JOINTS_0``/``WEIGHTS_0`` set, what engines read).
@@ -103,10 +119,11 @@ MAX_WORLD_SCALE_ERROR = 1e-6
 
 #: Every gate, in report order.
 GATE_NAMES = ("wall_seconds", "validator_errors", "junction_boundary_edges", "open_seam_edges",
-              "new_non_manifold_edges", "junction_self_intersections", "junction_min_angle_p05",
-              "junction_stretch_ratio", "clip_fidelity_max", "weights_min", "weights_unnormalized_vertices",
-              "weights_max_influences", "clips_missing", "clips_non_increasing_times", "joint_world_scale_error",
-              "identity_surface_error", "identity_skinned_error")
+              "new_non_manifold_edges", "junction_self_intersections", "junction_min_angle_p05", "grafted_visible",
+              "junction_dihedral_ratio", "junction_stretch_ratio", "clip_fidelity_max", "weights_min",
+              "weights_unnormalized_vertices", "weights_max_influences", "clips_missing",
+              "clips_non_increasing_times", "joint_world_scale_error", "identity_surface_error",
+              "identity_skinned_error")
 
 
 @dataclass(frozen=True)
@@ -200,8 +217,10 @@ def validator_gate(path) -> Gate:
     return Gate.measure(name, count, "<=", 0, ", ".join(map(str, codes[:3])) or None)
 
 
-def mesh_gates(mesh: dict, *, min_angle: float = MIN_ANGLE_P05) -> list[Gate]:
-    """The fusion's gates from the report's ``mesh``: the four counts, then the junction angle."""
+def mesh_gates(mesh: dict, *, min_angle: float = MIN_ANGLE_P05, min_visible: float = MIN_GRAFTED_VISIBLE,
+               max_dihedral: float = MAX_DIHEDRAL_RATIO) -> list[Gate]:
+    """The fusion's gates from the report's ``mesh``: the four counts, the junction angle, the
+    grafted parts' visibility and the junction dihedral ratio."""
     gates = []
     for name in ("junction_boundary_edges", "open_seam_edges", "new_non_manifold_edges"):
         value = mesh.get(name)
@@ -215,6 +234,8 @@ def mesh_gates(mesh: dict, *, min_angle: float = MIN_ANGLE_P05) -> list[Gate]:
                                                             f"({mesh.get('copied_faces', 0)} junction faces copied)"))
     else:
         gates.append(Gate.measure(name, float(angle), ">=", min_angle))
+    gates.append(visibility_gate(mesh, bound=min_visible))
+    gates.append(dihedral_gate(mesh, bound=max_dihedral))
     return gates
 
 
@@ -230,6 +251,42 @@ def crossing_gate(mesh: dict) -> Gate:
     note = (f"{total} crossing pairs, {inherited} of them inherited from overlapping input parts"
             if inherited else None)
     return Gate.measure(name, int(total) - inherited, "<=", 0, note)
+
+
+def visibility_gate(mesh: dict, *, bound: float = MIN_GRAFTED_VISIBLE) -> Gate:
+    """``grafted_visible``: the least visible grafted part's relative share
+    (``mesh.grafted_visible_relative``), the note naming that part with its share in the output
+    and in its own character; not applicable without a grafted part."""
+    name = "grafted_visible"
+    if "grafted_visible_relative" not in mesh:
+        return _not_evaluated(name, ">=", bound, "not in the report")
+    shares = mesh["grafted_visible_relative"] or {}
+    if not shares:
+        return _not_applicable(name, ">=", bound, "no grafted part")
+    worst = min(shares, key=shares.get)
+    own = (mesh.get("grafted_visible_source") or {}).get(worst)
+    shown = (mesh.get("grafted_visible") or {}).get(worst)
+    note = f"least visible part: {worst}"
+    if shown is not None:
+        note += f" ({shown:.3g} of its output area shows" + (f", {own:.3g} in its own character)" if own is not None
+                                                             else ")")
+    return Gate.measure(name, float(shares[worst]), ">=", bound, note)
+
+
+def dihedral_gate(mesh: dict, *, bound: float = MAX_DIHEDRAL_RATIO) -> Gate:
+    """``junction_dihedral_ratio`` from the report's ``mesh`` (see the module docstring for null)."""
+    name = "junction_dihedral_ratio"
+    if "junction_dihedral_ratio" not in mesh:
+        return _not_evaluated(name, "<=", bound, "not in the report")
+    ratio = mesh["junction_dihedral_ratio"]
+    junction, source = mesh.get("junction_dihedral_p95"), mesh.get("source_dihedral_p95")
+    if ratio is not None:
+        return Gate.measure(name, float(ratio), "<=", bound, f"junction p95 {junction:.3g} degrees, "
+                                                             f"sources' {source:.3g}")
+    if junction is None:
+        return _not_applicable(name, "<=", bound, f"no neighbouring junction faces that are not copied "
+                                                  f"({mesh.get('copied_faces', 0)} junction faces copied)")
+    return _not_applicable(name, "<=", bound, "no source band: no joint fused between the fusion's inputs")
 
 
 def stretch_gate(composition, *, max_ratio: float = MAX_STRETCH_RATIO) -> Gate:

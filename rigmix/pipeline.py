@@ -103,16 +103,21 @@ def fusion_stage(composition: Composition, progress: Progress | None = None) -> 
     """M_R: the fused rest surface (options: the config's ``[fusion]`` section).
 
     Returns the composition with ``fusion_inputs``, ``fusion_ids``,
-    ``surface`` (:class:`rigmix.fusion.FusedSurface`) and ``report["mesh"]``,
-    ``report["fields"]``.
+    ``surface`` (:class:`rigmix.fusion.FusedSurface`) and ``report["mesh"]`` (the fusion's figures,
+    then the rest-pose figures of :func:`rigmix.quality.grafted_visibility` and
+    :func:`rigmix.quality.junction_dihedral`), ``report["fields"]``.
     """
     from .fusion import fuse_surfaces
     from .fusion.inputs import fusion_inputs_from_plan
+    from .quality import grafted_visibility, junction_dihedral
 
-    inputs, actions, ids = fusion_inputs_from_plan(composition.plan)
+    plan = composition.plan
+    inputs, actions, ids = fusion_inputs_from_plan(plan)
     surface = fuse_surfaces(inputs, actions, params=composition.config.fusion.to_params())
-    report = {**composition.report, "mesh": surface.report["mesh"], "fields": surface.report["fields"]}
-    return replace(composition, fusion_inputs=tuple(inputs), fusion_ids=tuple(ids), surface=surface, report=report)
+    fused = replace(composition, fusion_inputs=tuple(inputs), fusion_ids=tuple(ids), surface=surface)
+    roles = {cid: info["role"] for cid, info in plan.report["characters"].items()}
+    mesh = {**surface.report["mesh"], **grafted_visibility(surface, inputs, ids, roles), **junction_dihedral(fused)}
+    return replace(fused, report={**composition.report, "mesh": mesh, "fields": surface.report["fields"]})
 
 
 def weights_stage(composition: Composition, progress: Progress | None = None) -> Composition:

@@ -30,6 +30,40 @@ joint in common with any of them). The junction figure is taken over the junctio
 of the fused surface; the sources' over every vertex of the fusion's inputs, the artists'
 own painting, where the sharpest painted transitions reach 0.6 to 0.8 (the shared characters).
 
+Grafted part visibility
+-----------------------
+A grafted part can end up buried in the other body (a torso scaled down into a chest, a part
+left behind by a ``replace`` around the new one): every figure above passes and the output looks
+like the body alone. :func:`grafted_visibility` measures, for each grafted input (role
+``source`` in the plan: it only gives subtrees), the share of the area of its output faces whose
+generalized winding number with respect to the output faces of every other input is below 0.5:
+outside them (the inputs' faces oriented outwards, as glTF front faces are; near a single-sided
+sheet of another input the front side reads outside, the back side inside). At rest, on the
+fused surface. An input's output faces (:func:`face_owners`) are those copied from it and the
+generated junction faces that follow its surface most: a low-poly limb rebuilt whole by the
+fusion keeps a surface, and a lump of the other body's junction over the part hides it. Each
+face is sampled at the centroids of its four midpoint sub-triangles (a quarter of its area each).
+
+Artists sink parts of a character into others (a leg's top into a shell, a neck into a collar),
+so a part does not show whole even in its own character: the same share is taken of the faces
+the output copies from the grafted input, against the rest of that input (``_source``), and the
+figure held to the bound is the output's share over it, at most 1 (``_relative``). An identity
+composition measures 1 whatever its character hides.
+
+The figure sees what is in the output only: a part of the graft that the fusion swallowed (a
+union or blend whose surface follows the other body there) leaves no face to measure; a graft
+swallowed whole measures 0.
+
+Junction dihedral angles
+------------------------
+A ragged seam shows as creases between neighbouring junction faces. :func:`junction_dihedral`
+gives the 95th percentile of the angle between the normals of two junction faces that share an
+edge (the faces ``junction_min_angle_p05`` measures: generated, or kept by the fusion's fallback,
+not copied; the mesh welded by position), and
+the same figure on the fusion's inputs (positioned, at rest) over the faces within the junction
+band radius of their joint of a fused pair (the radius and centres of the stretch ratio's
+bands). Their ratio is about 1 when the seam is as smooth as the artists' own surface there.
+
 Identity errors
 ---------------
 A composition that replaces subtrees of one character by the same subtrees of the same file
@@ -51,15 +85,16 @@ import logging
 
 import numpy as np
 
-from dfd.mesh import face_areas, welded_graph
+from dfd.mesh import face_areas, face_normals, welded_graph
 
 from .animation.sampling import clip_times, sample_clip
-from .geometry import bounding_box_diagonal, check_transforms, closest_surface_points
+from .geometry import bounding_box_diagonal, check_transforms, closest_surface_points, weld
 from .skinning import linear_blend_skinning, rest_skinning_matrices, skinning_matrices
 
-__all__ = ["face_stretch", "vertex_stretch", "band_stretch", "junction_stretch_ratio", "weight_roughness",
-           "junction_weight_roughness", "self_composition_truth", "self_composition_errors", "skinned_surface",
-           "identity_errors", "identity_origins"]
+__all__ = ["face_stretch", "vertex_stretch", "band_stretch", "junction_band_radius", "junction_stretch_ratio",
+           "weight_roughness", "junction_weight_roughness", "outside_area_share", "face_owners",
+           "grafted_visibility", "dihedral_angles", "junction_dihedral", "self_composition_truth",
+           "self_composition_errors", "skinned_surface", "identity_errors", "identity_origins"]
 
 log = logging.getLogger(__name__)
 
@@ -166,6 +201,29 @@ def band_stretch(skeleton, clips, V0, joints, weights, F, vertices, *, rest=None
     return np.concatenate(out)
 
 
+def junction_band_radius(V, junction_vertices, centres) -> float:
+    """Reach of the junction: the largest distance from a junction vertex to its nearest centre.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+        Fused surface, rest pose (metres, composed world).
+    junction_vertices : (n,) bool array
+    centres : (k, 3) float array
+        Rest positions of the fused joints, ``k >= 1``.
+
+    Returns
+    -------
+    float
+        Same unit as ``V``; a tenth of the bounding-box diagonal of ``V`` without junction vertices.
+    """
+    V = np.asarray(V, np.float64)
+    jv = np.flatnonzero(junction_vertices)
+    if not len(jv):
+        return 0.1 * float(np.linalg.norm(np.ptp(V, axis=0)))
+    return float(np.linalg.norm(V[jv, None, :] - np.asarray(centres)[None], axis=2).min(axis=1).max())
+
+
 def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=95.0) -> dict:
     """The junction stretch ratio of a composition (see the module docstring).
 
@@ -191,16 +249,11 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
     out = {"junction_stretch_ratio": None, "output_p95": None, "source_p95": None, "band_radius": None,
            "output_band_vertices": 0, "source_band_vertices": 0, "source_p95_by_input": {}}
     pairs = plan.fused_pairs
-    jv = np.flatnonzero(surface.junction_vertices)
     if not pairs or ch is None or not ch.clips:
         return out
     Jpos = plan.skeleton.rest_worlds()[:, :3, 3]
     P = Jpos[[p.output for p in pairs]]  # (k, 3)
-    if len(jv):
-        d = np.linalg.norm(V[jv, None, :] - P[None], axis=2).min(axis=1)
-        r = float(d.max())
-    else:
-        r = 0.1 * float(np.linalg.norm(np.ptp(V, axis=0)))
+    r = junction_band_radius(V, surface.junction_vertices, P)
     to_joints = np.linalg.norm(V[:, None, :] - P[None], axis=2).min(axis=1)
     r = max(r, float(to_joints.min()))  # a coarse mesh: the band holds at least the nearest vertex
     band = np.flatnonzero(to_joints <= r)
@@ -310,6 +363,230 @@ def junction_weight_roughness(composition) -> dict:
     (junction_p99, junction_max), (source_p99, source_max) = figures(r), figures(src)
     return {"junction_weight_roughness_p99": junction_p99, "junction_weight_roughness_max": junction_max,
             "source_weight_roughness_p99": source_p99, "source_weight_roughness_max": source_max}
+
+
+#: Barycentric coordinates of the centroids of a triangle's four midpoint sub-triangles: each
+#: stands for a quarter of the triangle's area.
+_SUBTRIANGLE_CENTROIDS = np.array([[4.0, 1.0, 1.0], [1.0, 4.0, 1.0], [1.0, 1.0, 4.0], [2.0, 2.0, 2.0]]) / 6.0
+
+
+def outside_area_share(V, F, occluders):
+    """Share of the area of a surface outside every occluder (generalized winding number below 0.5).
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+    F : (m, 3) int array
+        The surface measured.
+    occluders : sequence of ((p, 3) float array, (q, 3) int array)
+        Surfaces, open or closed, oriented outwards, in the same space as ``V``; a point is
+        inside one when its generalized winding number (``igl.fast_winding_number``, triangle
+        soup) with respect to it is at least 0.5.
+
+    Returns
+    -------
+    float or None
+        In ``[0, 1]``: the area of ``F`` whose sample points (the centroids of each face's four
+        midpoint sub-triangles, a quarter of its area each) are inside no occluder, over the area
+        of ``F``; 1 without occluders; None when ``F`` has no area.
+    """
+    import igl
+
+    V = np.asarray(V, np.float64)
+    F = np.asarray(F, np.int64).reshape(-1, 3)
+    area = face_areas(V, F)
+    total = float(area.sum())
+    if total <= 0:
+        return None
+    Q = np.einsum("sk,mkc->msc", _SUBTRIANGLE_CENTROIDS, V[F]).reshape(-1, 3)  # (4 m, 3), face-major
+    outside = np.ones(len(Q), bool)
+    for Vo, Fo in occluders:
+        Fo = np.asarray(Fo, np.int64).reshape(-1, 3)
+        if not len(Fo):
+            continue
+        used, Fc = np.unique(Fo, return_inverse=True)  # only the occluder's own vertices
+        Vc = np.ascontiguousarray(np.asarray(Vo, np.float64)[used])
+        w = igl.fast_winding_number(Vc, np.ascontiguousarray(Fc.reshape(-1, 3)), Q[outside])
+        keep = np.flatnonzero(outside)
+        outside[keep[w >= 0.5]] = False
+    visible = outside.reshape(-1, 4).mean(axis=1)
+    return float(min(np.dot(area, visible) / total, 1.0))  # the quotient of equal sums can round past 1
+
+
+def face_owners(surface, *, near=1e-3):
+    """The input whose surface each output face belongs to.
+
+    A face copied from an input (``face_origin_input >= 0``) belongs to it. A generated junction
+    face belongs to the input its corners follow most: the largest sum over its three corners of
+    ``presence / (distance + near * diagonal)`` at each input's closest point
+    (:attr:`rigmix.fusion.FusedSurface.junction_sources`), the weighting the fusion gives the
+    junction's colours. A grafted part the fusion rebuilt whole (a low-poly limb with no face
+    preserved) is then still its own.
+
+    Parameters
+    ----------
+    surface : rigmix.fusion.FusedSurface
+    near : float
+        Distances under about this fraction of the surface's bounding-box diagonal count as on the
+        input's surface.
+
+    Returns
+    -------
+    (M,) int64
+        Input index per face of ``surface.F``; -1 only for a generated face of a surface without
+        inputs.
+    """
+    F = np.asarray(surface.F, np.int64).reshape(-1, 3)
+    owner = np.asarray(surface.face_origin_input, np.int64).copy()
+    generated = np.flatnonzero(owner < 0)
+    sources = surface.junction_sources
+    if not len(generated) or not len(sources):
+        return owner
+    eps = near * max(bounding_box_diagonal(surface.V), 1e-300)
+    rows = np.flatnonzero(surface.junction_vertices)  # the rows of junction_sources
+    corners = F[generated]  # (g, 3)
+    k = np.clip(np.searchsorted(rows, corners), 0, max(len(rows) - 1, 0))
+    sourced = rows[k] == corners if len(rows) else np.zeros(corners.shape, bool)
+    origin = np.asarray(surface.origin_input)[corners]
+    score = np.zeros((len(generated), len(sources)))
+    for i, src in enumerate(sources):
+        w = np.asarray(src["presence"])[k] / (np.asarray(src["distance"])[k] + eps) if len(rows) else 0.0
+        # a corner the weights stage copies is its own input's vertex: on that surface, fully present
+        score[:, i] = np.where(sourced, w, np.where(origin == i, 1.0 / eps, 0.0)).sum(axis=1)
+    owner[generated] = np.argmax(score, axis=1)
+    return owner
+
+
+def grafted_visibility(surface, inputs, ids, roles) -> dict:
+    """How much of each grafted part shows, against how much it shows in its own character
+    (see the module docstring).
+
+    Parameters
+    ----------
+    surface : rigmix.fusion.FusedSurface
+        At rest; each face belongs to one input (:func:`face_owners`).
+    inputs : sequence of rigmix.fusion.FusionInput
+        The fusion's inputs, positioned (``Composition.fusion_inputs``).
+    ids : sequence of str
+        The character id of each fusion input (``Composition.fusion_ids``).
+    roles : mapping of str -> str
+        ``"body"`` or ``"source"`` per character id (``Plan.report["characters"][id]["role"]``);
+        the sources are the grafted parts.
+
+    Returns
+    -------
+    dict
+        Per grafted input id: ``grafted_visible``, the share of the area of its output faces
+        outside the other inputs' output faces, in ``[0, 1]`` (0 when none of its surface is in
+        the output: a part the union swallowed whole); ``grafted_visible_source``, the share of its
+        faces copied into the output that is outside the rest of its own character (None when
+        none is copied); ``grafted_visible_relative``, the first over the second, at most 1 (the
+        first alone without the second). ``grafted_visible_min``: the smallest relative share
+        (None without a grafted part).
+    """
+    V = np.asarray(surface.V, np.float64)
+    F = np.asarray(surface.F, np.int64)
+    owner = face_owners(surface)
+    origin = np.asarray(surface.face_origin_input)
+    visible, source, relative = {}, {}, {}
+    for i, cid in enumerate(ids):
+        if roles.get(cid) != "source":
+            continue
+        others = [(V, F[owner == k]) for k in range(len(ids)) if k != i]
+        share = outside_area_share(V, F[owner == i], others)
+        visible[cid] = 0.0 if share is None else share
+        # the same faces in their own character: parts an artist sank into another (a leg into a
+        # shell, a neck into a collar) are hidden there too, and an identity composition must pass
+        x = inputs[i]
+        copied = np.zeros(len(x.F), bool)
+        copied[np.asarray(surface.face_origin_face)[origin == i]] = True
+        Fx = np.asarray(x.F, np.int64)
+        source[cid] = outside_area_share(x.V, Fx[copied], [(x.V, Fx[~copied])])
+        relative[cid] = (visible[cid] if not source[cid] else min(visible[cid] / source[cid], 1.0))
+    return {"grafted_visible": visible, "grafted_visible_source": source, "grafted_visible_relative": relative,
+            "grafted_visible_min": min(relative.values()) if relative else None}
+
+
+def dihedral_angles(V, F, faces=None):
+    """Angles between the normals of neighbouring faces, degrees.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+        Split vertices: welded by position here, so faces split at a UV or normal seam are
+        neighbours.
+    F : (m, 3) int array
+    faces : (m,) bool or (k,) int array, optional
+        The faces measured (default all); an edge counts when exactly two of them with a
+        non-zero area share it.
+
+    Returns
+    -------
+    (e,) float64
+        One angle per such edge, in ``[0, 180]``: 0 across a flat edge, 180 across a fold onto
+        itself (or two faces of opposite orientation).
+    """
+    from .fusion.meshutil import undirected_edges
+
+    Vw, _, Fw = weld(V, F)
+    if faces is not None:
+        Fw = Fw[faces]
+    N = face_normals(Vw, Fw)
+    ok = np.linalg.norm(N, axis=1) > 0
+    Fw, N = Fw[ok], N[ok]
+    if not len(Fw):
+        return np.zeros(0)
+    _, uE, emap = undirected_edges(Fw)
+    count = np.bincount(emap, minlength=len(uE))
+    order = np.argsort(emap, kind="stable")  # the half-edges of each edge side by side
+    start = np.searchsorted(emap[order], np.flatnonzero(count == 2))
+    m = len(Fw)
+    a, b = order[start] % m, order[start + 1] % m  # half-edge i belongs to face i mod m
+    cos = np.clip(np.einsum("ij,ij->i", N[a], N[b]), -1.0, 1.0)
+    return np.degrees(np.arccos(cos))
+
+
+def junction_dihedral(composition, *, percentile=95.0) -> dict:
+    """Dihedral angles of the junction against the inputs' own (see the module docstring).
+
+    Parameters
+    ----------
+    composition : rigmix.pipeline.Composition
+        After the fusion stage (``surface``, ``fusion_inputs``, ``fusion_ids``, ``plan``).
+    percentile : float
+
+    Returns
+    -------
+    dict
+        ``junction_dihedral_p95`` (degrees; None without two neighbouring junction faces that are
+        not copied: a copied junction or none), ``source_dihedral_p95`` (degrees; None without a fused
+        pair between fusion inputs or a band face pair), ``junction_dihedral_ratio`` (their ratio,
+        None when either is None).
+    """
+    plan = composition.plan
+    surface = composition.surface
+    ids = list(composition.fusion_ids)
+    rebuilt = np.asarray(surface.junction_faces, bool) & ~np.asarray(surface.copied_faces, bool)
+    angles = dihedral_angles(surface.V, surface.F, rebuilt) if rebuilt.any() else np.zeros(0)
+    junction = float(np.percentile(angles, percentile)) if len(angles) else None
+    pairs = [p for p in plan.fused_pairs if p.target in ids and p.source in ids]
+    source = None
+    if pairs:
+        centres = plan.skeleton.rest_worlds()[[p.output for p in pairs], :3, 3]
+        r = junction_band_radius(surface.V, surface.junction_vertices, centres)
+        samples = []
+        for i, cid in enumerate(ids):
+            joints = [j for p in pairs for c, j in ((p.target, p.target_joint), (p.source, p.source_joint)) if c == cid]
+            x = composition.fusion_inputs[i]
+            if not joints or not len(x.F):
+                continue
+            at = plan.positioned[cid].skeleton.rest_worlds()[joints, :3, 3]  # (k, 3), composed world
+            near = np.linalg.norm(np.asarray(x.V)[:, None, :] - at[None], axis=2).min(axis=1) <= r
+            samples.append(dihedral_angles(x.V, x.F, near[np.asarray(x.F)].all(axis=1)))
+        pooled = np.concatenate(samples) if samples else np.zeros(0)
+        source = float(np.percentile(pooled, percentile)) if len(pooled) else None
+    ratio = junction / max(source, 1e-12) if junction is not None and source is not None else None
+    return {"junction_dihedral_p95": junction, "source_dihedral_p95": source, "junction_dihedral_ratio": ratio}
 
 
 def self_composition_truth(composition, *, truth_influences=4):

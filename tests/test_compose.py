@@ -43,14 +43,20 @@ SCALE_TOLERANCE = 1e-6
 REPORT_KEYS = {
     "timings": ["total", "fusion", "weights", "completion", "assembly"],
     "mesh": ["vertices", "faces", "non_manifold_edges", "junction_boundary_edges", "junction_min_angle_p05",
-             "junction_faces", "junction_self_intersections"],
+             "junction_faces", "junction_self_intersections", "grafted_visible", "grafted_visible_min",
+             "junction_dihedral_p95", "source_dihedral_p95", "junction_dihedral_ratio"],
     "fields": ["voxel_size", "voxels", "backend"],
     "weights": ["method", "max_influences", "min_sum", "max_sum", "junction_vertices"],
     "quality": ["junction_stretch_ratio", "junction_weight_roughness_p99", "junction_weight_roughness_max",
                 "source_weight_roughness_p99", "source_weight_roughness_max"],
 }
 #: (config, figure) pairs the fusion does not meet yet, reported to the fusion issue; empty when all pass.
-FUSION_SHORTFALLS: set = set()
+#: junction_dihedral_ratio (issue 25, bound 1.5), measured: fox_arm 2.14, knight_arm 2.33, limb_swap 1.94.
+#: The junction folds: 13 to 32 pairs of neighbouring junction faces at more than 150 degrees, made by
+#: the shape-keeping remeshing (FusionParams.fidelity_voxels); the plain remeshing (fidelity_voxels = 0)
+#: gives 0.78, 0.98 and 0.92 with no fold, but rounds off the low-poly inputs' corners.
+FUSION_SHORTFALLS: set = {("fox_arm", "junction_dihedral_ratio"), ("knight_arm", "junction_dihedral_ratio"),
+                          ("limb_swap", "junction_dihedral_ratio")}
 
 _RUNS: dict = {}
 
@@ -149,7 +155,13 @@ def test_rigmix_compose_end_to_end(cfg, tmp_path):
                # None: no generated triangle (a junction copied from faces both inputs share)
                "junction_min_angle_p05": (mesh["junction_min_angle_p05"] >= 20.0
                                           if mesh["junction_min_angle_p05"] is not None
-                                          else 0 < mesh["copied_faces"] == mesh["junction_faces"])}
+                                          else 0 < mesh["copied_faces"] == mesh["junction_faces"]),
+               # issue 25: every grafted part shows; the junction creases no more than the inputs there
+               # (None: a copied junction)
+               "grafted_visible": mesh["grafted_visible_min"] is not None and mesh["grafted_visible_min"] >= 0.9,
+               "junction_dihedral_ratio": (mesh["junction_dihedral_ratio"] <= 1.5
+                                           if mesh["junction_dihedral_ratio"] is not None
+                                           else 0 < mesh["copied_faces"] == mesh["junction_faces"])}
     assert mesh["junction_self_intersections"] == 0, mesh  # crossing faces are repaired (fusion/crossings.py)
     failed = [f for f, ok in figures.items() if not ok]
     unexpected = [f for f in failed if (name, f) not in FUSION_SHORTFALLS]
