@@ -348,6 +348,7 @@ FUSION_RANGES: dict[str, dict] = {
     "feature_rounds": {"ge": 0, "le": MAX_ITERATIONS},
     "fidelity_relax": {"gt": 0},
     "relax_max_angle_loss": {"ge": 0},
+    "fold_free_deviation": {"ge": 0},
     "keep_input_corners": {},
     "min_angle_p05": {"ge": 0, "le": 60},
     "min_seam_wedge": {"ge": 0, "le": 360},

@@ -10,6 +10,8 @@ bounding-box diagonal (Hausdorff, both ways), at least 90% of the faces preserve
 triangles.
 """
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from conftest import asset
@@ -193,12 +195,14 @@ def test_fidelity_refinement_recovers_what_remeshing_chords_off():
     with the junction still closed and its triangles still good. Its second bridge recut would
     leave a non-manifold junction that cannot be remeshed: it is refused, and the refined
     junction's one fold is smoothed open (:func:`rigmix.fusion.remesh.untangle`) within the
-    fidelity tolerance."""
+    fidelity tolerance. (By default the refined junction then gives way to the plain one, as
+    its crease folds: see the next test.)"""
     a, b = _limb_self_composition("CesiumMan", "leg_joint_L_1")
 
     plain = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)],
                           params=FusionParams(copy_coincident=False, fidelity_voxels=0))
-    refined = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=REMESHED)
+    refined = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)],
+                            params=replace(REMESHED, fold_free_deviation=0))
     assert _hausdorff(a, plain) > 0.005
     assert _hausdorff(a, refined) <= 0.005
     grid = refined.report["fields"]["grids"][0]
@@ -208,6 +212,24 @@ def test_fidelity_refinement_recovers_what_remeshing_chords_off():
     assert m["junction_self_intersections"] == 0
     assert m["junction_boundary_edges"] == 0 and m["new_non_manifold_edges"] == 0
     assert m["junction_min_angle_p05"] >= 20.0
+
+
+def test_a_folded_refinement_gives_way_to_the_plain_junction():
+    """The refined CesiumMan leg keeps its shape by pinning features closer than the target
+    edge, and the triangles between them fold back (neighbours turned past 150 degrees): the
+    default takes the plain junction instead, which strays less than twice as far."""
+    from rigmix.fusion.stitch import FOLD_ANGLE
+    from rigmix.quality import dihedral_angles
+
+    a, b = _limb_self_composition("CesiumMan", "leg_joint_L_1")
+    kept = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=replace(REMESHED, fold_free_deviation=0))
+    out = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=REMESHED)
+    grid = out.report["fields"]["grids"][0]
+    assert grid["folds_avoided"] > 0 and grid["fidelity"] is False
+    junction = out.junction_faces & ~out.copied_faces
+    assert np.count_nonzero(dihedral_angles(out.V, out.F, junction) > FOLD_ANGLE) == 0
+    assert out.report["mesh"]["junction_self_intersections"] == 0
+    assert _hausdorff(a, out) <= 2 * max(_hausdorff(a, kept), 0.005)
 
 
 def test_collapses_let_the_junction_keep_the_shape_of_a_low_poly_tail():

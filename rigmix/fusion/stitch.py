@@ -666,7 +666,28 @@ def _remesh_choosing_fidelity(job, info):
             U, G, nfeat = U0, G0, 0
             info["fidelity"] = False
             info["fidelity_tolerance"] = 0.0
+    if info["fidelity"] and params.fold_free_deviation > 0:
+        folds = _folds(U, G)
+        if folds:
+            U0, G0, _ = _remesh_attempt(job, 0.0)
+            strays = np.sqrt(igl.point_mesh_squared_distance(job.V, U, G)[0]).max()
+            plain = np.sqrt(igl.point_mesh_squared_distance(job.V, U0, G0)[0]).max()
+            if _folds(U0, G0) < folds and plain <= params.fold_free_deviation * max(strays, tol):
+                U, G, nfeat = U0, G0, 0
+                info.update(fidelity=False, fidelity_tolerance=0.0, folds_avoided=int(folds))
     return U, G, nfeat
+
+
+#: Neighbouring faces whose normals turn more than this (degrees) fold onto each other.
+FOLD_ANGLE = 150.0
+
+
+def _folds(V, F):
+    """Folds of a junction surface: crossing face pairs, and neighbouring faces whose normals
+    turn past :data:`FOLD_ANGLE`."""
+    from ..quality import dihedral_angles
+
+    return int(len(intersecting_face_pairs(V, F)) + np.count_nonzero(dihedral_angles(V, F) > FOLD_ANGLE))
 
 
 def _remesh_bridged(bridge, grid, pres, surfaces, preserved, inputs_fields, actions, params, band, field3,
