@@ -25,6 +25,7 @@ that an input character can never be modified by a stage (stages return new obje
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -445,6 +446,12 @@ class Character:
     @property
     def skinned(self) -> bool:
         return self.skeleton.num_joints > 0 and any(m.skinned for m in self.meshes)
+
+    @property
+    def label(self) -> str:
+        """The character in messages: its file's name (the folders left out, so that no message
+        says where a file lives), or its name when it was built in code."""
+        return Path(self.source).name if self.source else self.name
 
     def require_skinned(self, stage: str = "compose") -> "Character":
         """Return self, or raise UnsupportedError if there is nothing to compose."""

@@ -96,10 +96,12 @@ def _add_inspect(parser):
 def _run_inspect(args) -> int:
     from .describe import describe, format_description
     from .io import load_character
+    from .pipeline import check_input
 
     path = args.file
     try:
         character = load_character(path)
+        check_input(character)  # what compose refuses in a file, inspect refuses with the same line
     except RigmixError as exc:
         if path.name not in str(exc):  # every message must name the file
             raise type(exc)(f"inspect: {path}: {exc}") from exc

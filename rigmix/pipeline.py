@@ -39,7 +39,7 @@ if TYPE_CHECKING:  # the annotations of Composition; the stages import their pac
     from .fusion import FusedSurface, FusionInput
     from .weights import SkinWeights
 
-__all__ = ["Composition", "Progress", "STAGE_NAMES", "load_characters", "compose", "mapping_table",
+__all__ = ["Composition", "Progress", "STAGE_NAMES", "check_input", "load_characters", "compose", "mapping_table",
            "fusion_stage", "weights_stage", "completion_stage", "assembly_stage", "quality_stage"]
 
 logger = logging.getLogger(__name__)
@@ -208,17 +208,43 @@ def _builtin(name: str) -> Character:
     return fn()
 
 
+def check_input(character: Character, *, fps: float | None = None) -> None:
+    """Refuse what compose refuses in an input file before composing anything, with a line naming
+    the file and the object: a stored rest pose that cannot be posed
+    (:func:`rigmix.skinning.check_rig`) and clips too long to sample at ``fps``
+    (:func:`rigmix.animation.sampling.check_clips`).
+
+    Applied to the file as stored (moving its rest pose to the bind pose would hide a singular
+    one); ``rigmix inspect`` applies it at the default fps, so it refuses what compose refuses.
+
+    Parameters
+    ----------
+    character : Character
+        As read from its file.
+    fps : float, optional
+        The completion rate (``[animation] fps``); default :class:`rigmix.animation.CompletionOptions`'.
+
+    Raises
+    ------
+    InputError
+    """
+    from .animation.completion import CompletionOptions
+    from .animation.sampling import check_clips
+    from .skinning import check_rig
+
+    check_rig(character)
+    check_clips(character, CompletionOptions.fps if fps is None else fps)
+
+
 @lru_cache(maxsize=16)
-def _load_file(path: str, mtime: float, pose: str = "bind") -> Character:
+def _load_file(path: str, mtime: float, pose: str = "bind", fps: float | None = None) -> Character:
     from .io import load_character
     from .skinning import rest_at_bind
 
     character = load_character(path)
+    check_input(character, fps=fps)
     if pose == "rest":
         return character
-    from .operations.positioning import check_rig
-
-    check_rig(character)  # the stored rest pose is refused before the bind pose replaces it
     # composed in the pose its mesh is bound in: animations stay exact (rest_at_bind)
     return rest_at_bind(character)
 
@@ -238,8 +264,9 @@ def load_characters(config: Config) -> dict:
     Raises
     ------
     InputError
-        A missing file, an unknown ``builtin:`` name, a file the reader rejects, or characters
-        too large to compose (:func:`rigmix.fusion.inputs.check_weight_size`).
+        A missing file, an unknown ``builtin:`` name, a file the reader rejects or that cannot be
+        composed (:func:`check_input`, at the config's ``[animation] fps``), or characters too
+        large to compose (:func:`rigmix.fusion.inputs.check_weight_size`).
     """
     check_files(config)
     out = {}
@@ -253,7 +280,7 @@ def load_characters(config: Config) -> dict:
                 raise InputError(f"config {config.source}: characters.{cid}.path: no built-in character "
                                  f"{name!r}; known: {e.args[0]}") from None
         else:
-            out[cid] = _load_file(str(p.resolve()), p.stat().st_mtime, config.positioning.pose)
+            out[cid] = _load_file(str(p.resolve()), p.stat().st_mtime, config.positioning.pose, config.animation.fps)
         mirror = config.characters[cid].mirror
         if mirror is not False:  # before everything else: actions name the mirrored joints
             from .operations.mirror import mirror_character

@@ -17,6 +17,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from .geometry import check_coordinates, check_transforms
 from .transforms import matrix_to_quat, polar_decomposition, quat_conjugate, quat_multiply, trs_to_matrix
 
 __all__ = [
@@ -27,6 +28,7 @@ __all__ = [
     "skin_character",
     "rest_pose",
     "rest_at_bind",
+    "check_rig",
 ]
 
 logger = logging.getLogger(__name__)
@@ -327,3 +329,39 @@ def rest_at_bind(character, *, rtol=1e-6):
         clips.append(Clip(clip.name, clip.tracks + tuple(held)) if held else clip)
     logger.info("%s: rest pose moved to the bind pose on %d joints", character.name, len(changed))
     return replace(character, skeleton=replace(sk, translations=T, rotations=R, scales=S), clips=tuple(clips))
+
+
+def check_rig(character, *, where: str | None = None) -> None:
+    """Refuse a rig that cannot be posed: a rest world or inverse bind matrix that is not finite
+    or cannot be inverted (a zero scale, a zero matrix), or a joint or vertex at rest beyond
+    :data:`rigmix.geometry.MAX_COORDINATE` (native kernels crash on such values).
+
+    Compose applies it to every file as stored (before :func:`rest_at_bind`, which would hide a
+    singular rest pose) and ``rigmix inspect`` to the file it reads, so both refuse a file with
+    the same line.
+
+    Parameters
+    ----------
+    character : rigmix.character.Character
+    where : str, optional
+        Start of the message; default the file's name (:attr:`rigmix.character.Character.label`).
+
+    Raises
+    ------
+    InputError
+        Naming the file, the joint or the object, and the fix.
+    """
+    sk = character.skeleton
+    where = character.label if where is None else where
+    W = sk.rest_worlds()
+    check_transforms(W, sk.names, where=where, what="rest world matrix",
+                     fix="give the joint and its parents a non-zero scale (or matrix) in the file")
+    check_transforms(sk.inverse_binds, sk.names, where=where, what="inverse bind matrix",
+                     fix="re-export the skin with invertible inverse bind matrices")
+    M = W @ sk.inverse_binds
+    points = {"skeleton": W[:, :3, 3]}
+    for k, mesh in enumerate(character.meshes):
+        P = (linear_blend_skinning(mesh.positions, mesh.joints, mesh.weights, M) if mesh.skinned
+             else np.asarray(mesh.positions))
+        points[f"mesh {mesh.name or k!r} at rest"] = P
+    check_coordinates(points, where=where, fix="the file's transforms or vertices are out of range")

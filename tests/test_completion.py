@@ -393,10 +393,30 @@ def test_fixed_frames_and_sources_are_honoured(fox):
     assert d.max() < 1e-6
 
 
+@pytest.mark.parametrize("fixed, sources, match", [
+    (FixedFrame("A", "Survey", 10, "B", "Swim", 3), None, r"Fox\.glb \(character 'B'\): no clip 'Swim'"),
+    (FixedFrame("A", "Swim", 10, "B", "Walk", 3), None, r"Fox\.glb \(character 'A'\): no clip 'Swim'"),
+    (FixedFrame("A", "Survey", 10, "C", "Walk", 3), None, "a fixed frame names character 'C'"),
+    (FixedFrame("A", "Survey", 10**6, "B", "Walk", 3), None,
+     r"Fox\.glb \(character 'A'\): clip 'Survey': fixed frame 1000000 is outside the clip \(\d+ frames"),
+    (FixedFrame("A", "Survey", 10, "B", "Walk", 10**6), None,
+     r"Fox\.glb \(character 'B'\): clip 'Walk': fixed frame source_frame 1000000 is outside the clip"),
+    (FixedFrame("A", "Survey", 10, "B", "Run", 3), {"B": ["Walk"]},
+     r"Fox\.glb \(character 'B'\): clip 'Run': .*sources leaves it out"),
+])
+def test_bad_fixed_frame_names_the_file_and_the_clip(fox, fixed, sources, match):
+    """A fixed frame out of its clip, or naming a clip or input that does not exist, is refused
+    naming the file and the clip (an unknown name was silently ignored)."""
+    opts = CompletionOptions(clips={"A": ["Survey"]}, sources=sources, fixed_frames=(fixed,))
+    with pytest.raises(InputError, match=match):
+        _self_compose(fox, fox.skeleton.index("b_Tail01_012"), opts)
+
+
 def test_bad_selection_is_a_clear_error(fox):
     J = fox.skeleton.num_joints
     maps = {"A": BoneMap("A", np.arange(J), np.ones(J))}
-    with pytest.raises(InputError, match="no clip 'Swim'"):
+    with pytest.raises(InputError, match=r"Fox\.glb \(character 'A'\): no clip 'Swim' to complete; its clips: "
+                                         "'Survey', 'Walk', 'Run'"):
         complete_clips(fox.skeleton, {"A": fox}, maps, selection=[("A", "Swim")])
     with pytest.raises(InputError, match="bone map"):
         complete_clips(fox.skeleton, {"A": fox, "B": fox}, maps)

@@ -61,3 +61,59 @@ def test_hostile_case(case, workspace):
     outcome = hostile.execute(case, workspace, command, timeout=hostile.TIMEOUT)
     assert not outcome.failures(), json.dumps({"failures": outcome.failures(), "rc": outcome.rc,
                                                "stderr": outcome.stderr_tail}, indent=1)
+
+
+#: Categories whose files hold values the reader may accept but compose refuses (a joint at 1e300,
+#: a zero scale, a singular matrix, a clip of 1e30 s).
+_VALUE_CATEGORIES = ("nan-inf", "quaternion", "anim-time")
+VALUE_CASES = [c for c in hostile.file_cases() if c.category in _VALUE_CATEGORIES]
+
+
+def test_value_cases_include_refusals_after_reading(workspace):
+    """The parity test below is not vacuous: files the reader accepts and compose refuses."""
+    from rigmix.errors import InputError
+    from rigmix.io import load_character
+    from rigmix.pipeline import check_input
+
+    refused = []
+    for case in VALUE_CASES:
+        try:
+            check_input(load_character(workspace.materialize(case)))
+        except InputError:
+            refused.append(case.id)
+    assert {"nan-inf-RiggedFigure-node-translation-1e300", "nan-inf-Fox-node-scale-zero",
+            "nan-inf-RiggedFigure-node-matrix-zero", "nan-inf-Fox-ibm-huge",
+            "anim-time-RiggedFigure-anim-times-1e30"} <= set(refused), refused
+
+
+@pytest.mark.parametrize("case", VALUE_CASES, ids=[case.id for case in VALUE_CASES])
+def test_inspect_refuses_what_compose_refuses(case, workspace, capsys):
+    """``rigmix inspect`` exits 2 with compose's own line (naming the file and the object) on
+    every file that compose's load stage refuses, and reads every file that stage accepts."""
+    from rigmix.cli import main
+    from rigmix.config import load_config
+    from rigmix.errors import InputError
+    from rigmix.io import load_character
+    from rigmix.pipeline import load_characters
+
+    path = workspace.materialize(case)
+    try:
+        load_character(path)
+    except InputError:
+        pytest.skip("refused by the reader, which inspect and compose share")
+    config = hostile._compose_config(path.parent, path, hostile.seed_of(case))
+    try:
+        load_characters(load_config(config))
+        refusal = None
+    except InputError as exc:
+        refusal = str(exc)
+    capsys.readouterr()
+    rc = main(["inspect", str(path)])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.startswith("rigmix: error:")]
+    if refusal is None:
+        assert rc == 0 and not lines, err[-2000:]
+        return
+    assert rc == 2 and len(lines) == 1, err[-2000:]
+    assert lines[0] == "rigmix: error: " + refusal, (lines[0], refusal)
+    assert path.name in lines[0]

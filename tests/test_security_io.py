@@ -415,6 +415,17 @@ def test_negative_key_times_are_refused(tmp_path):
         read_gltf(_glb(tmp_path, data_edit=negative))
 
 
+@pytest.mark.parametrize("ctype, name", [(5121, "UNSIGNED_BYTE"), (5123, "UNSIGNED_SHORT")])
+def test_integer_key_times_are_refused(ctype, name, tmp_path):
+    """Key times must be FLOAT; UNSIGNED_BYTE times were read as whole seconds (a warning about
+    their order only)."""
+    def integer_times(gl):
+        gl["accessors"][gl["animations"][0]["samplers"][0]["input"]]["componentType"] = ctype
+
+    with pytest.raises(InputError, match=f"input \\(key times\\) is stored as {name}, which glTF 2.0 does not allow"):
+        read_gltf(_glb(tmp_path, integer_times))
+
+
 def test_scene_node_out_of_range_is_refused(tmp_path):
     with pytest.raises(InputError, match=r"scenes\[0\]\.nodes refers to nodes\[999\], which does not exist"):
         read_gltf(_glb(tmp_path, lambda gl: gl["scenes"][0].update(nodes=[999])))

@@ -121,6 +121,18 @@ def _edit_ibm(raw, joint, value):
     return _glb(gl, bytes(b))
 
 
+def _edit_key_times(raw, clip, factor):
+    """Every key time of the first sampler of animation ``clip`` multiplied by ``factor``."""
+    gl, data = _glb_parts(raw)
+    acc = gl["accessors"][gl["animations"][clip]["samplers"][0]["input"]]
+    start = gl["bufferViews"][acc["bufferView"]].get("byteOffset", 0) + acc.get("byteOffset", 0)
+    b = bytearray(data)
+    times = np.frombuffer(data, np.float32, acc["count"], start) * np.float32(factor)
+    b[start:start + 4 * acc["count"]] = times.astype(np.float32).tobytes()
+    acc["min"], acc["max"] = [float(times.min())], [float(times.max())]
+    return _glb(gl, bytes(b))
+
+
 HOSTILE_CHARACTERS = {
     # case: (edit of the GLB, pattern of the message)
     "zero_scale": (lambda raw: _edit_node(raw, "LowerArm.R", scale=[0.0, 0.0, 0.0]),
@@ -134,6 +146,10 @@ HOSTILE_CHARACTERS = {
                                 "skeleton reaches 1e\\+300 m.*out of range"),
     "joint_translation_1e39": (lambda raw: _edit_node(raw, "Hand.R", translation=[1e39, 0.0, 0.0]),
                                "skeleton reaches 1e\\+39 m"),
+    "joint_scale_1e300": (lambda raw: _edit_node(raw, "Hand.R", scale=[1e300, 1e300, 1e300]),
+                          "joint 'Hand.R' rest world matrix has NaN or infinite entries"),
+    "clip_key_times_1e30": (lambda raw: _edit_key_times(raw, 0, 1e30),
+                            "clip 'walk': runs from 0 to 1e\\+30 s.*trim its key times"),
 }
 
 
@@ -145,8 +161,31 @@ def test_hostile_character_is_refused_by_compose(case, humanoid_glb, tmp_path, c
     glb.write_bytes(edit(humanoid_glb))
     before = glb.read_bytes()
     cfg = _config(tmp_path, _arm_config(body=glb.name, joint="UpperArm.L"))
-    assert_compose_refused(capsys, tmp_path, cfg, match, name=glb.name)
+    line = assert_compose_refused(capsys, tmp_path, cfg, match, name=glb.name)
     assert glb.read_bytes() == before
+    assert line.startswith(f"rigmix: error: {glb.name}: ")  # the file first, then the object
+
+
+@pytest.mark.parametrize("case", sorted(HOSTILE_CHARACTERS))
+def test_inspect_refuses_a_hostile_character_with_composes_line(case, humanoid_glb, tmp_path, capsys):
+    """``rigmix inspect`` exited 0 on these: it applies compose's check on input files
+    (:func:`rigmix.pipeline.check_input`), so both print the same line."""
+    from rigmix.cli import main
+
+    edit, match = HOSTILE_CHARACTERS[case]
+    glb = tmp_path / f"{case}.glb"
+    glb.write_bytes(edit(humanoid_glb))
+    capsys.readouterr()
+    rc = main(["inspect", str(glb)])
+    err = capsys.readouterr().err
+    assert rc == 2, err[-2000:]
+    line = _one_line(err)
+    import re
+
+    assert re.search(match, line) and line.startswith(f"rigmix: error: {glb.name}: "), line
+    cfg = _config(tmp_path, _arm_config(body=glb.name, joint="UpperArm.L"))
+    assert rc == main(["compose", str(cfg), "-o", str(tmp_path / "out.glb"), "--no-progress"])
+    assert _one_line(capsys.readouterr().err) == line
 
 
 # --------------------------------------------------------------------------- configs

@@ -305,8 +305,8 @@ def selected_clips(inputs, options, selection=None):
         if cid not in inputs:
             raise InputError(f"completion: clip selection names character {cid!r}, inputs are {sorted(inputs)}")
         if name not in {c.name for c in inputs[cid].clips}:
-            where = inputs[cid].source or inputs[cid].name
-            raise InputError(f"completion: {where} (character {cid!r}) has no clip {name!r}")
+            raise InputError(f"completion: {inputs[cid].label} (character {cid!r}): no clip {name!r} to complete; "
+                             f"its clips: {', '.join(repr(c.name) for c in inputs[cid].clips) or 'none'}")
     return keys
 
 
@@ -390,8 +390,9 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
         if len(maps[cid].target) != nin:
             raise InputError(
                 f"completion: bone map of {cid!r} has {len(maps[cid].target)} entries, "
-                f"{inputs[cid].source or inputs[cid].name} has {nin} joints")
+                f"{inputs[cid].label} has {nin} joints")
     keys = selected_clips(inputs, options, selection)
+    _check_fixed_frames(options.fixed_frames, inputs)
     if not keys:
         return ()
     J = skeleton_out.num_joints
@@ -423,7 +424,8 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
                 logger.warning("completion: character %r has no clip to complete %r of %r; its "
                                "joints keep that clip's mapped pose (rest where unmapped)", y, clip_name, cid)
                 continue
-            fixed = _fixed_rows(fixed_by_clip.get((cid, clip_name), ()), y, fy, seg, options.fps)
+            fixed = _fixed_rows(fixed_by_clip.get((cid, clip_name), ()), inputs, y, fy, seg, options.fps,
+                                rows.stop - rows.start)
             choice = None if fixed else _own_clip(inputs[cid], inputs[y], fy, clip_name, seg, rows)
             if choice is None:
                 if (cid, y) not in pairs:
@@ -471,19 +473,38 @@ def _own_clip(x, y, fy, clip_name, seg, rows):
     return cols if cols.size == n else None
 
 
-def _fixed_rows(fixed_frames, y, fy, seg, fps):
-    """Pinned frames of one completion by input ``y``: output frame -> candidate column."""
+def _check_fixed_frames(fixed_frames, inputs):
+    """Refuse a fixed frame naming a character id or a clip that the inputs do not have."""
+    for ff in fixed_frames:
+        for cid, clip in ((ff.character, ff.clip), (ff.source, ff.source_clip)):
+            if cid not in inputs:
+                raise InputError(f"completion: a fixed frame names character {cid!r}; inputs are {sorted(inputs)}")
+            names = [c.name for c in inputs[cid].clips]
+            if clip not in names:
+                raise InputError(f"completion: {inputs[cid].label} (character {cid!r}): no clip {clip!r}, which a "
+                                 f"fixed frame names; its clips: {', '.join(map(repr, names)) or 'none'}")
+
+
+def _fixed_rows(fixed_frames, inputs, y, fy, seg, fps, frames):
+    """Pinned frames of one completion by input ``y``: output frame -> candidate column.
+
+    ``fixed_frames`` are those of one clip (``frames`` long at ``fps``); messages name each
+    clip's file (:attr:`rigmix.character.Character.label`) and character id.
+    """
     fixed = {}
     for ff in fixed_frames:
         if ff.source != y:
             continue
-        if ff.source_clip not in fy.names:
-            raise InputError(f"completion: fixed frame names clip {ff.source_clip!r}, "
-                             f"character {y!r} has {list(fy.names)}")
-        cols = np.flatnonzero(seg == fy.names.index(ff.source_clip))
+        query = f"completion: {inputs[ff.character].label} (character {ff.character!r}): clip {ff.clip!r}"
+        if not 0 <= ff.frame < frames:
+            raise InputError(f"{query}: fixed frame {ff.frame} is outside the clip ({frames} frames at {fps:g} fps)")
+        cols = np.flatnonzero(seg == fy.names.index(ff.source_clip))  # named clips exist: _check_fixed_frames
+        source = f"completion: {inputs[y].label} (character {y!r}): clip {ff.source_clip!r}"
+        if cols.size == 0:
+            raise InputError(f"{source}: a fixed frame takes frames from it, but [animation] sources leaves it out")
         if not 0 <= ff.source_frame < cols.size:
-            raise InputError(f"completion: fixed frame {ff.source_frame} outside clip "
-                             f"{ff.source_clip!r} ({cols.size} frames at {fps} fps)")
+            raise InputError(f"{source}: fixed frame source_frame {ff.source_frame} is outside the clip "
+                             f"({cols.size} frames at {fps:g} fps)")
         fixed[int(ff.frame)] = int(cols[ff.source_frame])
     return fixed
 

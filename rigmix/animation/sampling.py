@@ -22,7 +22,7 @@ from ..character import Clip, Track
 from ..errors import InputError
 from ..transforms import quat_normalize, quat_slerp
 
-__all__ = ["sample_track", "sample_clip", "clip_times", "resample_clip", "MAX_CLIP_FRAMES"]
+__all__ = ["sample_track", "sample_clip", "clip_times", "check_clips", "resample_clip", "MAX_CLIP_FRAMES"]
 
 #: Most frames a clip is sampled at (about 9 hours at 30 fps): key times beyond that are a
 #: broken file, and sampling them would allocate without bound.
@@ -160,11 +160,7 @@ def clip_times(clip: Clip, fps: float = 30.0) -> np.ndarray:
     if fps <= 0:
         raise ValueError(f"animation: fps must be positive, got {fps}")
     start, end = clip.start, clip.end
-    frames = (end - start) * fps
-    if not np.isfinite(frames) or frames > MAX_CLIP_FRAMES:
-        raise InputError(f"animation: clip '{clip.name}' runs from {start:g} to {end:g} s, more than "
-                         f"{MAX_CLIP_FRAMES} frames at {fps:g} fps: trim its key times")
-    n = int(np.floor(frames + 1e-6))
+    n = _whole_frames(clip, fps, where="animation")
     t = start + np.arange(n + 1) / fps
     # a few float32 steps: two times this close may cast to one float32 key
     distinct = max(1e-6 / fps, 8.0 * float(np.spacing(np.float32(max(abs(end), abs(t[-1]))))))
@@ -173,6 +169,48 @@ def clip_times(clip: Clip, fps: float = 30.0) -> np.ndarray:
     elif n:
         t[-1] = end  # on the grid up to rounding: sample the end key exactly
     return t
+
+
+def _whole_frames(clip: Clip, fps: float, *, where: str) -> int:
+    """Whole ``1/fps`` steps from the clip's start to its end (the rule :func:`clip_times` and
+    :func:`check_clips` share).
+
+    Raises
+    ------
+    InputError
+        ``"{where}: clip 'NAME': ..."`` when that is more than :data:`MAX_CLIP_FRAMES` (or not
+        finite).
+    """
+    start, end = clip.start, clip.end
+    frames = (end - start) * fps
+    if not np.isfinite(frames) or frames > MAX_CLIP_FRAMES:
+        raise InputError(f"{where}: clip {clip.name!r}: runs from {start:g} to {end:g} s, more than "
+                         f"{MAX_CLIP_FRAMES} frames at {fps:g} fps: trim its key times")
+    return int(np.floor(frames + 1e-6))
+
+
+def check_clips(character, fps: float) -> None:
+    """Refuse a character with a clip too long to sample at ``fps`` (:data:`MAX_CLIP_FRAMES`
+    frames), naming its file and the clip.
+
+    Compose applies it to every input file at the config's ``[animation] fps`` before any stage
+    runs, and ``rigmix inspect`` at the default fps, so no clip of a file is refused later
+    without its file.
+
+    Parameters
+    ----------
+    character : rigmix.character.Character
+    fps : float
+        Frames per second, positive.
+
+    Raises
+    ------
+    InputError
+        ``"<file>: clip 'NAME': runs from ... s, more than ... frames at ... fps: trim its key
+        times"``.
+    """
+    for clip in character.clips:
+        _whole_frames(clip, fps, where=character.label)
 
 
 def _hemisphere_continuous(q):

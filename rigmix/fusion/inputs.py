@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from ..errors import InputError
@@ -67,7 +65,7 @@ def check_weight_size(characters, where: str = "compose") -> None:
     if V * J <= MAX_DENSE_WEIGHT_ENTRIES:
         return
     names = ", ".join(
-        f"{cid} ({Path(characters[cid].source).name or characters[cid].name}: {v} vertices, {j} joints)"
+        f"{cid} ({characters[cid].label}: {v} vertices, {j} joints)"
         for cid, (v, j) in counts.items())
     check_dense_weights(V, J, f"{where}: characters {names} together have skin weights too large to compose")
 

@@ -789,6 +789,10 @@ def _track(doc, sampler: dict, joint: int, path: str, label: str, log) -> Track:
     if interp not in ("LINEAR", "STEP", "CUBICSPLINE"):
         raise doc.error(f"{label} has unknown interpolation {interp!r}")
     times = doc.accessor(sampler.get("input"), f"{label} input")
+    ctype = doc.get("accessors", sampler.get("input")).get("componentType")
+    if ctype != 5126:  # glTF 2.0 3.11: key times are FLOAT (bytes would read as whole seconds)
+        raise doc.error(f"{label}: input (key times) is stored as {_COMPONENT_NAMES.get(ctype, repr(ctype))}, "
+                        "which glTF 2.0 does not allow (FLOAT seconds): re-export the clip")
     _check_declared_bounds(doc, sampler.get("input"), f"{label} input", log)
     if times.shape[1] != 1 or not np.all(np.isfinite(times)):
         raise doc.error(f"{label}: input must be finite scalar times")

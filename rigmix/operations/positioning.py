@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import logging
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
@@ -37,8 +36,8 @@ import scipy.sparse.linalg as spla
 
 from ..config import MAX_SCALE, MIN_SCALE
 from ..errors import InputError
-from ..geometry import check_coordinates, check_transforms
-from ..skinning import linear_blend_skinning
+from ..geometry import check_coordinates
+from ..skinning import check_rig, linear_blend_skinning
 from ..transforms import matrix_to_trs, quat_multiply, quat_to_matrix
 
 __all__ = [
@@ -54,7 +53,6 @@ __all__ = [
     "position_character",
     "positioning_order",
     "position_inputs",
-    "check_rig",
     "check_positioned",
 ]
 
@@ -444,35 +442,8 @@ def position_character(character, *, scale=1.0, placement=None, rotations=None, 
 
 
 def _label(character, cid) -> str:
-    """``'cid' (file name)`` for messages: the file's name only, never its folders."""
-    src = Path(character.source).name if character.source else character.name
-    return f"character {cid!r} ({src})" if src else f"character {cid!r}"
-
-
-def check_rig(character, cid: str = "") -> None:
-    """Refuse a character that cannot be positioned: a rest world or inverse bind matrix that is
-    not finite or cannot be inverted (a zero scale, a zero matrix), or a vertex or joint beyond
-    :data:`rigmix.geometry.MAX_COORDINATE` (native kernels crash on such values).
-
-    Raises
-    ------
-    InputError
-        Naming the character, its file, the joint or the object, and the fix.
-    """
-    sk = character.skeleton
-    where = f"operations: {_label(character, cid or character.name)}"
-    W = sk.rest_worlds()
-    check_transforms(W, sk.names, where=where, what="rest world matrix",
-                     fix="give the joint and its parents a non-zero scale (or matrix) in the file")
-    check_transforms(sk.inverse_binds, sk.names, where=where, what="inverse bind matrix",
-                     fix="re-export the skin with invertible inverse bind matrices")
-    M = W @ sk.inverse_binds
-    points = {"skeleton": W[:, :3, 3]}
-    for k, mesh in enumerate(character.meshes):
-        P = (linear_blend_skinning(mesh.positions, mesh.joints, mesh.weights, M) if mesh.skinned
-             else np.asarray(mesh.positions))
-        points[f"mesh {mesh.name or k!r} at rest"] = P
-    check_coordinates(points, where=where, fix="the file's transforms or vertices are out of range")
+    """``character 'cid' (file name)`` for messages (:attr:`rigmix.character.Character.label`)."""
+    return f"character {cid!r} ({character.label})" if character.label else f"character {cid!r}"
 
 
 def check_positioned(positioned, config) -> None:
@@ -562,8 +533,8 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
         it was chosen, the pair ratios, role).
     """
     positioned, scales, transforms, translations, info = {}, {}, {}, {}, {}
-    for cid in config.characters:
-        check_rig(inputs[cid], cid)
+    for cid in config.characters:  # built-in and mirrored characters too, and files after rest_at_bind
+        check_rig(inputs[cid], where=f"operations: {_label(inputs[cid], cid)}")
     for cid in positioning_order(actions, config):
         ch = inputs[cid]
         cc = config.characters[cid]
