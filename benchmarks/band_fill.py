@@ -235,7 +235,7 @@ BOTH_HIDDEN_METHODS = {
 }
 
 #: the encoders protocol 1 measures ``dfd`` with, one field each (``dfd[<encoder>]``)
-FIELD_ENCODERS = ("filterbank",)
+FIELD_ENCODERS = ("filterbank", "skeleton", "skeleton+filterbank", "hks")
 
 
 def mirror_joint_pairs(character):
@@ -369,9 +369,19 @@ def run_both_hidden(name, path, *, encoders=FIELD_ENCODERS):
 
 
 def make_encoder(name, V, F, positions, parents):
-    """The encoder ``name`` of :data:`FIELD_ENCODERS` for one character (mesh, bind-pose skeleton)."""
-    from dfd.encoders import get_encoder
+    """The encoder ``name`` of :data:`FIELD_ENCODERS` for one character (mesh, bind-pose skeleton).
 
+    ``skeleton`` gets the bones as segments (:func:`dfd.encoders.bone_segments`), ``hks`` the mesh;
+    ``a+b`` combines two encoders with equal weights."""
+    from dfd.encoders import CombinedEncoder, bone_segments, get_encoder
+
+    if "+" in name:
+        return CombinedEncoder([make_encoder(part, V, F, positions, parents) for part in name.split("+")])
+    if name == "skeleton":
+        heads, tails = bone_segments(positions, parents)
+        return get_encoder(name, heads=heads, tails=tails)
+    if name == "hks":
+        return get_encoder(name, V=V, F=F)
     return get_encoder(name)
 
 
