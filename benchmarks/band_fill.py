@@ -234,8 +234,14 @@ BOTH_HIDDEN_METHODS = {
     "dfd_no_field": ("dfd", {"field": False}),
 }
 
-#: the encoders protocol 1 measures ``dfd`` with, one field each (``dfd[<encoder>]``)
+#: the encoders protocol 1 measures ``dfd`` with, one distilled field each (``dfd[<encoder>]``)
 FIELD_ENCODERS = ("filterbank", "skeleton", "skeleton+filterbank", "hks")
+#: encoders whose features are a function of the surface point, also used as fields without
+#: distillation (``dfd[<encoder>-direct]``, :func:`dfd.encoders.point_field`)
+DIRECT_ENCODERS = ("skeleton", "skeleton-relative", "hks")
+#: the largest confidence of the prior borrowed from feature-similar parts (``...+borrow``
+#: labels; ``fill_weights``' ``borrow``); without it the field only judges the mirror prior
+BORROW = 0.5
 
 
 def mirror_joint_pairs(character):
@@ -324,7 +330,7 @@ def pair_band_errors(V, F, W, pairs, method, *, names=None, low=LOW, high=HIGH, 
     return out
 
 
-def run_both_hidden(name, path, *, encoders=FIELD_ENCODERS):
+def run_both_hidden(name, path, *, encoders=FIELD_ENCODERS, direct=DIRECT_ENCODERS):
     """Protocol 1 on one character: every method and every encoder's field.
 
     Returns a dict with the mesh sizes, the limb pairs, and per method label ``mean_error``
@@ -339,19 +345,27 @@ def run_both_hidden(name, path, *, encoders=FIELD_ENCODERS):
     parents = character.skeleton.parents
     pairs, limbs = mirror_joint_pairs(character)
     result = {"vertices": len(V), "joints": len(names), "limb_pairs": [list(x) for x in limbs],
-              "methods": {}, "field_seconds": {}, "field_errors": {}}
+              "methods": {}, "field_seconds": {}, "field_errors": {}, "pairs": 0}
+    if not pairs:  # no mirrored limb: nothing to hide, no field to distil
+        return result
     skeleton = {"joint_positions": positions, "joint_names": names, "joint_parents": parents}
+    from dfd.encoders import point_field
+
     methods = {label: (m, dict(o)) for label, (m, o) in BOTH_HIDDEN_METHODS.items()}
-    for enc in encoders:
+    fields = [(enc, False) for enc in encoders] + [(enc, True) for enc in direct]
+    for enc, is_direct in fields:
+        label = f"{enc}-direct" if is_direct else enc
         t0 = time.perf_counter()
         try:
-            field = feature_field(V, F, cache=field_cache(), encoder=make_encoder(enc, V, F, positions, parents),
-                                  **DISTILL)
+            encoder = make_encoder(enc, V, F, positions, parents)
+            field = (point_field(encoder, V) if is_direct
+                     else feature_field(V, F, cache=field_cache(), encoder=encoder, **DISTILL))
         except Exception as exc:  # recorded, the other encoders still run
-            result["field_errors"][enc] = f"{type(exc).__name__}: {exc}"
+            result["field_errors"][label] = f"{type(exc).__name__}: {exc}"
             continue
-        result["field_seconds"][enc] = round(time.perf_counter() - t0, 2)
-        methods[f"dfd[{enc}]"] = ("dfd", {"field": field})
+        result["field_seconds"][label] = round(time.perf_counter() - t0, 2)
+        methods[f"dfd[{label}]"] = ("dfd", {"field": field})
+        methods[f"dfd[{label}]+borrow"] = ("dfd", {"field": field, "borrow": BORROW})
     for label, (method, options) in methods.items():
         if method == "dfd":
             options = {**options, **skeleton}
@@ -371,15 +385,16 @@ def run_both_hidden(name, path, *, encoders=FIELD_ENCODERS):
 def make_encoder(name, V, F, positions, parents):
     """The encoder ``name`` of :data:`FIELD_ENCODERS` for one character (mesh, bind-pose skeleton).
 
-    ``skeleton`` gets the bones as segments (:func:`dfd.encoders.bone_segments`), ``hks`` the mesh;
+    ``skeleton`` gets the bones as segments (:func:`dfd.encoders.bone_segments`; ``skeleton-relative``:
+    without the channels that tell the bones apart), ``hks`` the mesh;
     ``a+b`` combines two encoders with equal weights."""
     from dfd.encoders import CombinedEncoder, bone_segments, get_encoder
 
     if "+" in name:
         return CombinedEncoder([make_encoder(part, V, F, positions, parents) for part in name.split("+")])
-    if name == "skeleton":
+    if name in ("skeleton", "skeleton-relative"):
         heads, tails = bone_segments(positions, parents)
-        return get_encoder(name, heads=heads, tails=tails)
+        return get_encoder("skeleton", heads=heads, tails=tails, describe=name == "skeleton")
     if name == "hks":
         return get_encoder(name, V=V, F=F)
     return get_encoder(name)
@@ -405,13 +420,13 @@ def summarize_both_hidden(results):
     for label in labels:
         if not label.startswith("dfd["):
             continue
-        enc = label[4:-1]
+        enc = label[4:label.index("]")]
         have = [r for r in done if label in r["methods"]]
         # against dfd_no_field on the same characters
         b = float(np.mean([r["methods"]["dfd_no_field"]["mean_error"] for r in have]))
         seconds = [r["field_seconds"][enc] for r in have]
         reduction = 1.0 - means[label] / b if b > 0 else 0.0
-        rule[enc] = {"characters": len(have), "relative_reduction": reduction,
+        rule[label] = {"characters": len(have), "relative_reduction": reduction,
                      "field_seconds_max": float(max(seconds)), "field_seconds_mean": float(np.mean(seconds)),
                      "passes": bool(reduction >= RULE_REDUCTION and max(seconds) <= RULE_SECONDS)}
     return {"characters": len(done), "mean_error": means, "mean_of_max_error": maxes,
@@ -443,7 +458,7 @@ def markdown_both_hidden(results, summary):
     lines += ["", f"Decision rule: a field is a default only where it lowers the mean error by at least "
               f"{100 * RULE_REDUCTION:.0f}% against `dfd_no_field` and costs at most {RULE_SECONDS:.0f} s per "
               "character (distilled with " + f"{DISTILL}" + ").", "",
-              "| encoder | characters | mean error vs dfd_no_field | field s (mean / max) | rule |",
+              "| method | characters | mean error vs dfd_no_field | field s (mean / max) | rule |",
               "|---|---:|---:|---|---|"]
     for enc, d in summary["rule"].items():
         lines.append(f"| {enc} | {d['characters']} | {-100 * d['relative_reduction']:+.1f}% | "
@@ -455,7 +470,8 @@ def markdown_both_hidden(results, summary):
 def write_both_hidden(results):
     summary = summarize_both_hidden(results)
     payload = {"protocol": {"name": "both-hidden", "low": LOW, "high": HIGH, "max_influences": 4,
-                            "distill": DISTILL, "encoders": list(FIELD_ENCODERS)},
+                            "distill": DISTILL, "encoders": list(FIELD_ENCODERS),
+                            "direct_encoders": list(DIRECT_ENCODERS), "borrow": BORROW},
                "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
                "characters": results, "summary": summary}
     (RESULTS / "band_fill_both_hidden.json").write_text(json.dumps(payload, indent=2) + "\n")

@@ -33,7 +33,7 @@ if TYPE_CHECKING:
     from dfd.dinov2 import DinoV2Encoder
 
 __all__ = ["Encoder", "FilterBankEncoder", "SkeletonEncoder", "HeatKernelEncoder", "CombinedEncoder", "DinoV2Encoder",
-           "get_encoder", "encode_views", "view_points", "bone_segments", "ENCODERS"]
+           "get_encoder", "encode_views", "view_points", "bone_segments", "point_field", "ENCODERS"]
 
 
 @runtime_checkable
@@ -277,6 +277,10 @@ class SkeletonEncoder:
         parents). A zero-length segment is a point.
     nearest : int
         Bones described per point.
+    describe : bool
+        Include the 7 channels that describe each bone (which bone it is); without them only
+        the point's place relative to its bones remains (5 channels per bone), alike on every
+        bone: what a profile borrowed from another joint needs.
     chunk : int
         Points per block of the distance computation (memory: ``chunk * S`` floats).
     """
@@ -285,7 +289,7 @@ class SkeletonEncoder:
     #: channels per described bone
     CHANNELS = 12
 
-    def __init__(self, heads, tails, *, nearest=2, chunk=65536):
+    def __init__(self, heads, tails, *, nearest=2, describe=True, chunk=65536):
         H = np.asarray(heads, dtype=np.float64)
         T = np.asarray(tails, dtype=np.float64)
         if H.ndim != 2 or H.shape[1] != 3 or H.shape != T.shape or len(H) == 0:
@@ -297,8 +301,10 @@ class SkeletonEncoder:
             raise DfdInputError(f"skeleton encoder: nearest must be >= 1, got {nearest}")
         self.heads, self.tails = H, T
         self.nearest = int(min(nearest, len(H)))
+        self.describe = bool(describe)
         self.chunk = int(chunk)
-        self.feature_dim = self.CHANNELS * self.nearest
+        self.channels = self.CHANNELS if self.describe else self.CHANNELS - 7
+        self.feature_dim = self.channels * self.nearest
         ends = np.vstack([H, T])
         lo, hi = ends.min(axis=0), ends.max(axis=0)
         self.extent = max(float(np.linalg.norm(hi - lo)), 1e-12)
@@ -320,7 +326,8 @@ class SkeletonEncoder:
     def settings(self) -> dict:
         """Everything that changes the features (stored with distilled fields)."""
         h = hashlib.sha256(np.ascontiguousarray(self.heads).tobytes() + np.ascontiguousarray(self.tails).tobytes())
-        return {"name": self.name, "nearest": self.nearest, "bones": len(self.heads), "segments": h.hexdigest()[:16]}
+        return {"name": self.name, "nearest": self.nearest, "describe": self.describe, "bones": len(self.heads),
+                "segments": h.hexdigest()[:16]}
 
     def point_features(self, X):
         """Unstandardized channels ``(q, feature_dim)`` float64 of points ``X`` ``(q, 3)``."""
@@ -349,8 +356,7 @@ class SkeletonEncoder:
                 (ds / self.extent)[..., None],
                 cos[..., None],
                 np.abs(sin)[..., None],
-                self.descriptors[s],
-            ], axis=2)
+            ] + ([self.descriptors[s]] if self.describe else []), axis=2)
             out[a : a + self.chunk] = block.reshape(len(x), -1)
         return out
 
@@ -368,8 +374,13 @@ class SkeletonEncoder:
         mask = views.mask
         raw = np.zeros(mask.shape + (self.feature_dim,), dtype=np.float64)
         raw[mask] = self.point_features(view_points(views)[mask])
-        c = self.CHANNELS
-        return _standardize(raw, mask, [(r * c, (r + 1) * c, 1.0 / (r + 1)) for r in range(self.nearest)])
+        return _standardize(raw, mask, self.channel_groups)
+
+    @property
+    def channel_groups(self):
+        """``(start, stop, weight)`` of each described bone's channels (rank ``r`` weighs ``1 / (r + 1)``)."""
+        c = self.channels
+        return [(r * c, (r + 1) * c, 1.0 / (r + 1)) for r in range(self.nearest)]
 
 
 class HeatKernelEncoder:
@@ -458,7 +469,12 @@ class HeatKernelEncoder:
         mask = views.mask
         raw = np.zeros(mask.shape + (self.feature_dim,), dtype=np.float64)
         raw[mask] = self.point_features(view_points(views)[mask])
-        return _standardize(raw, mask, [(0, self.feature_dim, 1.0)])
+        return _standardize(raw, mask, self.channel_groups)
+
+    @property
+    def channel_groups(self):
+        """``(start, stop, weight)``: one group of every time scale."""
+        return [(0, self.feature_dim, 1.0)]
 
 
 class CombinedEncoder:
@@ -497,6 +513,39 @@ class CombinedEncoder:
         """Features of rendered views (each encoder's :func:`encode_views`)."""
         return _unit(np.concatenate([encode_views(e, views) * np.sqrt(w) for e, w in zip(self.encoders, self.weights)],
                                     axis=-1))
+
+
+def point_field(encoder, reference):
+    """A feature field without distillation, for an encoder whose features are a function of the
+    surface point (``point_features`` and ``channel_groups``: :class:`SkeletonEncoder`,
+    :class:`HeatKernelEncoder`).
+
+    Parameters
+    ----------
+    encoder : SkeletonEncoder or HeatKernelEncoder
+    reference : (n, 3) float array
+        Points that standardize the channels (the mesh's vertices), as the covered pixels do in
+        ``encode_views``.
+
+    Returns
+    -------
+    callable
+        ``field(points (q, 3)) -> (q, feature_dim)`` float32 unit features.
+    """
+    if not (hasattr(encoder, "point_features") and hasattr(encoder, "channel_groups")):
+        raise DfdInputError(f"point_field: {type(encoder).__name__} has no point_features; distill a field instead")
+    ref = encoder.point_features(np.asarray(reference, dtype=np.float64))
+    mean, std = ref.mean(axis=0), ref.std(axis=0)
+    std = np.where(std > 1e-8, std, 1.0)
+    groups = encoder.channel_groups
+
+    def field(points):
+        X = (encoder.point_features(np.asarray(points, dtype=np.float64)) - mean) / std
+        for a, b, w in groups:
+            X[:, a:b] *= w / np.sqrt(b - a)
+        return _unit(X)
+
+    return field
 
 
 #: Registered encoder names.
