@@ -435,6 +435,7 @@ def summarize_both_hidden(results):
 
 def markdown_both_hidden(results, summary):
     labels = list(summary["mean_error"])
+    rule = summary["rule"]
     lines = [
         "Band fill, protocol 1 (issue 27): for each mirrored joint pair of each limb pair found by the limb "
         f"classifier, both joints' transition bands (weights strictly in ({LOW}, {HIGH})) are hidden together "
@@ -442,28 +443,36 @@ def markdown_both_hidden(results, summary):
         "(0 identical, 1 disjoint); per character, `mean` is the mean over joint pairs, `max` the largest "
         "over every hidden vertex. Lower is better. No skinned error: the band benchmark has no animation.",
         "",
-        "| character | pairs | " + " | ".join(f"{m} mean / max" for m in labels) + " | field s |",
-        "|---|---:|" + "---:|" * len(labels) + "---|",
+        "`dfd[E]`: the dfd fill with the field of encoder `E` distilled "
+        f"({DISTILL}, 24 views at 224 px), which judges the mirror prior; `E-direct`: the encoder's "
+        "features evaluated at the points, no distillation; `+borrow`: the field also drives the prior "
+        "borrowed from feature-similar parts around other joints (`rigmix/weights/borrow.py`, confidence "
+        f"{BORROW}). `skeleton-relative`: the skeleton encoder without the channels that tell bones apart.",
+        "",
+        f"Mean over {summary['characters']} characters, and the decision rule (a field is a default only where "
+        f"it lowers the mean error by at least {100 * RULE_REDUCTION:.0f}% against `dfd_no_field` and costs at "
+        f"most {RULE_SECONDS:.0f} s per character):",
+        "",
+        "| method | mean error | mean of max error | vs dfd_no_field | field s (mean / max) | rule |",
+        "|---|---:|---:|---:|---|---|",
     ]
+    for m in labels:
+        d = rule.get(m)
+        vs = f"{-100 * d['relative_reduction']:+.1f}%" if d else "-"
+        fs = f"{d['field_seconds_mean']:.2f} / {d['field_seconds_max']:.2f}" if d else "-"
+        verdict = ("passes" if d["passes"] else "fails") if d else "-"
+        lines.append(f"| {m} | {summary['mean_error'][m]:.3f} | {summary['mean_of_max_error'][m]:.2f} | {vs} | "
+                     f"{fs} | {verdict} |")
+    lines += ["", "Per character, mean / max error:", "",
+              "| character | pairs | " + " | ".join(labels) + " |",
+              "|---|---:|" + "---:|" * len(labels)]
     for n, r in results.items():
         if not r.get("pairs"):
             continue
         cells = " | ".join(
             f"{r['methods'][m]['mean_error']:.3f} / {r['methods'][m]['max_error']:.2f}" if m in r["methods"] else "-"
             for m in labels)
-        fs = ", ".join(f"{e} {s:.1f}" for e, s in r["field_seconds"].items()) or "-"
-        lines.append(f"| {n} | {r['pairs']} | {cells} | {fs} |")
-    cells = " | ".join(f"**{summary['mean_error'][m]:.3f}** / {summary['mean_of_max_error'][m]:.2f}" for m in labels)
-    lines.append(f"| mean of {summary['characters']} | | {cells} | |")
-    lines += ["", f"Decision rule: a field is a default only where it lowers the mean error by at least "
-              f"{100 * RULE_REDUCTION:.0f}% against `dfd_no_field` and costs at most {RULE_SECONDS:.0f} s per "
-              "character (distilled with " + f"{DISTILL}" + ").", "",
-              "| method | characters | mean error vs dfd_no_field | field s (mean / max) | rule |",
-              "|---|---:|---:|---|---|"]
-    for enc, d in summary["rule"].items():
-        lines.append(f"| {enc} | {d['characters']} | {-100 * d['relative_reduction']:+.1f}% | "
-                     f"{d['field_seconds_mean']:.1f} / {d['field_seconds_max']:.1f} | "
-                     f"{'passes' if d['passes'] else 'fails'} |")
+        lines.append(f"| {n} | {r['pairs']} | {cells} |")
     return "\n".join(lines) + "\n"
 
 

@@ -430,8 +430,11 @@ class HeatKernelEncoder:
         m = np.asarray(M.diagonal(), dtype=np.float64)
         m = np.maximum(np.nan_to_num(m), 1e-2 * max(float(np.nanmean(m)), 1e-300))
         M = sp.diags(m)
-        # shift-invert just below zero: L + eps M is positive definite on every component
-        vals, vecs = eigsh(L.tocsc(), k=self.eigenpairs, M=M.tocsc(), sigma=-1e-8, which="LM")
+        # shift-invert just below zero: L + eps M is positive definite on every component; eps
+        # relative to the Laplacian's scale (an absolute shift vanishes against large cotangents,
+        # leaving a numerically singular factor on the corpus's Adventurer)
+        eps = 1e-6 * float(np.abs(L.diagonal()).mean()) / float(m.mean())
+        vals, vecs = eigsh(L.tocsc(), k=self.eigenpairs, M=M.tocsc(), sigma=-eps, which="LM")
         vals = np.maximum(vals, 0.0)
         positive = vals[vals > 1e-8 * max(float(vals.max()), 1e-300)]
         lo = float(positive.min()) if len(positive) else 1.0

@@ -74,3 +74,60 @@ def test_pair_errors_measure_the_hidden_rows(fox):
         j, k = key.split("|")
         assert j in names and k in names
         assert 0 < e["mean"] <= e["max"] <= 1 and e["rows"] > 0
+
+
+@pytest.fixture(scope="module")
+def knight_hidden():
+    """The Knight with its first mirrored joint pair's two bands hidden (protocol 1)."""
+    character = load_character(asset("Knight"))
+    V, F, W, names, positions = character_arrays(character)
+    index, Wt = welded_truth(V, F, W)
+    pairs, _ = mirror_joint_pairs(character)
+    band = next(b for b in (pair_band(Wt, j, k) for j, k in pairs) if b.sum() > 20)
+    return {"character": character, "V": V, "F": F, "W": W, "names": names, "positions": positions,
+            "parents": character.skeleton.parents, "unknown": band[index]}
+
+
+def test_bone_owners_follow_the_painting(knight_hidden):
+    """A vertex painted to one joint has that joint's bone among its two nearest."""
+    from rigmix.weights.borrow import bone_owners
+
+    d = knight_hidden
+    owners = bone_owners(d["V"], d["positions"], d["parents"])
+    single = d["W"].max(axis=1) > 0.95
+    joint = d["W"].argmax(axis=1)
+    hit = (owners[single] == joint[single, None]).any(axis=1)
+    assert single.sum() > 500 and hit.mean() > 0.9
+
+
+def test_fill_borrows_from_feature_similar_parts(knight_hidden):
+    from dfd.encoders import SkeletonEncoder, bone_segments, point_field
+    from rigmix.weights import fill_weights
+    from rigmix.weights.borrow import bone_owners, borrow_prior
+    from rigmix.weights.mesh import weld_rows, welded_mesh
+    from rigmix.weights.mirror import mirror_joints, symmetry_plane
+
+    d = knight_hidden
+    V, F, W, unknown = d["V"], d["F"], d["W"], d["unknown"]
+    field = point_field(SkeletonEncoder(*bone_segments(d["positions"], d["parents"]), describe=False), V)
+    g = welded_mesh(V, F)
+    Ww, unk = weld_rows(np.where(unknown[:, None], 0.0, W), g.index, unknown, len(g.V))
+    mirror = mirror_joints(names=d["names"], positions=d["positions"], plane=symmetry_plane(g.V, g.F))
+    P, c = borrow_prior(g, Ww, unk, field(g.V), d["positions"], d["parents"], mirror, confidence=0.5)
+    assert (c[~unk] == 0).all() and (P[~unk] == 0).all()
+    assert 0 <= c.min() and c.max() <= 0.5 and (c[unk] > 0).any()
+    # each prior row lives on the row's two bone owners and sums to 1
+    owners = bone_owners(g.V, d["positions"], d["parents"])
+    rows = np.flatnonzero(c > 0)
+    np.testing.assert_allclose(P[rows].sum(axis=1), 1.0, atol=1e-9)
+    outside = P[rows].copy()
+    outside[np.arange(len(rows))[:, None], owners[rows]] = 0.0
+    assert (outside == 0).all()
+    skeleton = {"joint_positions": d["positions"], "joint_names": d["names"], "joint_parents": d["parents"]}
+    hidden = np.where(unknown[:, None], 0.0, W)
+    with_borrow = fill_weights(V, F, hidden, unknown, method="dfd", field=field, borrow=0.5, **skeleton)
+    without = fill_weights(V, F, hidden, unknown, method="dfd", field=field, **skeleton)
+    np.testing.assert_array_equal(with_borrow[~unknown], W[~unknown])
+    np.testing.assert_allclose(with_borrow[unknown].sum(axis=1), 1.0, atol=1e-9)
+    assert np.isfinite(with_borrow).all() and (with_borrow >= 0).all()
+    assert np.abs(with_borrow - without)[unknown].max() > 0.01  # the borrowed prior takes part

@@ -134,3 +134,13 @@ def test_combined_encoder(knight):
     X = encode_views(enc, views)
     _check_unit(X, views, enc.feature_dim)
     assert enc.feature_dim == 24 + 28 and enc.settings()["encoders"][0]["name"] == "skeleton"
+
+
+def test_heat_kernel_signature_on_the_adventurer():
+    """The corpus Adventurer's large cotangent weights once left the shift-invert factor singular."""
+    from conftest import corpus
+
+    V, F, *_ = character_arrays(load_character(corpus("Adventurer")))
+    enc = HeatKernelEncoder(V, F)
+    assert enc.vertex_hks.shape == (len(enc.V), 8) and np.isfinite(enc.vertex_hks).all()
+    assert np.ptp(enc.vertex_hks, axis=0).min() > 0  # the signature varies over the surface
