@@ -18,8 +18,14 @@ positions, names and parents for the joint mirror and the bone prior). Nothing o
 band reaches any method: the weights passed for band vertices are zeros, and every method
 reads known rows only.
 
-Writes ``benchmarks/results/band_fill.json`` and ``band_fill.md``.
-Usage: ``python -m benchmarks.band_fill [CHARACTER ...]``.
+Protocol 1 of issue 27 (``--both-hidden``): a limb's transition bands are hidden together with its
+mirror partner's (joint pairs from the limb classifier, :func:`mirror_joint_pairs`), so the mirror
+prior has nothing to copy; ``nearest``, ``inpaint``, ``dfd_no_field`` and ``dfd`` with the field of
+each encoder of :data:`FIELD_ENCODERS` fill them back, over the shared characters and the corpus.
+
+Writes ``benchmarks/results/band_fill.json`` and ``band_fill.md`` (``band_fill_both_hidden.*``
+with ``--both-hidden``).
+Usage: ``python -m benchmarks.band_fill [--both-hidden] [CHARACTER ...]``.
 """
 
 from __future__ import annotations
@@ -219,11 +225,301 @@ def markdown(results, summary):
     return "\n".join(lines) + "\n"
 
 
+# --- protocol 1 (issue 27): a limb's bands hidden together with its mirror partner's -------------
+
+#: protocol 1's methods without a field: label -> (fill method, options)
+BOTH_HIDDEN_METHODS = {
+    "nearest": ("nearest", {}),
+    "inpaint": ("inpaint", {}),
+    "dfd_no_field": ("dfd", {"field": False}),
+}
+
+#: the encoders protocol 1 measures ``dfd`` with, one distilled field each (``dfd[<encoder>]``)
+FIELD_ENCODERS = ("filterbank", "skeleton", "skeleton+filterbank", "hks")
+#: encoders whose features are a function of the surface point, also used as fields without
+#: distillation (``dfd[<encoder>-direct]``, :func:`dfd.encoders.point_field`)
+DIRECT_ENCODERS = ("skeleton", "skeleton-relative", "hks")
+#: the largest confidence of the prior borrowed from feature-similar parts (``...+borrow``
+#: labels; ``fill_weights``' ``borrow``); without it the field only judges the mirror prior
+BORROW = 0.5
+
+
+def mirror_joint_pairs(character):
+    """Joint pairs ``(j, k)`` of every mirrored limb pair that :func:`rigmix.limbs.classify_limbs` finds.
+
+    The limb classifier pairs the limbs (geometry first, names only as a tie-breaker). Within a
+    limb pair, joints pair in the classifier's order (parents first) when both limbs have as many;
+    otherwise each joint of the first limb pairs with the partner joint nearest to its reflection
+    across the classifier's symmetry plane (the axis ``symmetry_axis``, through the midpoint of the
+    two limb roots).
+
+    Returns
+    -------
+    pairs : list of (int, int)
+        Joint indices into ``character.skeleton.names``; each limb pair listed once.
+    limbs : list of (str, str)
+        The root joints ``(limb, partner)`` of each pair, in the same order as their joints.
+    """
+    from rigmix.limbs import classify_limbs
+
+    plan = classify_limbs(character)
+    names = list(character.skeleton.names)
+    index = {n: i for i, n in enumerate(names)}
+    positions = np.linalg.inv(character.skeleton.inverse_binds)[:, :3, 3]
+    axis = plan.symmetry_axis
+    pairs, limbs, seen = [], [], set()
+    for limb in plan.limbs:
+        if limb.partner is None or limb.partner in seen:
+            continue
+        seen.add(limb.root)
+        other = plan.limb(limb.partner)
+        a = [index[n] for n in limb.joints]
+        b = [index[n] for n in other.joints]
+        if len(a) != len(b):
+            offset = 0.5 * (positions[a[0], axis] + positions[b[0], axis])
+            R = positions[a].copy()
+            R[:, axis] = 2.0 * offset - R[:, axis]
+            b = [b[int(np.argmin(np.linalg.norm(positions[b] - r, axis=1)))] for r in R]
+        pairs += list(zip(a, b))
+        limbs.append((limb.root, other.root))
+    return pairs, limbs
+
+
+def pair_band(Wt, j, k, *, low=LOW, high=HIGH):
+    """``(n,) bool``: welded vertices in joint ``j``'s transition band or in joint ``k``'s
+    (weights strictly in ``(low, high)``), hidden together by protocol 1."""
+    return ((Wt[:, j] > low) & (Wt[:, j] < high)) | ((Wt[:, k] > low) & (Wt[:, k] < high))
+
+
+def pair_band_errors(V, F, W, pairs, method, *, names=None, low=LOW, high=HIGH, **options):
+    """Protocol 1: each joint pair's two bands hidden together and filled back.
+
+    Parameters
+    ----------
+    V, F, W : the character's combined mesh and dense weights (split vertices).
+    pairs : list of (int, int)
+        Joint pairs (:func:`mirror_joint_pairs`). A pair where either joint has an empty band is
+        skipped (one side hidden alone is the existing protocol).
+    method : str
+        ``fill_weights`` method.
+    **options
+        Passed to :func:`fill_weights`.
+
+    Returns
+    -------
+    errors : dict
+        ``"j|k"`` (names when given) -> ``{"mean", "max", "rows"}``: half-L1 error over the
+        hidden welded vertices (0 identical, 1 disjoint), mean and max, and how many were hidden.
+    """
+    index, Wt = welded_truth(V, F, W)
+    rows = np.zeros(len(Wt), dtype=np.int64)
+    rows[index] = np.arange(len(V))  # one split vertex per welded vertex
+    out = {}
+    for j, k in pairs:
+        in_j = (Wt[:, j] > low) & (Wt[:, j] < high)
+        in_k = (Wt[:, k] > low) & (Wt[:, k] < high)
+        if not (in_j.any() and in_k.any()):
+            continue
+        band = pair_band(Wt, j, k, low=low, high=high)
+        unknown = band[index]
+        hidden = np.where(unknown[:, None], 0.0, W)  # neither band's weights reach the fill
+        filled = fill_weights(V, F, hidden, unknown, method=method, **options)
+        err = 0.5 * np.abs(filled[rows[band]] - Wt[band]).sum(axis=1)
+        key = f"{names[j]}|{names[k]}" if names else f"{j}|{k}"
+        out[key] = {"mean": float(err.mean()), "max": float(err.max()), "rows": int(band.sum())}
+    return out
+
+
+def run_both_hidden(name, path, *, encoders=FIELD_ENCODERS, direct=DIRECT_ENCODERS):
+    """Protocol 1 on one character: every method and every encoder's field.
+
+    Returns a dict with the mesh sizes, the limb pairs, and per method label ``mean_error``
+    (mean over joint pairs of each pair's mean error), ``max_error`` (largest over all hidden
+    vertices), ``seconds`` (the fills) and ``per_pair``; per encoder, ``field_seconds``
+    (distilling, or loading it from the cache).
+    """
+    from rigmix.io import load_character
+
+    character = load_character(path)
+    V, F, W, names, positions = character_arrays(character)
+    parents = character.skeleton.parents
+    pairs, limbs = mirror_joint_pairs(character)
+    result = {"vertices": len(V), "joints": len(names), "limb_pairs": [list(x) for x in limbs],
+              "methods": {}, "field_seconds": {}, "field_errors": {}, "pairs": 0}
+    if not pairs:  # no mirrored limb: nothing to hide, no field to distil
+        return result
+    skeleton = {"joint_positions": positions, "joint_names": names, "joint_parents": parents}
+    from dfd.encoders import point_field
+
+    methods = {label: (m, dict(o)) for label, (m, o) in BOTH_HIDDEN_METHODS.items()}
+    fields = [(enc, False) for enc in encoders] + [(enc, True) for enc in direct]
+    for enc, is_direct in fields:
+        label = f"{enc}-direct" if is_direct else enc
+        t0 = time.perf_counter()
+        try:
+            encoder = make_encoder(enc, V, F, positions, parents)
+            field = (point_field(encoder, V) if is_direct
+                     else feature_field(V, F, cache=field_cache(), encoder=encoder, **DISTILL))
+        except Exception as exc:  # recorded, the other encoders still run
+            result["field_errors"][label] = f"{type(exc).__name__}: {exc}"
+            continue
+        result["field_seconds"][label] = round(time.perf_counter() - t0, 2)
+        methods[f"dfd[{label}]"] = ("dfd", {"field": field})
+        methods[f"dfd[{label}]+borrow"] = ("dfd", {"field": field, "borrow": BORROW})
+    for label, (method, options) in methods.items():
+        if method == "dfd":
+            options = {**options, **skeleton}
+        t0 = time.perf_counter()
+        errors = pair_band_errors(V, F, W, pairs, method, names=names, **options)
+        result["pairs"] = len(errors)
+        result["methods"][label] = {
+            "mean_error": float(np.mean([e["mean"] for e in errors.values()])) if errors else float("nan"),
+            "max_error": float(max(e["max"] for e in errors.values())) if errors else float("nan"),
+            "seconds": round(time.perf_counter() - t0, 3),
+            "per_pair": {k: {"mean": round(e["mean"], 4), "max": round(e["max"], 4), "rows": e["rows"]}
+                         for k, e in errors.items()},
+        }
+    return result
+
+
+def make_encoder(name, V, F, positions, parents):
+    """The encoder ``name`` of :data:`FIELD_ENCODERS` for one character (mesh, bind-pose skeleton).
+
+    ``skeleton`` gets the bones as segments (:func:`dfd.encoders.bone_segments`; ``skeleton-relative``:
+    without the channels that tell the bones apart), ``hks`` the mesh;
+    ``a+b`` combines two encoders with equal weights."""
+    from dfd.encoders import CombinedEncoder, bone_segments, get_encoder
+
+    if "+" in name:
+        return CombinedEncoder([make_encoder(part, V, F, positions, parents) for part in name.split("+")])
+    if name in ("skeleton", "skeleton-relative"):
+        heads, tails = bone_segments(positions, parents)
+        return get_encoder("skeleton", heads=heads, tails=tails, describe=name == "skeleton")
+    if name == "hks":
+        return get_encoder(name, V=V, F=F)
+    return get_encoder(name)
+
+
+#: the decision rule of issue 27: a field is worth its cost where it lowers the mean junction
+#: weight error by at least this fraction against ``dfd_no_field`` ...
+RULE_REDUCTION = 0.10
+#: ... and costs at most this many seconds per character
+RULE_SECONDS = 3.0
+
+
+def summarize_both_hidden(results):
+    """Mean over characters of each method's mean and max error, and the decision rule per encoder."""
+    done = [r for r in results.values() if r.get("pairs")]
+    labels = list(dict.fromkeys(label for r in done for label in r["methods"]))
+    means, maxes, rule = {}, {}, {}
+    for label in labels:
+        have = [r for r in done if label in r["methods"]]
+        means[label] = float(np.mean([r["methods"][label]["mean_error"] for r in have]))
+        maxes[label] = float(np.mean([r["methods"][label]["max_error"] for r in have]))
+    base = means.get("dfd_no_field")
+    for label in labels:
+        if not label.startswith("dfd["):
+            continue
+        enc = label[4:label.index("]")]
+        have = [r for r in done if label in r["methods"]]
+        # against dfd_no_field on the same characters
+        b = float(np.mean([r["methods"]["dfd_no_field"]["mean_error"] for r in have]))
+        seconds = [r["field_seconds"][enc] for r in have]
+        reduction = 1.0 - means[label] / b if b > 0 else 0.0
+        rule[label] = {"characters": len(have), "relative_reduction": reduction,
+                     "field_seconds_max": float(max(seconds)), "field_seconds_mean": float(np.mean(seconds)),
+                     "passes": bool(reduction >= RULE_REDUCTION and max(seconds) <= RULE_SECONDS)}
+    return {"characters": len(done), "mean_error": means, "mean_of_max_error": maxes,
+            "dfd_no_field": base, "rule": rule}
+
+
+def markdown_both_hidden(results, summary):
+    labels = list(summary["mean_error"])
+    rule = summary["rule"]
+    lines = [
+        "Band fill, protocol 1 (issue 27): for each mirrored joint pair of each limb pair found by the limb "
+        f"classifier, both joints' transition bands (weights strictly in ({LOW}, {HIGH})) are hidden together "
+        "and filled back, so the mirror prior has nothing to copy. Error: half-L1 over hidden vertices "
+        "(0 identical, 1 disjoint); per character, `mean` is the mean over joint pairs, `max` the largest "
+        "over every hidden vertex. Lower is better. No skinned error: the band benchmark has no animation.",
+        "",
+        "`dfd[E]`: the dfd fill with the field of encoder `E` distilled "
+        f"({DISTILL}, 24 views at 224 px), which judges the mirror prior; `E-direct`: the encoder's "
+        "features evaluated at the points, no distillation; `+borrow`: the field also drives the prior "
+        "borrowed from feature-similar parts around other joints (`rigmix/weights/borrow.py`, confidence "
+        f"{BORROW}). `skeleton-relative`: the skeleton encoder without the channels that tell bones apart.",
+        "",
+        f"Mean over {summary['characters']} characters, and the decision rule (a field is a default only where "
+        f"it lowers the mean error by at least {100 * RULE_REDUCTION:.0f}% against `dfd_no_field` and costs at "
+        f"most {RULE_SECONDS:.0f} s per character):",
+        "",
+        "| method | mean error | mean of max error | vs dfd_no_field | field s (mean / max) | rule |",
+        "|---|---:|---:|---:|---|---|",
+    ]
+    for m in labels:
+        d = rule.get(m)
+        vs = f"{-100 * d['relative_reduction']:+.1f}%" if d else "-"
+        fs = f"{d['field_seconds_mean']:.2f} / {d['field_seconds_max']:.2f}" if d else "-"
+        verdict = ("passes" if d["passes"] else "fails") if d else "-"
+        lines.append(f"| {m} | {summary['mean_error'][m]:.3f} | {summary['mean_of_max_error'][m]:.2f} | {vs} | "
+                     f"{fs} | {verdict} |")
+    lines += ["", "Per character, mean / max error:", "",
+              "| character | pairs | " + " | ".join(labels) + " |",
+              "|---|---:|" + "---:|" * len(labels)]
+    for n, r in results.items():
+        if not r.get("pairs"):
+            continue
+        cells = " | ".join(
+            f"{r['methods'][m]['mean_error']:.3f} / {r['methods'][m]['max_error']:.2f}" if m in r["methods"] else "-"
+            for m in labels)
+        lines.append(f"| {n} | {r['pairs']} | {cells} |")
+    return "\n".join(lines) + "\n"
+
+
+def write_both_hidden(results):
+    summary = summarize_both_hidden(results)
+    payload = {"protocol": {"name": "both-hidden", "low": LOW, "high": HIGH, "max_influences": 4,
+                            "distill": DISTILL, "encoders": list(FIELD_ENCODERS),
+                            "direct_encoders": list(DIRECT_ENCODERS), "borrow": BORROW},
+               "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
+               "characters": results, "summary": summary}
+    (RESULTS / "band_fill_both_hidden.json").write_text(json.dumps(payload, indent=2) + "\n")
+    (RESULTS / "band_fill_both_hidden.md").write_text(markdown_both_hidden(results, summary))
+    return payload
+
+
+def main_both_hidden(names):
+    """Protocol 1 over the shared characters and the corpus (``names``: a subset)."""
+    from conftest import ASSETS, CHARACTERS, CORPUS, CORPUS_CHARACTERS
+
+    every = {**{n: ASSETS / p for n, p in CHARACTERS.items()}, **{n: CORPUS / p for n, p in CORPUS_CHARACTERS.items()}}
+    results = {}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    payload = None
+    for name in names or list(every):
+        path = every[name]
+        if not path.exists():
+            print(f"band_fill: skipping {name}: {path} is missing", flush=True)
+            continue
+        results[name] = run_both_hidden(name, path)
+        means = {m: round(v["mean_error"], 3) for m, v in results[name]["methods"].items()}
+        print(f"band_fill both-hidden: {name} {results[name].get('pairs', 0)} pairs {means} "
+              f"field s {results[name]['field_seconds']}", flush=True)
+        if results[name].get("pairs"):
+            payload = write_both_hidden(results)
+    if payload:
+        print(markdown_both_hidden(results, payload["summary"]))
+    return payload
+
+
 def main(argv=None):
     from conftest import ASSETS, CHARACTERS
 
+    argv = list(argv or [])
+    if argv[:1] == ["--both-hidden"]:
+        return main_both_hidden(argv[1:])
     # argv None (``benchmarks.run`` calls main(), its own argv names benchmarks): every character
-    names = list(argv or []) or list(CHARACTERS)
+    names = argv or list(CHARACTERS)
     results = {}
     RESULTS.mkdir(parents=True, exist_ok=True)
     for name in names:

@@ -105,7 +105,9 @@ def fill_weights(V, F, W, unknown, *, method="inpaint", max_influences=4, **opti
         ``locality_power`` (1), ``deforming_joints`` ((J,) bool, the joints that deform the
         source characters anywhere: with ``locality``, such a joint that no known vertex
         carries keeps its filled weights, its whole surface being hidden; any other joint
-        nothing witnesses is removed).
+        nothing witnesses is removed), ``borrow`` (0: off; with a field and ``joint_parents``,
+        the largest confidence of the prior borrowed from feature-similar parts around other
+        joints where the mirror is not painted, :mod:`rigmix.weights.borrow`).
         All: ``uniform`` (1e-3), the weight of the uniform Laplacian regularizer.
 
     Returns

@@ -20,6 +20,7 @@ from dfd.mesh import face_areas, surface_samples
 from ..errors import InputError
 from ..geometry import bounding_box_diagonal
 from ..rig import swap_side
+from .borrow import borrow_prior
 from .locality import geodesic_locality
 from .mesh import (
     WeldedMesh,
@@ -464,7 +465,7 @@ def fill_dfd(g: WeldedMesh, W, unk, *, field=None, plane=None, joint_mirror=None
               joint_names=None, joint_positions=None, mirror_tol=0.25, strength=10.0,
               iterations=0, keep=0.8, field_cache=None, distill_options=None,
               joint_parents=None, bone_prior=0.1, locality=0.0, locality_power=1.0,
-              deforming_joints=None):
+              deforming_joints=None, borrow=0.0):
     """The project's fill: the inpainting energy pulled toward a prior from similar known parts.
 
     Prior: each unknown vertex reflected across the symmetry plane (given, or detected on the
@@ -494,7 +495,7 @@ def fill_dfd(g: WeldedMesh, W, unk, *, field=None, plane=None, joint_mirror=None
                                 joint_names=joint_names, joint_positions=joint_positions, mirror_tol=mirror_tol,
                                 strength=strength, iterations=iterations, keep=keep, field_cache=field_cache,
                                 distill_options=distill_options, joint_parents=joint_parents,
-                                bone_prior=bone_prior)
+                                bone_prior=bone_prior, borrow=borrow)
     if locality and locality > 0:
         witness = np.where(c[:, None] >= TRUSTED, P, 0.0) if P is not None else None
         out = geodesic_locality(g.V, g.F, out, unk, radius=locality, power=locality_power, witness=witness,
@@ -504,7 +505,7 @@ def fill_dfd(g: WeldedMesh, W, unk, *, field=None, plane=None, joint_mirror=None
 
 def _fill_dfd_prior(g: WeldedMesh, W, unk, *, field, plane, joint_mirror, joint_names, joint_positions,
                     mirror_tol, strength, iterations, keep, field_cache, distill_options, joint_parents,
-                    bone_prior):
+                    bone_prior, borrow=0.0):
     """:func:`fill_dfd` before the locality: ``(filled W, prior P or None, confidence c or None)``."""
     J = W.shape[1]
     if plane is None:
@@ -531,6 +532,14 @@ def _fill_dfd_prior(g: WeldedMesh, W, unk, *, field, plane, joint_mirror, joint_
     mirror = np.asarray(joint_mirror, dtype=np.int64).reshape(J)
     bones = (joint_positions, joint_parents) if joint_positions is not None and joint_parents is not None else None
     P, c = mirror_prior(g, W, unk, plane, mirror, tol=mirror_tol, field=field, bones=bones)
+    if bones is not None and field is not None and borrow > 0:
+        # where the mirror is not painted, the profile of feature-similar parts around other joints
+        Pf, cf = borrow_prior(g, W, unk, _evaluate(field, g.V), joint_positions, joint_parents, mirror,
+                              confidence=borrow)
+        cf = cf * (1.0 - c)
+        total = np.maximum(c + cf, 1e-12)
+        P = (c[:, None] * P + cf[:, None] * Pf) / total[:, None]
+        c = c + cf
     if bones is not None and bone_prior > 0:
         Pb, cb = _bone_prior(g, W, unk, joint_positions, joint_parents, confidence=bone_prior)
         cb = cb * (1.0 - c)  # the mirror, where it exists, is the better witness
