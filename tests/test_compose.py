@@ -51,12 +51,7 @@ REPORT_KEYS = {
                 "source_weight_roughness_p99", "source_weight_roughness_max"],
 }
 #: (config, figure) pairs the fusion does not meet yet, reported to the fusion issue; empty when all pass.
-#: junction_dihedral_ratio (issue 25, bound 1.5), measured: fox_arm 2.14, knight_arm 2.33, limb_swap 1.94.
-#: The junction folds: 13 to 32 pairs of neighbouring junction faces at more than 150 degrees, made by
-#: the shape-keeping remeshing (FusionParams.fidelity_voxels); the plain remeshing (fidelity_voxels = 0)
-#: gives 0.78, 0.98 and 0.92 with no fold, but rounds off the low-poly inputs' corners.
-FUSION_SHORTFALLS: set = {("fox_arm", "junction_dihedral_ratio"), ("knight_arm", "junction_dihedral_ratio"),
-                          ("limb_swap", "junction_dihedral_ratio")}
+FUSION_SHORTFALLS: set = set()
 
 _RUNS: dict = {}
 
