@@ -457,6 +457,15 @@ def face_owners(surface, *, near=1e-3):
     return owner
 
 
+def _held_by_others(x, V, F) -> bool:
+    """Whether every face of input ``x`` (positions as given) is a face of the output ``(V, F)``."""
+    def keys(P, T):
+        C = np.sort(np.asarray(P, np.float64)[np.asarray(T, np.int64)].reshape(len(T), 3, 3), axis=1)
+        return {row.tobytes() for row in C.reshape(len(T), 9)}
+
+    return len(x.F) > 0 and keys(x.V, x.F) <= keys(V, F)
+
+
 def grafted_visibility(surface, inputs, ids, roles) -> dict:
     """How much of each grafted part shows, against how much it shows in its own character
     (see the module docstring).
@@ -482,7 +491,9 @@ def grafted_visibility(surface, inputs, ids, roles) -> dict:
         faces copied into the output that is outside the rest of its own character (None when
         none is copied); ``grafted_visible_relative``, the first over the second, at most 1 (the
         first alone without the second). ``grafted_visible_min``: the smallest relative share
-        (None without a grafted part).
+        (None without a grafted part). A part that owns no output face because the output holds
+        every face it has as the other input's (faces both share: an identity composition) has no
+        entry.
     """
     V = np.asarray(surface.V, np.float64)
     F = np.asarray(surface.F, np.int64)
@@ -494,6 +505,8 @@ def grafted_visibility(surface, inputs, ids, roles) -> dict:
             continue
         others = [(V, F[owner == k]) for k in range(len(ids)) if k != i]
         share = outside_area_share(V, F[owner == i], others)
+        if share is None and _held_by_others(inputs[i], V, F):
+            continue  # its faces are those both inputs share, kept once from the other (an identity)
         visible[cid] = 0.0 if share is None else share
         # the same faces in their own character: parts an artist sank into another (a leg into a
         # shell, a neck into a collar) are hidden there too, and an identity composition must pass

@@ -26,6 +26,9 @@ SLICE = (
     "tail__RiggedFigure__Rat", "wings__Deer__Wasp", "three__RiggedFigure__Horse__Witch",
 )
 
+#: Matrix cases beside the slice, for the failure kinds of issue 24 it does not hold: a humanoid
+#: torso on a six-legged body (the Wasp's thorax replaced).
+FAILURE_KINDS = ("torso__Wasp__PlatformerCharacter",)
 #: Gates on time, measured by ``make corpus`` and not asserted here.
 TIME_GATES = {"wall_seconds", "process_seconds"}
 #: Seconds before a slice composition is killed (the slowest takes about 90 s on 2 loaded cores).
@@ -55,6 +58,10 @@ KNOWN_FAILURES: dict[str, dict[str, str]] = {
                                                            "selection): the figure's box edges, 90 degrees"},
     "wings__Deer__Wasp": {"grafted_visible": "the wings' roots, fused to a joint inside the Deer's torso, are "
                                              "half inside it"},
+    "torso__Wasp__PlatformerCharacter": {"junction_self_intersections": _LAYERED,
+                                         "junction_dihedral_ratio": "the torso's junction creases more than the "
+                                                                    "Wasp's thorax and the figure's waist (p95 79 "
+                                                                    "against 49 degrees)"},
     "three__RiggedFigure__Horse__Witch": {"junction_self_intersections": _LAYERED,
                                           "grafted_visible": "the Horse's head, scaled 0.03 by chain length, is "
                                                              "covered by the figure's junction surface"},
@@ -67,18 +74,20 @@ def cases(tmp_path_factory):
         asset(name)  # skips, or fails under CI=true, when a character is missing
     for name in CORPUS_CHARACTERS:
         corpus(name)
-    picked = ci_slice(generate_matrix(load_subjects()))
+    matrix = generate_matrix(load_subjects())
+    picked = ci_slice(matrix) + [c for c in matrix if c.name in FAILURE_KINDS]
     folder = tmp_path_factory.mktemp("slice")
     configs = write_configs(picked, folder / "configs")
     return {c.name: (c, configs[c.name], folder) for c in picked}
 
 
 def test_the_slice_is_the_matrix_slice(cases):
-    assert tuple(cases) == SLICE
-    assert set(KNOWN_FAILURES) <= set(SLICE)
+    assert tuple(c for c in cases if c not in FAILURE_KINDS) == SLICE
+    assert set(FAILURE_KINDS) <= set(cases)
+    assert set(KNOWN_FAILURES) <= set(SLICE) | set(FAILURE_KINDS)
 
 
-@pytest.mark.parametrize("name", SLICE)
+@pytest.mark.parametrize("name", SLICE + FAILURE_KINDS)
 def test_slice_composition_passes_its_gates(cases, name):
     case, config, folder = cases[name]
     row = runner.run_case(case, config, folder, timeout=TIMEOUT)

@@ -217,8 +217,9 @@ def test_inspect_shows_the_limbs(capsys):
 
 
 def test_inspect_of_an_out_of_range_skeleton_lists_no_limbs(tmp_path, capsys):
-    """A joint translated 1e300 m (a JSON edit of a real file): ``inspect`` still describes the
-    file (exit 0) and lists no limbs, instead of an internal error from the mirror plane."""
+    """A joint translated 1e300 m (a JSON edit of a real file): ``inspect`` refuses it as compose
+    does (exit 2, one line naming the file), and its description lists no limbs, instead of an
+    internal error from the mirror plane."""
     import json
     import struct
 
@@ -233,5 +234,10 @@ def test_inspect_of_an_out_of_range_skeleton_lists_no_limbs(tmp_path, capsys):
     body = struct.pack("<I", len(text)) + b"JSON" + text + raw[20 + n:]
     path = tmp_path / "far.glb"
     path.write_bytes(raw[:8] + struct.pack("<I", 12 + len(body)) + body)
-    assert main(["inspect", str(path)]) == 0
-    assert "limbs: none" in capsys.readouterr().out
+    assert main(["inspect", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "far.glb" in err[0] and "out of range" in err[0], err
+    from rigmix.describe import describe
+    from rigmix.io.gltf import read_gltf
+
+    assert describe(read_gltf(path))["limbs"] == []
