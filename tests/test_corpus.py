@@ -167,7 +167,9 @@ def test_runner_composes_a_case_and_records_its_gates(tmp_path, monkeypatch, sub
     monkeypatch.setattr(runner, "load_subjects", lambda: subjects)
     results = tmp_path / "results"
     rc = runner.main(["--only", "identity__SimpleSkin__*", "--results", str(results), "--out", str(tmp_path / "out")])
-    row = json.loads((results / "corpus.json").read_text())["rows"][0]
+    row = next(iter(runner.load_rows(results / "corpus.json").values()))
+    stored = json.loads((results / "corpus.json").read_text())["rows"][0]["gates"]
+    assert [runner.unpack_gate(g) for g in stored] == row["gates"] and all(isinstance(g, list) for g in stored)
     assert row["name"].startswith("identity__SimpleSkin__") and row["rc"] == 0
     assert (tmp_path / "out" / "glb" / f"{row['name']}.glb").is_file()
     names = [g["name"] for g in row["gates"]]
