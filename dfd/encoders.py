@@ -32,8 +32,8 @@ if TYPE_CHECKING:
     # imports it on first access, because dfd.dinov2 needs torch.
     from dfd.dinov2 import DinoV2Encoder
 
-__all__ = ["Encoder", "FilterBankEncoder", "SkeletonEncoder", "HeatKernelEncoder", "CombinedEncoder", "DinoV2Encoder",
-           "get_encoder", "encode_views", "view_points", "bone_segments", "point_field", "ENCODERS"]
+__all__ = ["Encoder", "FilterBankEncoder", "PointEncoder", "SkeletonEncoder", "HeatKernelEncoder", "CombinedEncoder",
+           "DinoV2Encoder", "get_encoder", "encode_views", "view_points", "bone_segments", "point_field", "ENCODERS"]
 
 
 @runtime_checkable
@@ -248,7 +248,29 @@ def _standardize(raw, mask, groups):
     return _unit(X)
 
 
-class SkeletonEncoder:
+class PointEncoder:
+    """An encoder of surface points (:meth:`point_features` of ``(n, 3)`` points, defined by the
+    subclass with ``name``, ``feature_dim`` and ``channel_groups``): a rendered view is encoded at
+    each covered pixel's surface point (:func:`view_points`); images alone carry no points."""
+
+    def encode(self, images):
+        """Not available: the features need the surface points of :meth:`encode_views`."""
+        raise DfdInputError(f"{self.name} encoder: needs rendered views with depth (encode_views), not images alone")
+
+    def encode_views(self, views):
+        """Features of rendered views.
+
+        Returns
+        -------
+        (B, H, W, feature_dim) float32, unit rows on covered pixels, zero on background.
+        """
+        mask = views.mask
+        raw = np.zeros(mask.shape + (self.feature_dim,), dtype=np.float64)
+        raw[mask] = self.point_features(view_points(views)[mask])
+        return _standardize(raw, mask, self.channel_groups)
+
+
+class SkeletonEncoder(PointEncoder):
     """Where each rendered surface point sits relative to the skeleton's bones.
 
     The features of a pixel depend on its surface point only (:func:`view_points`), not on the
@@ -360,22 +382,6 @@ class SkeletonEncoder:
             out[a : a + self.chunk] = block.reshape(len(x), -1)
         return out
 
-    def encode(self, images):
-        """Not available: the features need the surface points of :meth:`encode_views`."""
-        raise DfdInputError("skeleton encoder: needs rendered views with depth (encode_views), not images alone")
-
-    def encode_views(self, views):
-        """Features of rendered views.
-
-        Returns
-        -------
-        (B, H, W, feature_dim) float32, unit rows on covered pixels, zero on background.
-        """
-        mask = views.mask
-        raw = np.zeros(mask.shape + (self.feature_dim,), dtype=np.float64)
-        raw[mask] = self.point_features(view_points(views)[mask])
-        return _standardize(raw, mask, self.channel_groups)
-
     @property
     def channel_groups(self):
         """``(start, stop, weight)`` of each described bone's channels (rank ``r`` weighs ``1 / (r + 1)``)."""
@@ -383,7 +389,7 @@ class SkeletonEncoder:
         return [(r * c, (r + 1) * c, 1.0 / (r + 1)) for r in range(self.nearest)]
 
 
-class HeatKernelEncoder:
+class HeatKernelEncoder(PointEncoder):
     """Heat kernel signature (Sun et al. 2009) of the surface point of each pixel.
 
     ``HKS(x, t) = sum_i exp(-lambda_i t) phi_i(x)^2`` over the first ``eigenpairs`` eigenpairs of the
@@ -462,17 +468,6 @@ class HeatKernelEncoder:
         bary = np.clip(np.nan_to_num(bary), 0.0, 1.0)
         bary /= np.maximum(bary.sum(axis=1, keepdims=True), 1e-12)
         return np.einsum("qk,qkc->qc", bary, self.vertex_hks[self.F[face]])
-
-    def encode(self, images):
-        """Not available: the features need the surface points of :meth:`encode_views`."""
-        raise DfdInputError("hks encoder: needs rendered views with depth (encode_views), not images alone")
-
-    def encode_views(self, views):
-        """Features of rendered views: ``(B, H, W, times)`` float32, unit rows on covered pixels."""
-        mask = views.mask
-        raw = np.zeros(mask.shape + (self.feature_dim,), dtype=np.float64)
-        raw[mask] = self.point_features(view_points(views)[mask])
-        return _standardize(raw, mask, self.channel_groups)
 
     @property
     def channel_groups(self):
