@@ -85,15 +85,16 @@ import logging
 
 import numpy as np
 
-from dfd.mesh import face_areas, face_normals, welded_graph
+from dfd.mesh import face_areas, welded_graph
 
 from .animation.sampling import clip_times, sample_clip
-from .geometry import bounding_box_diagonal, check_transforms, closest_surface_points, weld
+from .fusion.meshutil import dihedral_angles
+from .geometry import bounding_box_diagonal, check_transforms, closest_surface_points
 from .skinning import linear_blend_skinning, rest_skinning_matrices, skinning_matrices
 
 __all__ = ["face_stretch", "vertex_stretch", "band_stretch", "junction_band_radius", "junction_stretch_ratio",
            "weight_roughness", "junction_weight_roughness", "outside_area_share", "face_owners",
-           "grafted_visibility", "dihedral_angles", "junction_dihedral", "self_composition_truth",
+           "grafted_visibility", "junction_dihedral", "self_composition_truth",
            "self_composition_errors", "skinned_surface", "identity_errors", "identity_origins"]
 
 log = logging.getLogger(__name__)
@@ -518,45 +519,6 @@ def grafted_visibility(surface, inputs, ids, roles) -> dict:
         relative[cid] = (visible[cid] if not source[cid] else min(visible[cid] / source[cid], 1.0))
     return {"grafted_visible": visible, "grafted_visible_source": source, "grafted_visible_relative": relative,
             "grafted_visible_min": min(relative.values()) if relative else None}
-
-
-def dihedral_angles(V, F, faces=None):
-    """Angles between the normals of neighbouring faces, degrees.
-
-    Parameters
-    ----------
-    V : (n, 3) float array
-        Split vertices: welded by position here, so faces split at a UV or normal seam are
-        neighbours.
-    F : (m, 3) int array
-    faces : (m,) bool or (k,) int array, optional
-        The faces measured (default all); an edge counts when exactly two of them with a
-        non-zero area share it.
-
-    Returns
-    -------
-    (e,) float64
-        One angle per such edge, in ``[0, 180]``: 0 across a flat edge, 180 across a fold onto
-        itself (or two faces of opposite orientation).
-    """
-    from .fusion.meshutil import undirected_edges
-
-    Vw, _, Fw = weld(V, F)
-    if faces is not None:
-        Fw = Fw[faces]
-    N = face_normals(Vw, Fw)
-    ok = np.linalg.norm(N, axis=1) > 0
-    Fw, N = Fw[ok], N[ok]
-    if not len(Fw):
-        return np.zeros(0)
-    _, uE, emap = undirected_edges(Fw)
-    count = np.bincount(emap, minlength=len(uE))
-    order = np.argsort(emap, kind="stable")  # the half-edges of each edge side by side
-    start = np.searchsorted(emap[order], np.flatnonzero(count == 2))
-    m = len(Fw)
-    a, b = order[start] % m, order[start + 1] % m  # half-edge i belongs to face i mod m
-    cos = np.clip(np.einsum("ij,ij->i", N[a], N[b]), -1.0, 1.0)
-    return np.degrees(np.arccos(cos))
 
 
 def junction_dihedral(composition, *, percentile=95.0) -> dict:

@@ -218,8 +218,8 @@ def test_a_folded_refinement_gives_way_to_the_plain_junction():
     """The refined CesiumMan leg keeps its shape by pinning features closer than the target
     edge, and the triangles between them fold back (neighbours turned past 150 degrees): the
     default takes the plain junction instead, which strays less than twice as far."""
+    from rigmix.fusion.meshutil import dihedral_angles
     from rigmix.fusion.stitch import FOLD_ANGLE
-    from rigmix.quality import dihedral_angles
 
     a, b = _limb_self_composition("CesiumMan", "leg_joint_L_1")
     kept = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=replace(REMESHED, fold_free_deviation=0))

@@ -13,10 +13,11 @@ from conftest import ROOT, asset, corpus
 
 from dfd.mesh import vertex_normals
 from rigmix import examples
+from rigmix.fusion.meshutil import dihedral_angles
 from rigmix.gates import MAX_DIHEDRAL_RATIO, MIN_GRAFTED_VISIBLE, failure_text, mesh_gates
 from rigmix.geometry import bounding_box_diagonal
 from rigmix.pipeline import compose
-from rigmix.quality import dihedral_angles, face_owners, outside_area_share
+from rigmix.quality import face_owners, outside_area_share
 
 CONFIGS = ROOT / "tests" / "configs"
 

@@ -10,6 +10,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from dfd.mesh import face_normals, weld
+
 __all__ = [
     "nondegenerate",
     "undirected_edges",
@@ -22,6 +24,7 @@ __all__ = [
     "edge_counts",
     "average_edge_length",
     "intersecting_face_pairs",
+    "dihedral_angles",
 ]
 
 
@@ -329,3 +332,40 @@ def intersecting_face_pairs(V, F, faces=None, *, tol=1e-9):
         pb = np.einsum("pkc,pc->pk", B, u)
         separated |= ok & ((pa.max(axis=1) <= pb.min(axis=1) + eps) | (pb.max(axis=1) <= pa.min(axis=1) + eps))
     return np.stack([a[~separated], b[~separated]], axis=1)
+
+
+def dihedral_angles(V, F, faces=None):
+    """Angles between the normals of neighbouring faces, degrees.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+        Split vertices: welded by position here, so faces split at a UV or normal seam are
+        neighbours.
+    F : (m, 3) int array
+    faces : (m,) bool or (k,) int array, optional
+        The faces measured (default all); an edge counts when exactly two of them with a
+        non-zero area share it.
+
+    Returns
+    -------
+    (e,) float64
+        One angle per such edge, in ``[0, 180]``: 0 across a flat edge, 180 across a fold onto
+        itself (or two faces of opposite orientation).
+    """
+    Vw, _, Fw = weld(V, F)
+    if faces is not None:
+        Fw = Fw[faces]
+    N = face_normals(Vw, Fw)
+    ok = np.linalg.norm(N, axis=1) > 0
+    Fw, N = Fw[ok], N[ok]
+    if not len(Fw):
+        return np.zeros(0)
+    _, uE, emap = undirected_edges(Fw)
+    count = np.bincount(emap, minlength=len(uE))
+    order = np.argsort(emap, kind="stable")  # the half-edges of each edge side by side
+    start = np.searchsorted(emap[order], np.flatnonzero(count == 2))
+    m = len(Fw)
+    a, b = order[start] % m, order[start + 1] % m  # half-edge i belongs to face i mod m
+    cos = np.clip(np.einsum("ij,ij->i", N[a], N[b]), -1.0, 1.0)
+    return np.degrees(np.arccos(cos))

@@ -27,7 +27,7 @@ from .junction import (
     orientation_agrees,
     remove_unreferenced,
 )
-from .meshutil import intersecting_face_pairs, triangle_min_angles
+from .meshutil import dihedral_angles, intersecting_face_pairs, triangle_min_angles
 from .remesh import (
     collapse_to_improve_angles,
     flip_to_improve_angles,
@@ -638,17 +638,24 @@ def _remesh_choosing_fidelity(job, info):
     U : (p, 3) float64, G : (g, 3) int64, nfeat : int
         As :func:`_remesh_attempt`.
     """
-    import igl
 
     params, tol = job.params, job.tol
     U, G, nfeat = _remesh_attempt(job, tol)
     info["fidelity"] = bool(tol > 0)
     info["fidelity_tolerance"] = float(tol)
     angle = _angle_p05(U, G)
+    plain = None  # the plain remeshing and how far it strays from the reference, made once when asked
+
+    def plain_remeshing():
+        nonlocal plain
+        if plain is None:
+            U0, G0, _ = _remesh_attempt(job, 0.0)
+            plain = U0, G0, _strays(job.V, U0, G0)
+        return plain
+
     if tol > 0 and angle < params.min_angle_p05:
-        U0, G0, _ = _remesh_attempt(job, 0.0)
+        U0, G0, lost = plain_remeshing()
         plain_angle = _angle_p05(U0, G0)
-        lost = np.sqrt(igl.point_mesh_squared_distance(job.V, U0, G0)[0]).max()  # job.V: the reference
         info["plain_deviation"] = float(lost)
         chosen = False
         for loose in [tol * f for f in params.fidelity_relax]:
@@ -669,13 +676,18 @@ def _remesh_choosing_fidelity(job, info):
     if info["fidelity"] and params.fold_free_deviation > 0:
         folds = _folds(U, G)
         if folds:
-            U0, G0, _ = _remesh_attempt(job, 0.0)
-            strays = np.sqrt(igl.point_mesh_squared_distance(job.V, U, G)[0]).max()
-            plain = np.sqrt(igl.point_mesh_squared_distance(job.V, U0, G0)[0]).max()
-            if _folds(U0, G0) < folds and plain <= params.fold_free_deviation * max(strays, tol):
+            U0, G0, lost = plain_remeshing()
+            if _folds(U0, G0) < folds and lost <= params.fold_free_deviation * max(_strays(job.V, U, G), tol):
                 U, G, nfeat = U0, G0, 0
                 info.update(fidelity=False, fidelity_tolerance=0.0, folds_avoided=int(folds))
     return U, G, nfeat
+
+
+def _strays(R, U, G):
+    """How far the reference vertices ``R`` ``(n, 3)`` lie from the surface ``(U, G)`` at most."""
+    import igl
+
+    return float(np.sqrt(igl.point_mesh_squared_distance(R, U, G)[0]).max())
 
 
 #: Neighbouring faces whose normals turn more than this (degrees) fold onto each other.
@@ -685,8 +697,6 @@ FOLD_ANGLE = 150.0
 def _folds(V, F):
     """Folds of a junction surface: crossing face pairs, and neighbouring faces whose normals
     turn past :data:`FOLD_ANGLE`."""
-    from ..quality import dihedral_angles
-
     return int(len(intersecting_face_pairs(V, F)) + np.count_nonzero(dihedral_angles(V, F) > FOLD_ANGLE))
 
 
