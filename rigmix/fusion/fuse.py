@@ -30,8 +30,6 @@ from typing import Literal, Sequence
 
 import numpy as np
 
-from dfd.mesh import weld
-
 from ..errors import InputError
 from ..geometry import bounding_box_diagonal, check_coordinates
 from .fields import get_backend, prepare_surface
@@ -751,8 +749,9 @@ def _crossing_own_input(part: _Partition, parts, faces):
     return out
 
 
-def _inherited_crossings(surface, part: _Partition) -> int:
-    """Crossing pairs at the junction that the inputs already had.
+def _inherited_crossings(surface, part: _Partition, pairs) -> int:
+    """Of the crossing pairs ``pairs`` ``(p, 2)`` (faces of ``surface``, at least one a junction
+    face), those the inputs already had.
 
     A pair is inherited when its face outside the junction is a kept input face that, in its own
     input, crosses a face the junction replaced: overlapping parts of a modular character (a head
@@ -766,21 +765,10 @@ def _inherited_crossings(surface, part: _Partition) -> int:
         welded faces).
     part : _Partition
         The partition the surface was assembled from (``kept`` after the crossing repair).
-
-    Returns
-    -------
-    int
-        Of the pairs that ``junction_self_intersections`` counts, the inherited ones.
     """
     from .meshutil import intersecting_face_pairs
 
     junction = surface.junction_faces & ~surface.copied_faces
-    if not junction.any():
-        return 0
-    Vw, _, Fw = weld(surface.V, surface.F)
-    pairs = intersecting_face_pairs(Vw, Fw, np.flatnonzero(junction))
-    if not len(pairs):
-        return 0
     outside = np.where(junction[pairs[:, 0]], pairs[:, 1], pairs[:, 0])
     outside = outside[~junction[outside]]  # pairs of two junction faces are never inherited
     inherited = np.zeros(len(surface.F), bool)
@@ -831,11 +819,14 @@ def _repair_crossings(inputs, part: _Partition, selected, JV, JF, params) -> _Re
                      JV=rep.JV, JF=rep.JF, **counts)
 
 
-def _surface_report(surface, inputs, infos, h0, backend_name, open_chain_edges):
-    """The report's ``mesh`` (:func:`.report.mesh_report` and the junction counts) and
-    ``fields`` (``infos``: the clusters' grid entries) parts."""
+def _surface_report(surface, part, inputs, infos, h0, backend_name, open_chain_edges):
+    """The report's ``mesh`` (:func:`.report.mesh_report`, the junction counts and the inherited
+    crossings, :func:`_inherited_crossings`) and ``fields`` (``infos``: the clusters' grid
+    entries) parts."""
+    from functools import partial
+
     mrep = mesh_report(surface.V, surface.F, surface.junction_faces & ~surface.copied_faces,
-                       [(x.V, x.F) for x in inputs])
+                       [(x.V, x.F) for x in inputs], inherited=partial(_inherited_crossings, surface, part))
     mrep["junction_faces"] = int(surface.junction_faces.sum())
     mrep["copied_faces"] = int(surface.copied_faces.sum())
     mrep["unmatched_loops"] = int(sum(inf["unmatched_preserved_loops"] for inf in infos))
@@ -911,12 +902,10 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     timings["assembly"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     infos = [c.info for c in clusters]
-    mrep, fields = _surface_report(surface, inputs, infos, part.h0, backend.name, open_chain_edges)
+    mrep, fields = _surface_report(surface, repaired.part, inputs, infos, part.h0, backend.name, open_chain_edges)
     mrep["junction_crossings_repaired"] = repaired.found - repaired.left
     mrep["junction_faces_released"] = repaired.released
     mrep["junction_crossings_layered"] = repaired.layered
-    mrep["junction_crossings_inherited"] = (_inherited_crossings(surface, repaired.part)
-                                            if mrep["junction_self_intersections"] else 0)
     timings["report"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all
     report = {"mesh": mrep, "fields": fields, "timings": {k: round(v, 4) for k, v in timings.items()}}

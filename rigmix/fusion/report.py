@@ -40,7 +40,7 @@ def _edges_with_count(V, F, which):
     return edge_keys(Vw, uE[sel])
 
 
-def mesh_report(V, F, junction, inputs_VF):
+def mesh_report(V, F, junction, inputs_VF, *, inherited=None):
     """Counts and quality on the mesh welded by position.
 
     Parameters
@@ -61,7 +61,9 @@ def mesh_report(V, F, junction, inputs_VF):
         ``junction_min_angle_p05`` and ``junction_min_angle_min`` (degrees),
         ``junction_self_intersections`` (pairs of faces, at least one of them a junction face,
         that cross each other without sharing a corner of the welded mesh: a fold through the
-        surface that shading, collision and boolean tools all trip on).
+        surface that shading, collision and boolean tools all trip on); with ``inherited``,
+        ``junction_crossings_inherited``: ``inherited(pairs)`` of those pairs ``(p, 2)`` (face
+        indices, the same welded or split).
     """
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64).reshape(-1, 3)
@@ -79,7 +81,8 @@ def mesh_report(V, F, junction, inputs_VF):
     new_b = ~np.isin(bkeys, in_b)
     new_n = ~np.isin(nkeys, in_n)
     ang = triangle_min_angles(V, F[np.asarray(junction, bool)])
-    return {
+    pairs = intersecting_face_pairs(Vw, Fw, np.flatnonzero(junction))
+    out = {
         "vertices": int(len(V)),
         "faces": int(len(F)),
         "welded_vertices": int(len(Vw)),
@@ -90,5 +93,8 @@ def mesh_report(V, F, junction, inputs_VF):
         "junction_faces": int(np.count_nonzero(junction)),
         "junction_min_angle_p05": float(np.percentile(ang, 5)) if len(ang) else None,
         "junction_min_angle_min": float(ang.min()) if len(ang) else None,
-        "junction_self_intersections": int(len(intersecting_face_pairs(Vw, Fw, np.flatnonzero(junction)))),
+        "junction_self_intersections": int(len(pairs)),
     }
+    if inherited is not None:
+        out["junction_crossings_inherited"] = int(inherited(pairs)) if len(pairs) else 0
+    return out
