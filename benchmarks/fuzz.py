@@ -78,7 +78,8 @@ def markdown(table: dict, meta: dict) -> str:
              "*silently accepted*: exit 0 with no warning where the Khronos validator reports errors "
              "(configs: exit 0 where a refusal is expected). *unexpected*: the outcome differs from the "
              "case's expectation (refuse / refuse-or-repair). *outside opens*: audit-hook `open` events "
-             "outside the case's folder (symlinks resolved); *sentinel leaks*: bytes of the sentinel files "
+             "outside the case's folder (symlinks resolved; the file named on the command line is "
+             "trusted, wherever a link leads); *sentinel leaks*: bytes of the sentinel files "
              "(or their folder's path) in any output, stdout or stderr.", "",
              "| category | " + " | ".join(h for _, h in COLUMNS) + " |",
              "|---|" + "---:|" * len(COLUMNS)]

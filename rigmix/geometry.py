@@ -25,7 +25,7 @@ from .errors import InputError
 
 __all__ = ["bounding_box_diagonal", "closest_surface_points", "neighbour_roughness", "weld", "MAX_COORDINATE",
            "MAX_COORDINATE_RATIO", "MAX_GRID_VOXELS", "FLOAT32_MAX", "check_coordinates", "check_transforms",
-           "check_float32", "check_grid_voxels"]
+           "check_unmirrored", "check_float32", "check_grid_voxels"]
 
 #: Largest coordinate, in metres from the origin, that the geometry kernels are given: 1000 km,
 #: beyond any character; float32 output positions there are still spaced 6 cm apart, and squared
@@ -201,6 +201,37 @@ def check_transforms(M, names, *, where: str, what: str, fix: str) -> None:
     if len(bad):
         raise InputError(f"{where}: joint {names[bad[0]]!r} {what} is singular (a zero scale or a zero "
                          f"matrix) and cannot be inverted; {fix}")
+
+
+def check_unmirrored(M, names, *, where: str, what: str) -> None:
+    """Refuse a joint matrix that mirrors (a negative determinant: a negative scale, on the joint
+    or above it).
+
+    A composed skeleton has unit-scale joints (Blender bones hold no rest scale), so a mirroring
+    can only be baked into the mesh and inverse bind matrices; that keeps the rest pose, but the
+    joint's clips then turn the other way (a mirrored Fox joint put its skinned vertices half the
+    bounding-box diagonal off in the identity composition).
+
+    Parameters
+    ----------
+    M : (J, 4, 4) float array
+        Column-vector affine matrices, finite (rest world or inverse bind matrices).
+    names : sequence of str
+        The name of each matrix's joint, for the message.
+    where, what : str
+        Message parts: ``"{where}: joint 'X' {what} mirrors ..."``.
+
+    Raises
+    ------
+    InputError
+        Naming the first mirrored joint and the fix.
+    """
+    M = np.asarray(M, dtype=np.float64).reshape(-1, 4, 4)
+    bad = np.flatnonzero(np.linalg.det(M[:, :3, :3]) < 0) if len(M) else []
+    if len(bad):
+        raise InputError(f"{where}: joint {names[bad[0]]!r} {what} mirrors (a negative scale on the joint or a "
+                         "parent), which a rigmix skeleton cannot hold: apply the scale to the mesh in the "
+                         "exporter (Blender: Apply Scale) so that no joint has a negative scale")
 
 
 def check_float32(values, what: str, *, dtype=np.float32) -> np.ndarray:

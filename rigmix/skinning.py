@@ -17,7 +17,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .geometry import check_coordinates, check_transforms
+from .geometry import check_coordinates, check_transforms, check_unmirrored
 from .transforms import matrix_to_quat, polar_decomposition, quat_conjugate, quat_multiply, trs_to_matrix
 
 __all__ = [
@@ -332,8 +332,9 @@ def rest_at_bind(character, *, rtol=1e-6):
 
 
 def check_rig(character, *, where: str | None = None) -> None:
-    """Refuse a rig that cannot be posed: a rest world or inverse bind matrix that is not finite
-    or cannot be inverted (a zero scale, a zero matrix), or a joint or vertex at rest beyond
+    """Refuse a rig that cannot be posed: a rest world or inverse bind matrix that is not finite,
+    cannot be inverted (a zero scale, a zero matrix) or mirrors (:func:`check_unmirrored`), or a
+    joint or vertex at rest beyond
     :data:`rigmix.geometry.MAX_COORDINATE` (native kernels crash on such values).
 
     Compose applies it to every file as stored (before :func:`rest_at_bind`, which would hide a
@@ -358,6 +359,8 @@ def check_rig(character, *, where: str | None = None) -> None:
                      fix="give the joint and its parents a non-zero scale (or matrix) in the file")
     check_transforms(sk.inverse_binds, sk.names, where=where, what="inverse bind matrix",
                      fix="re-export the skin with invertible inverse bind matrices")
+    check_unmirrored(W, sk.names, where=where, what="rest world matrix")
+    check_unmirrored(sk.inverse_binds, sk.names, where=where, what="inverse bind matrix")
     M = W @ sk.inverse_binds
     points = {"skeleton": W[:, :3, 3]}
     for k, mesh in enumerate(character.meshes):

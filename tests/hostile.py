@@ -292,8 +292,10 @@ def truncation_cases() -> list[Case]:
                 return raw[: int(frac * len(raw))]
             out.append(_raw_case(f"trunc-{seed}-{frac:g}", "truncation", "refuse", f"first {frac:.1%} of {seed}",
                                  fn, seed=seed))
-        out.append(_raw_case(f"trunc-{seed}-minus1", "truncation", "refuse", "last byte cut",
-                             lambda raw: raw[:-1], seed=seed))
+        # a .gltf ends with a newline: cutting that leaves valid JSON, so its last non-blank byte goes
+        out.append(_raw_case(f"trunc-{seed}-minus1", "truncation", "refuse", "last (non-blank) byte cut",
+                             lambda raw, text=seed == "SimpleSkin": (raw.rstrip() if text else raw)[:-1],
+                             seed=seed))
     return out
 
 
@@ -502,19 +504,24 @@ def structure_edits() -> list[tuple]:
     add(("del-bufferviews", _delete(["bufferViews"]), "refuse", None))
     add(("del-buffers", _delete(["buffers"]), "refuse", None))
     add(("del-view-buffer", _delete(["bufferViews", first, "buffer"]), "refuse", None))
-    add(("del-primitives", _delete(["meshes", first, "primitives"]), "refuse", None))
-    add(("del-position", lambda js, d: (_prim(js)["attributes"].pop("POSITION"), (js, d))[1], "refuse", None))
+    # a mesh without primitives is dropped, a primitive without POSITION skipped (glTF 2.0 3.7.2.1:
+    # clients SHOULD skip it), each with a warning: nothing the file validly holds is lost
+    add(("del-primitives", _delete(["meshes", first, "primitives"]), "refuse-or-repair", None))
+    add(("del-position", lambda js, d: (_prim(js)["attributes"].pop("POSITION"), (js, d))[1], "refuse-or-repair",
+         None))
     add(("del-joints0", lambda js, d: (_prim(js)["attributes"].pop("JOINTS_0"), (js, d))[1], "refuse-or-repair",
          None))
     add(("del-weights0", lambda js, d: (_prim(js)["attributes"].pop("WEIGHTS_0"), (js, d))[1], "refuse-or-repair",
          None))
     add(("del-skin-joints", _delete(["skins", first, "joints"]), "refuse", None))
     add(("del-nodes", _delete(["nodes"]), "refuse", None))
-    add(("del-channel-target", _delete(["animations", first, "channels", first, "target"]), "refuse", None))
+    # a channel without target animates nothing: ignored with a warning
+    add(("del-channel-target", _delete(["animations", first, "channels", first, "target"]), "refuse-or-repair",
+         None))
     # wrong types
     add(("nodes-dict", _set(["nodes"], {"0": {}}), "refuse", None))
     add(("accessors-str", _set(["accessors"], "all"), "refuse", None))
-    add(("node-name-int", _set(["nodes", _joint_node(0), "name"], 12), "refuse", None))
+    add(("node-name-int", _set(["nodes", _joint_node(0), "name"], 12), "refuse-or-repair", None))  # name ignored
     add(("node-translation-str", _set(["nodes", _joint_node(1), "translation"], "up"), "refuse", None))
     add(("node-translation-2", _set(["nodes", _joint_node(1), "translation"], [1, 2]), "refuse", None))
     add(("node-matrix-15", _set(["nodes", _joint_node(1), "matrix"], [1] * 15), "refuse", None))
@@ -684,7 +691,9 @@ def _matrix_node(js, m):
 
 def quaternion_edits() -> list[tuple]:
     E = []
-    for name, q, expect in (("zero", [0, 0, 0, 0], "refuse-or-repair"), ("1e300", [1e300, 0, 0, 1e300], "refuse"),
+    # [1e300, 0, 0, 1e300] has a direction like [2, 0, 0, 0]: normalized (without overflow) with a warning
+    for name, q, expect in (("zero", [0, 0, 0, 0], "refuse-or-repair"),
+                            ("1e300", [1e300, 0, 0, 1e300], "refuse-or-repair"),
                             ("unnormalized", [2, 0, 0, 0], "refuse-or-repair"), ("nan", [math.nan, 0, 0, 1], "refuse"),
                             ("tiny", [1e-30, 0, 0, 1e-30], "refuse-or-repair"),
                             ("3-values", [0, 0, 1], "refuse")):
@@ -710,7 +719,8 @@ def time_edits() -> list[tuple]:
         ("anim-times-negative", times(lambda i, t: t - 5.0), "refuse-or-repair", 10),
         ("anim-time-first-neg", times(lambda i, t: -1.0 if i == 0 else t), "refuse-or-repair", 10),
         ("anim-times-decreasing", times(lambda i, t: -t), "refuse", 10),
-        ("anim-times-constant", times(lambda i, t: 0.5), "refuse", 10),
+        # equal key times are the documented repair (sorted, duplicates dropped), however many are equal
+        ("anim-times-constant", times(lambda i, t: 0.5), "refuse-or-repair", 10),
         ("anim-times-1e30", times(lambda i, t: t * 1e30), "refuse", 10),
         ("anim-times-1e38-last", times(lambda i, t: 3e38 if i > 0 else t), "refuse", 10),
         ("anim-output-count-short", lambda js, d: (js["accessors"][_anim_acc("rotation", "output")(js)].__setitem__(
@@ -764,7 +774,8 @@ def scene_edits() -> list[tuple]:
         ("scene-nodes-neg", _set(["scenes", first, "nodes"], [-1]), "refuse", 10),
         ("scene-index-5", _set(["scene"], 5), "refuse", 10),
         ("scenes-empty", _set(["scenes"], []), "refuse", 10),
-        ("scene-nodes-empty", _set(["scenes", first, "nodes"], []), "refuse", None),
+        # read with a warning: rigmix reads every node, whatever the scene lists
+        ("scene-nodes-empty", _set(["scenes", first, "nodes"], []), "refuse-or-repair", None),
         ("scene-nodes-midjoint", lambda js, d: (js["scenes"][js.get("scene", 0)]["nodes"].append(_joint_node(2)(js)),
                                                 (js, d))[1], "refuse", 10),
     ]
@@ -919,7 +930,9 @@ def uri_cases() -> list[Case]:
                             "RiggedFigure" if role == "buffer" else "Fox", folder,
                             **({"buffer_uri": "../" * 16 + "etc/passwd"} if role == "buffer"
                                else {"image_uri": "/etc/passwd"}))))
-        out.append(Case(f"uri-{role}-missing", "uri", "file", "refuse", f"{role} URI to a missing file", 1,
+        # a missing buffer is refused; a missing image (inside the folder) drops its texture with a warning
+        out.append(Case(f"uri-{role}-missing", "uri", "file", "refuse" if role == "buffer" else "refuse-or-repair",
+                        f"{role} URI to a missing file", 1,
                         lambda folder, ws, role=role: _external(
                             "RiggedFigure" if role == "buffer" else "Fox", folder,
                             **({"buffer_uri": "nope.bin"} if role == "buffer" else {"image_uri": "nope.png"}))))
@@ -1022,7 +1035,10 @@ def special_cases() -> list[Case]:
              special=True),
         Case("special-file-directory", "special-file", "file", "refuse", "the .glb is a folder", 1, self_dir,
              special=True),
-        Case("special-file-symlink-out", "special-file", "file", "refuse",
+        # the file named on the command line (or in the config) is the user's choice, trusted like
+        # the command line (README, Security): a link to a GLB elsewhere is read; what the file names
+        # (URIs) stays confined to the link's folder
+        Case("special-file-symlink-out", "special-file", "file", "any",
              "the .glb is a symlink to a GLB outside the folder", 1,
              self_link(lambda ws: ws.sentinel_glb)),
         Case("special-file-empty", "special-file", "file", "refuse", "an empty .glb", None,
@@ -1225,13 +1241,15 @@ def config_cases() -> list[Case]:
         _config_case("cfg-act-attach-removed", "config-action", "refuse", "attach to a removed joint",
                      act({"op": "remove", "target": "body", "target_joint": "arm_joint_L_1"},
                          dict(rep, op="attach", target_joint="arm_joint_L_2")), None),
-        _config_case("cfg-act-self", "config-action", "refuse", "a character attached to itself",
+        # a joint replaced by itself is the identity (rigmix.operations.plan; PIPELINE.md section 7)
+        _config_case("cfg-act-self", "config-action", "any", "a joint replaced by itself",
                      act(dict(rep, source="body", source_joint="arm_joint_L_1")), None),
         _config_case("cfg-act-unknown-character", "config-action", "refuse", "unknown character id",
                      act(dict(rep, source="ghost")), None),
         _config_case("cfg-act-unknown-joint", "config-action", "refuse", "unknown joint",
                      act(dict(rep, source_joint="NoSuchJoint")), None),
-        _config_case("cfg-act-none", "config-action", "refuse", "no actions", act(), None),
+        # actions are optional (Config.actions): each character is then a body, composed unfused
+        _config_case("cfg-act-none", "config-action", "any", "no actions", act(), None),
         _config_case("cfg-act-2000", "config-action", "refuse", "2000 identical actions",
                      act(*([rep] * 2000)), 10),
         _config_case("cfg-act-empty-joint", "config-action", "refuse", "empty joint name",
@@ -1589,6 +1607,8 @@ def execute(case: Case, ws: Workspace, command: str = "inspect", *, timeout: flo
         _rmtree(out)
     out.mkdir(parents=True)
     allowed = [folder, out]
+    if path.is_file():  # the named file itself, wherever a link leads: trusted like the command line
+        allowed.append(path.resolve())
     config_path = None
     if case.kind == "config":
         config_path = path

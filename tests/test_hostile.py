@@ -18,6 +18,20 @@ from conftest import asset
 
 SLICE = hostile.slice_cases()
 
+#: The cases a full ``make fuzz`` found unexpected, each decided: a behaviour fixed (an unknown
+#: animation path ignored with a warning; a mirrored joint refused) or an expectation corrected
+#: (a documented repair, valid input, the trusted named file). Run here so that neither regresses.
+DECIDED_IDS = (
+    "trunc-SimpleSkin-minus1", "json-edit-RiggedFigure-del-primitives", "json-edit-RiggedFigure-del-position",
+    "json-edit-RiggedFigure-del-channel-target", "json-edit-RiggedFigure-node-name-int",
+    "json-edit-RiggedFigure-anim-path-bogus", "nan-inf-RiggedFigure-node-scale-neg", "nan-inf-Fox-node-scale-neg",
+    "quaternion-RiggedFigure-node-rot-1e300", "anim-time-RiggedFigure-anim-times-constant",
+    "component-type-RiggedFigure-anim-time-ubyte", "scene-RiggedFigure-scene-nodes-empty", "uri-image-missing",
+    "special-file-symlink-out", "cfg-act-self", "cfg-act-none",
+)
+_BY_ID = {c.id: c for c in hostile.all_cases()}
+DECIDED = [_BY_ID[i] for i in DECIDED_IDS if i not in {c.id for c in SLICE}]
+
 
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory):
@@ -55,7 +69,7 @@ def test_every_generated_gltf_differs_from_its_seed(workspace):
             assert path.read_bytes() not in seeds, case.id
 
 
-@pytest.mark.parametrize("case", SLICE, ids=[case.id for case in SLICE])
+@pytest.mark.parametrize("case", SLICE + DECIDED, ids=[case.id for case in SLICE + DECIDED])
 def test_hostile_case(case, workspace):
     command = "compose" if case.kind == "config" else "inspect"
     outcome = hostile.execute(case, workspace, command, timeout=hostile.TIMEOUT)

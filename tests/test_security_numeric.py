@@ -142,6 +142,9 @@ HOSTILE_CHARACTERS = {
     "singular_inverse_bind": (lambda raw: _edit_ibm(raw, "LowerArm.R", 0.0),
                               # refused by the reader (not affine) before positioning sees it
                               "joint 'LowerArm.R'.*(inverse bind matri|not affine)"),
+    # a mirrored joint composed with exit 0 and clips that turned the wrong way (identity gate 0.51)
+    "negative_scale": (lambda raw: _edit_node(raw, "LowerArm.R", scale=[-1.0, 1.0, 1.0]),
+                       "joint 'LowerArm.R' rest world matrix mirrors.*Apply Scale"),
     "joint_translation_1e300": (lambda raw: _edit_node(raw, "Hand.R", translation=[1e300, 0.0, 0.0]),
                                 "skeleton reaches 1e\\+300 m.*out of range"),
     "joint_translation_1e39": (lambda raw: _edit_node(raw, "Hand.R", translation=[1e39, 0.0, 0.0]),

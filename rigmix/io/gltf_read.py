@@ -749,6 +749,9 @@ def _clips(doc, joint_of_node, skeleton: Skeleton, log) -> tuple[Clip, ...]:
                 if "target" not in ch or path is None:  # required by glTF 2.0; a missing node is legal
                     log(f"animation '{name}' channel {ci} has no target{' path' if 'target' in ch else ''}, "
                         "which glTF 2.0 requires: ignored")
+                elif path not in ("translation", "rotation", "scale"):  # an extension's path, or a typo
+                    log(f"animation '{name}' channel {ci} animates path {path!r}, not translation, rotation, "
+                        "scale or weights: ignored")
                 continue
             if node not in joint_of_node:
                 ignored_nodes.add(node)
