@@ -456,7 +456,7 @@ class Character:
     def require_skinned(self, stage: str = "compose") -> "Character":
         """Return self, or raise UnsupportedError if there is nothing to compose."""
         if not self.skinned:
-            where = self.source or self.name
+            where = self.label
             raise UnsupportedError(
                 f"{stage}: {where} has no skinned mesh (no glTF skin); composition needs a "
                 "rigged character: export it with its armature and skin weights"

@@ -167,7 +167,7 @@ def _finite(values, what: str, dtype=np.float32):
 
 
 def _where(character):
-    return character.source or character.name or "character"
+    return character.label or "character"  # the file's name, never its folders
 
 
 def _resolve_clip(character, clip):

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -158,7 +159,8 @@ class Plan:
 
 
 def _where(config: Config, cid: str, inputs) -> str:
-    src = inputs[cid].source or config.characters[cid].path
+    """A character in messages: its id and its file's name (never the folders it lives in)."""
+    src = inputs[cid].label if inputs[cid].source else Path(config.characters[cid].path).name
     return f"{cid!r} ({src})"
 
 

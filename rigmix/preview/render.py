@@ -110,7 +110,7 @@ def pose_scene(character, clip=None, times=None, *, fps=30.0):
     PosedScene
     """
     sk = character.skeleton
-    where = character.source or character.name
+    where = character.label  # the file's name, never its folders
     if isinstance(clip, str):
         try:
             clip = character.clip(clip)
