@@ -70,6 +70,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 from rigmix.config import Config  # noqa: E402
 from rigmix.pipeline import assembly_stage, compose, quality_stage  # noqa: E402
 from rigmix.quality import self_composition_errors  # noqa: E402
+from rigmix.sparse_weights import dense_rows  # noqa: E402
 from rigmix.weights import WeightParams, blend_weights  # noqa: E402
 
 #: (label, blend_weights options): every method with its defaults, and dfd without the DFD field.
@@ -321,7 +322,7 @@ def mirrored_errors(comp, skin, pair, *, fps=30.0, max_frames=None, truth_influe
     jrows = jall[near]
     if len(jrows):
         T = np.asarray(body_in.F)[np.asarray(s["face"])[near]]
-        Wc = np.einsum("qk,qkj->qj", np.asarray(s["bary"])[near], np.asarray(body_in.W)[T])
+        Wc = np.einsum("qk,qkj->qj", np.asarray(s["bary"])[near], dense_rows(body_in.W, T))
         Gj = np.zeros((len(jrows), J_out))
         for j in range(Wc.shape[1]):
             if t[j] >= 0:

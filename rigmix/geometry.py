@@ -101,9 +101,10 @@ def neighbour_roughness(A, X):
     A : (k, k) scipy.sparse matrix
         Adjacency of the rows; any positive entry is an edge (its value is not used), no
         self-loops.
-    X : (k, c) float array
+    X : (k, c) float array or scipy.sparse matrix
         Rows summing to 1 (skinning weights): the figure is in ``[0, 1]``, 1 for a row sharing
-        nothing with its neighbours.
+        nothing with its neighbours. Sparse: the same floats, dense a block of rows at a time
+        (:func:`rigmix.sparse_weights.row_blocks`).
 
     Returns
     -------
@@ -111,10 +112,22 @@ def neighbour_roughness(A, X):
         0 for a row without neighbours.
     has_neighbours : (k,) bool
     """
+    import scipy.sparse as sp
+
+    from .sparse_weights import row_blocks
+
     A = (A > 0).astype(np.float64)
     deg = np.asarray(A.sum(axis=1)).ravel()
-    mean = (A @ X) / np.maximum(deg, 1)[:, None]
-    return np.where(deg > 0, 0.5 * np.abs(X - mean).sum(axis=1), 0.0), deg > 0
+    if not sp.issparse(X):
+        mean = (A @ X) / np.maximum(deg, 1)[:, None]
+        return np.where(deg > 0, 0.5 * np.abs(X - mean).sum(axis=1), 0.0), deg > 0
+    X = X.tocsr()
+    AX = (A @ X).tocsr()  # the neighbours' sums, in the order the dense product adds them
+    r = np.zeros(X.shape[0])
+    for rows in row_blocks(X.shape[0], X.shape[1]):
+        mean = AX[rows].toarray() / np.maximum(deg[rows], 1)[:, None]
+        r[rows] = 0.5 * np.abs(X[rows].toarray() - mean).sum(axis=1)
+    return np.where(deg > 0, r, 0.0), deg > 0
 
 
 def check_coordinates(points: Mapping, *, where: str, fix: str) -> float:

@@ -91,6 +91,7 @@ from .animation.sampling import clip_times, sample_clip
 from .fusion.meshutil import dihedral_angles
 from .geometry import bounding_box_diagonal, check_transforms, closest_surface_points
 from .skinning import linear_blend_skinning, rest_skinning_matrices, skinning_matrices
+from .sparse_weights import dense_rows
 
 __all__ = ["face_stretch", "vertex_stretch", "band_stretch", "junction_band_radius", "junction_stretch_ratio",
            "weight_roughness", "junction_weight_roughness", "outside_area_share", "face_owners",
@@ -307,8 +308,8 @@ def weight_roughness(V, F, W, rows=None):
     V : (n, 3) float array
         Split vertices (welded by position here: the split copies of a seam are one vertex).
     F : (m, 3) int array
-    W : (n, J) float array
-        Rows summing to 1.
+    W : (n, J) float array or scipy.sparse matrix
+        Rows summing to 1 (sparse: the same figures, with memory in the influences).
     rows : (n,) bool array, optional
         The vertices to measure (a welded vertex is measured when any of its copies is);
         default all.
@@ -322,7 +323,7 @@ def weight_roughness(V, F, W, rows=None):
 
     from .geometry import neighbour_roughness
 
-    W = np.asarray(W, np.float64)
+    W = W.tocsr() if sp.issparse(W) else np.asarray(W, np.float64)
     # the 0/1 adjacency: no lengths, and no sort of the edges, most of the cost at a million faces
     Vw, index, A = welded_graph(V, F, lengths=False)
     k = len(Vw)
@@ -587,7 +588,7 @@ def self_composition_truth(composition, *, truth_influences=4):
     oi, ov = np.asarray(surface.origin_input), np.asarray(surface.origin_vertex)
     for i in range(len(ids)):
         rows = np.flatnonzero(oi == i)
-        Wi = np.asarray(inputs[i].W)[ov[rows]]
+        Wi = dense_rows(inputs[i].W, ov[rows])
         for j in range(Wi.shape[1]):
             if t[j] >= 0:
                 G[rows, t[j]] += Wi[:, j]
@@ -599,7 +600,7 @@ def self_composition_truth(composition, *, truth_influences=4):
         s = surface.junction_sources[0]  # the whole original surface (input 0 keeps everything at rest)
         k = np.searchsorted(jrows, gen)
         T = np.asarray(inputs[0].F)[np.asarray(s["face"])[k]]
-        Wc = np.einsum("qk,qkj->qj", np.asarray(s["bary"])[k], np.asarray(inputs[0].W)[T])
+        Wc = np.einsum("qk,qkj->qj", np.asarray(s["bary"])[k], dense_rows(inputs[0].W, T))
         for j in range(Wc.shape[1]):
             if t[j] >= 0:
                 G[gen, t[j]] += Wc[:, j]

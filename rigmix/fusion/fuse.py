@@ -66,8 +66,9 @@ class FusionInput:
     V : (n, 3) float64
         Split vertices of all its skinned meshes concatenated.
     F : (m, 3) int64
-    W : (n, J) float64
-        Dense skin weights.
+    W : (n, J) float64 array or scipy.sparse matrix
+        Skin weights (:func:`rigmix.fusion.inputs.fusion_input` gives a CSR matrix of the
+        influences: :mod:`rigmix.sparse_weights`).
     used : (J,) bool
         Joints of this character kept in the output skeleton.
     mesh_of_vertex : (n,) int64, optional
@@ -81,7 +82,7 @@ class FusionInput:
 
     V: np.ndarray
     F: np.ndarray
-    W: np.ndarray
+    W: np.ndarray  # or a scipy.sparse matrix
     used: np.ndarray
     mesh_of_vertex: np.ndarray | None = None
     uvs: np.ndarray | None = None
@@ -329,10 +330,10 @@ class FusedSurface:
 
 def _check_inputs(inputs, actions):
     for i, x in enumerate(inputs):
-        V, F, W = np.asarray(x.V), np.asarray(x.F), np.asarray(x.W)
+        V, F, shape = np.asarray(x.V), np.asarray(x.F), np.shape(x.W)  # dense or sparse
         if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3:
             raise InputError(f"fusion: input {i} ({x.name!r}) needs V (n, 3) and F (m, 3)")
-        if len(W) != len(V) or W.shape[1] != len(np.asarray(x.used)):
+        if len(shape) != 2 or shape[0] != len(V) or shape[1] != len(np.asarray(x.used)):
             raise InputError(f"fusion: input {i} ({x.name!r}) weights must be (n, J) with used (J,)")
         if len(F) and (F.min() < 0 or F.max() >= len(V)):
             raise InputError(f"fusion: input {i} ({x.name!r}) has face indices out of range")

@@ -5,14 +5,17 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
+from ..sparse_weights import influence_matrix
 from .fuse import FusionAction, FusionInput
 
 __all__ = ["MAX_DENSE_WEIGHT_ENTRIES", "check_dense_weights", "check_weight_size", "fusion_input",
            "fusion_inputs_from_plan"]
 
-#: The most dense skin-weight entries (vertices x joints) compose allocates. The positioning, fusion,
-#: weights and quality stages keep skin weights as dense ``(V, J)`` float64 matrices (8 bytes an entry),
-#: several at once: 2**24 entries is 128 MiB a matrix, and keeps compose's peak memory under 2 GB.
+#: The most dense skin-weight entries (vertices x joints) compose allocates. The fusion inputs hold
+#: their weights per influence (:mod:`rigmix.sparse_weights`), but the weights stage (retargeted and
+#: blended weights), the assembly and the quality figures keep the output's as dense ``(V, J)``
+#: float64 matrices (8 bytes an entry), several at once: 2**24 entries is 128 MiB a matrix, and keeps
+#: compose's peak memory under 2 GB.
 #: :func:`check_weight_size` checks it on the vertices of all the characters of a composition times all
 #: their joints (which bounds the output's matrix too) before anything is allocated.
 MAX_DENSE_WEIGHT_ENTRIES = 2**24
@@ -85,21 +88,21 @@ def fusion_input(character, used, *, name: str = "") -> FusionInput:
     Returns
     -------
     FusionInput
-        ``mesh_of_vertex`` indexes ``character.meshes``; UVs (set 0) and normals are given only
-        when every skinned mesh has them.
+        ``W`` is a ``(n, J)`` CSR matrix of the meshes' influences (memory ``O(n k)``, values
+        those of the dense matrix); ``mesh_of_vertex`` indexes ``character.meshes``; UVs (set 0)
+        and normals are given only when every skinned mesh has them.
     """
     J = character.skeleton.num_joints
-    Vs, Fs, mv, uvs, nrm, col = [], [], [], [], [], []
+    Vs, Fs, mv, uvs, nrm, col, rows, cols, vals = [], [], [], [], [], [], [], [], []
     base = 0
     meshes = [(k, m) for k, m in enumerate(character.meshes) if m.skinned and len(m.faces)]
     n = sum(len(m.positions) for _, m in meshes)
-    check_dense_weights(n, J, f"fusion: character {name or character.name!r}")
-    W = np.zeros((n, J))  # filled in place: one (n, J) matrix, not one per mesh plus their concatenation
     for k, m in meshes:
         Vs.append(np.asarray(m.positions, np.float64))
         Fs.append(np.asarray(m.faces, np.int64) + base)
-        rows = np.repeat(np.arange(len(m.positions)), m.joints.shape[1])  # as Mesh.dense_weights
-        np.add.at(W[base:base + len(m.positions)], (rows, m.joints.ravel()), m.weights.ravel())
+        rows.append(base + np.repeat(np.arange(len(m.positions)), m.joints.shape[1]))  # as Mesh.dense_weights
+        cols.append(m.joints.ravel())
+        vals.append(m.weights.ravel())
         mv.append(np.full(len(m.positions), k, np.int64))
         uvs.append(m.uvs[0] if m.uvs else None)
         nrm.append(m.normals)
@@ -107,7 +110,9 @@ def fusion_input(character, used, *, name: str = "") -> FusionInput:
         base += len(m.positions)
     if not meshes:
         z = np.zeros((0, 3))
-        return FusionInput(z, np.zeros((0, 3), np.int64), np.zeros((0, J)), np.asarray(used, bool), name=name)
+        return FusionInput(z, np.zeros((0, 3), np.int64), influence_matrix([], [], [], (0, J)), np.asarray(used, bool),
+                           name=name)
+    W = influence_matrix(np.concatenate(rows), np.concatenate(cols), np.concatenate(vals), (n, J))
 
     def cat(parts):
         return np.concatenate(parts) if all(p is not None for p in parts) else None

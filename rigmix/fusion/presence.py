@@ -11,9 +11,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 from dfd.mesh import smooth, weld
 
+from ..sparse_weights import dense_rows, row_blocks
 from .meshutil import face_adjacency, nondegenerate, vertex_adjacency, vertex_components
 
 __all__ = [
@@ -58,17 +60,22 @@ def raw_presence(W, used):
 
     Parameters
     ----------
-    W : (n, J) float array
-        Dense skin weights, rows summing to 1.
+    W : (n, J) float array or scipy.sparse matrix
+        Skin weights, rows summing to 1.
     used : (J,) bool array
 
     Returns
     -------
     p : (n,) float64 in [0, 1]
+        The same floats for a dense or a sparse ``W`` (summed over dense blocks of rows).
     """
-    W = np.asarray(W, dtype=np.float64)
+    W = W if sp.issparse(W) else np.asarray(W, dtype=np.float64)
     used = np.asarray(used, dtype=bool)
-    p = W[:, used].sum(axis=1) if W.size else np.zeros(len(W))
+    n, J = W.shape
+    p = np.zeros(n)
+    if n and J:
+        for rows in row_blocks(n, J):
+            p[rows] = dense_rows(W, rows)[:, used].sum(axis=1)
     return np.clip(np.nan_to_num(p), 0.0, 1.0)
 
 

@@ -12,6 +12,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..fusion.inputs import check_dense_weights
+from ..sparse_weights import dense_rows, row_blocks
 
 __all__ = ["retarget_weights", "retarget_inputs", "closest_point_weights", "blend_parts", "to_influences"]
 
@@ -21,8 +22,8 @@ def retarget_weights(W, target, num_output_joints, *, confidence=None):
 
     Parameters
     ----------
-    W : (n, J_in) float array
-        Dense input weights.
+    W : (n, J_in) float array or scipy.sparse matrix
+        Input weights (``FusionInput.W``).
     target : (J_in,) int array
         Output joint of each input joint (``BoneMap.target``), ``-1`` when unmapped.
     num_output_joints : int
@@ -37,7 +38,7 @@ def retarget_weights(W, target, num_output_joints, *, confidence=None):
     c : (n,) float64
         Confidence of each row: ``sum_j W[:, j] confidence[j]`` (1 without ``confidence``).
     """
-    W = np.asarray(W, dtype=np.float64)
+    W = W if sp.issparse(W) else np.asarray(W, dtype=np.float64)
     target = np.asarray(target, dtype=np.int64)
     ok = target >= 0
     B = sp.csr_matrix((np.ones(int(ok.sum())), (np.flatnonzero(ok), target[ok])),
@@ -48,7 +49,12 @@ def retarget_weights(W, target, num_output_joints, *, confidence=None):
     # leave rows whose sum is already 1 bit-identical (preserved vertices copy them exactly)
     off = nz & (np.abs(s - 1.0) > 1e-12)
     Wr[off] /= s[off, None]
-    c = np.ones(len(W)) if confidence is None else W @ np.asarray(confidence, dtype=np.float64)
+    n = W.shape[0]
+    c = np.ones(n)
+    if confidence is not None:  # dense blocks of rows: the same floats as the whole dense product
+        conf = np.asarray(confidence, dtype=np.float64)
+        for rows in row_blocks(n, W.shape[1]):
+            c[rows] = dense_rows(W, rows) @ conf
     return Wr, np.clip(c, 0.0, 1.0)
 
 
@@ -71,7 +77,7 @@ def retarget_inputs(inputs, maps, num_output_joints):
     """
     retargeted, confidence = [], []
     for x, bm in zip(inputs, maps):
-        check_dense_weights(len(x.W), num_output_joints, f"weights: input {x.name!r} retargeted")
+        check_dense_weights(x.W.shape[0], num_output_joints, f"weights: input {x.name!r} retargeted")
         Wr, c = retarget_weights(x.W, bm.target, num_output_joints, confidence=bm.confidence)
         retargeted.append(Wr)
         confidence.append(c)
