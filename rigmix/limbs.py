@@ -66,6 +66,7 @@ import numpy as np
 
 from .character import Character
 from .rig import swap_side
+from .sparse_weights import influence_matrix, row_blocks
 
 __all__ = ["Limb", "BodyPlan", "classify_limbs", "limbs_summary", "KINDS"]
 
@@ -186,8 +187,14 @@ class _Rig:
         parts = rest_pose(character) if character.meshes else []
         V = [v for m, v in zip(character.meshes, parts) if m.skinned]
         self.V = np.concatenate(V) if V else np.zeros((0, 3))
-        self.W = (np.concatenate([m.dense_weights(J) for m in skinned]) if skinned else np.zeros((0, J)))
-        mass = self.W.sum(axis=0)
+        # per influence (memory O(n k), not O(n J)); the figures below are the dense matrix's, bit for bit
+        base = np.cumsum([0] + [len(m.positions) for m in skinned])
+        self.W = influence_matrix(
+            np.concatenate([b + np.repeat(np.arange(len(m.positions)), m.joints.shape[1])
+                            for b, m in zip(base, skinned)]) if skinned else [],
+            np.concatenate([m.joints.ravel() for m in skinned]) if skinned else [],
+            np.concatenate([m.weights.ravel() for m in skinned]) if skinned else [], (int(base[-1]), J))
+        mass = np.bincount(self.W.indices, weights=self.W.data, minlength=J)  # column sums in row order
         for prop in character.props:
             if 0 <= prop.joint < J:
                 mass[prop.joint] += len(prop.mesh.positions)
@@ -202,7 +209,8 @@ class _Rig:
                 sub[self.parents[j]] += sub[j]
         self.subtree_mass = sub
         self.deforms = sub > 0
-        self.owner = np.argmax(self.W, axis=1) if len(self.W) else np.zeros(0, dtype=np.int64)
+        self.owner = (np.asarray(self.W.argmax(axis=1)).ravel().astype(np.int64) if self.W.shape[0] and J
+                      else np.zeros(self.W.shape[0], dtype=np.int64))
         allpts = np.concatenate([self.V, self.P]) if len(self.V) else self.P
         lo, hi = (allpts.min(axis=0), allpts.max(axis=0)) if len(allpts) else (np.zeros(3), np.ones(3))
         self.lo, self.hi = lo, hi
@@ -278,11 +286,16 @@ class _Rig:
 
     def separation(self, j: int) -> float:
         """The fraction of joint ``j``'s own weight on vertices whose weight stays in its subtree."""
-        if self.mass[j] <= 0 or not len(self.W):
+        n = self.W.shape[0]
+        if self.mass[j] <= 0 or not n:
             return 1.0
         sub = self.subtree(j)
-        w = self.W[:, j]
-        return float((w * self.W[:, sub].sum(axis=1)).sum() / w.sum())
+        w, inside = np.zeros(n), np.zeros(n)
+        for rows in row_blocks(n, self.J):  # dense rows a block at a time: each row's sums as dense
+            block = self.W[rows].toarray()
+            w[rows] = block[:, j]
+            inside[rows] = block[:, sub].sum(axis=1)
+        return float((w * inside).sum() / w.sum())
 
 
 def _contact(rig: _Rig, own: set, top: int) -> int:

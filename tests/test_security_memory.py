@@ -1,9 +1,12 @@
-"""Issue 23 #5, unbounded resources: compose's dense (V, J) skin weights are bounded.
+"""Issue 23 #5, unbounded resources: skin weights are held per influence where a file's are read,
+and compose's remaining dense (V, J) matrices are bounded.
 
 A valid character with a 20,000-joint chain made compose allocate dense float64 (V, J) weight
-matrices of 1.9 GiB each (13 GB peak, minutes). The composition is now sized at load
-(:func:`rigmix.fusion.inputs.check_weight_size`) and refused at once with one clear line (exit 2)
-before any such matrix exists.
+matrices of 1.9 GiB each (13 GB peak, minutes), and ``inspect`` one (3.9 GB peak). The limb
+classifier and the fusion inputs now hold a CSR matrix of the influences
+(:mod:`rigmix.sparse_weights`); the weights, assembly and quality stages still hold the output's
+weights densely, so a composition is sized at load (:func:`rigmix.fusion.inputs.check_weight_size`)
+and refused at once with one clear line (exit 2) before any such matrix exists.
 """
 
 from __future__ import annotations
@@ -15,10 +18,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from rigmix.character import Character, Mesh, Skeleton
 from rigmix.errors import InputError
-from rigmix.fusion.inputs import MAX_DENSE_WEIGHT_ENTRIES, check_dense_weights, check_weight_size
+from rigmix.fusion.inputs import MAX_DENSE_WEIGHT_ENTRIES, check_dense_weights, check_weight_size, fusion_input
 from rigmix.io.gltf import write_gltf
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -104,3 +108,65 @@ def test_weight_size_check():
         check_weight_size({"a": big}, "config c.toml")
     with pytest.raises(InputError, match="remove the joints that carry no weight"):
         check_dense_weights(1 << 20, 1 << 20, "fusion: character 'x'")
+
+
+def _run_child(args, rss_file, env, timeout=600):
+    return subprocess.run([sys.executable, "-c", _CHILD_ANY, str(rss_file), *map(str, args)], capture_output=True,
+                          text=True, env=env, preexec_fn=_limit_memory, timeout=timeout)
+
+
+#: Runs ``rigmix ARGS`` and writes the child's own peak RSS (KiB) to argv[1].
+_CHILD_ANY = """
+import resource, sys
+from rigmix.cli import main
+try:
+    code = main(sys.argv[2:])
+finally:
+    open(sys.argv[1], "w").write(str(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))
+sys.exit(code)
+"""
+
+
+def test_fusion_input_weights_are_per_influence():
+    """The fusion inputs' weights are a CSR matrix of the influences, equal to the dense matrix bit
+    for bit, in memory proportional to the influences whatever the joint count."""
+    small = chain_character(64, 40)
+    x = fusion_input(small, np.ones(64, bool))
+    assert sp.issparse(x.W)
+    assert np.array_equal(x.W.toarray(), small.meshes[0].dense_weights(64))
+    big = chain_character(20_000, 3000)  # dense: 12,000 x 20,000 float64 = 1.9 GB
+    x = fusion_input(big, np.ones(20_000, bool))
+    n, k = big.meshes[0].joints.shape
+    assert sp.issparse(x.W) and x.W.shape == (n, 20_000) and x.W.nnz <= n * k
+    assert x.W.data.nbytes + x.W.indices.nbytes + x.W.indptr.nbytes <= 16 * n * k + 8 * (n + 1)
+
+
+def test_inspect_long_chain_memory_is_bounded_by_the_input(tmp_path):
+    """``inspect`` of a valid 20,000-joint chain (12,000 vertices): the limb classifier made a
+    dense (V, J) matrix (3.9 GB peak). Peak RSS is now within 256 MiB plus 16 times the file."""
+    path = tmp_path / "chain.glb"
+    write_gltf(chain_character(20_000, 3000), path)
+    rss = tmp_path / "rss.txt"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    r = _run_child(["inspect", path], rss, env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "joints 20000" in r.stdout and "vertices 12000" in r.stdout
+    bound_kb = (256 * 1024**2 + 16 * path.stat().st_size) // 1024
+    assert int(rss.read_text()) < bound_kb, f"peak RSS {rss.read_text()} KiB, bound {bound_kb} KiB"
+
+
+def test_several_thousand_joint_chain_composes(tmp_path):
+    """A valid 3000-joint chain (1024 vertices) composed with itself: within the declared limit, it
+    composes (exit 0, a file written) with a peak RSS under 2 GB."""
+    write_gltf(chain_character(3000, 256), tmp_path / "chain.glb")
+    (tmp_path / "self.toml").write_text(
+        'name = "chain_self"\n[characters.body]\npath = "chain.glb"\n[characters.donor]\npath = "chain.glb"\n'
+        '[[actions]]\nop = "replace"\nsource = "donor"\nsource_joint = "j2700"\n'
+        'target = "body"\ntarget_joint = "j2700"\n')
+    rss = tmp_path / "rss.txt"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    r = _run_child(["compose", tmp_path / "self.toml", "-o", tmp_path / "out.glb", "--no-progress",
+                    "--no-feature-field"], rss, env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert (tmp_path / "out.glb").exists()
+    assert int(rss.read_text()) < PEAK_RSS_LIMIT_KB
