@@ -277,3 +277,98 @@ def test_untangle_opens_a_fold_and_keeps_the_fixed_vertices():
     # nothing to open: the mesh comes back as it is
     U2, left2 = untangle(V0, F, nfixed)
     assert left2 == 0 and np.array_equal(U2, V0)
+
+
+def _cesium_arm():
+    """CesiumMan's welded surface around its right arm: ``(V, F)`` of real, unevenly sized
+    triangles."""
+    from conftest import asset
+
+    from rigmix.fusion.inputs import fusion_input
+    from rigmix.io import load_character
+
+    c = load_character(asset("CesiumMan"))
+    inp = fusion_input(c, c.skeleton.subtree(c.skeleton.index("Skeleton_arm_joint_R")))
+    F = np.asarray(inp.F, np.int64)
+    used = np.unique(F)
+    new = np.full(len(inp.V), -1)
+    new[used] = np.arange(len(used))
+    return np.asarray(inp.V, np.float64)[used], new[F]
+
+
+def test_spread_keeps_points_apart_and_greedy():
+    """The feature rounds' spread (``stitch._spread``) on a real character's vertices: picked
+    points are at least the spacing apart and from the avoided points, and every other point
+    was refused for a picked point of higher priority within the spacing (or an avoided one)."""
+    from scipy.spatial import cKDTree
+
+    from rigmix.fusion import stitch
+
+    V, _ = _cesium_arm()
+    rng = np.random.default_rng(1)
+    prio = rng.random(len(V))
+    spacing = 0.02 * float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    avoid = V[:: 50]
+    pick = stitch._spread(V, prio, spacing, avoid=avoid, avoid_spacing=0.5 * spacing)
+    assert len(pick) > 10 and len(np.unique(pick)) == len(pick)
+    P = V[pick]
+    d, _ = cKDTree(P).query(P, k=2)
+    assert d[:, 1].min() >= spacing
+    assert cKDTree(avoid).query(P)[0].min() >= 0.5 * spacing
+    rest = np.setdiff1d(np.arange(len(V)), pick)
+    blocked = cKDTree(avoid).query(V[rest])[0] < 0.5 * spacing
+    for k in rest[~blocked]:
+        near = pick[np.linalg.norm(P - V[k], axis=1) < spacing]
+        assert len(near) and prio[near].max() >= prio[k]
+
+
+def test_relocation_matches_one_candidate_at_a_time():
+    """``relocate_poor_vertices`` on a real character's arm with free vertices jittered into
+    poor triangles gives what trying each candidate position in turn gives (the candidates of
+    a vertex are evaluated together), and never lowers the worst angle."""
+    from rigmix.fusion.remesh import relocate_poor_vertices
+
+    V, F = _cesium_arm()
+    rng = np.random.default_rng(2)
+    edge = float(np.linalg.norm(V[F[:, 0]] - V[F[:, 1]], axis=1).mean())
+    nfixed = len(V) // 3
+    U = V.copy()
+    U[nfixed:] += rng.normal(scale=0.3 * edge, size=(len(V) - nfixed, 3))
+    out = relocate_poor_vertices(U, F, nfixed, surface=(V, F), iterations=1)
+    assert np.array_equal(out[:nfixed], U[:nfixed]) and not np.array_equal(out, U)
+    assert triangle_min_angles(out, F).min() >= triangle_min_angles(U, F).min() - 1e-9
+    # no fixed vertex: every candidate is a ring centroid or halfway there; one vertex at a time
+    out = relocate_poor_vertices(U, F, 0, surface=(V, F), iterations=1)
+    VF = [[] for _ in range(len(U))]
+    for f, t in enumerate(F):
+        for v in t:
+            VF[v].append(f)
+    import igl
+
+    W = U.copy()
+    bad = np.flatnonzero(triangle_min_angles(U, F) < 25.0)
+    verts = np.unique(F[bad].ravel())
+    cands = []
+    for v in verts:
+        nbr = np.unique(F[VF[v]].ravel())
+        c = W[nbr[nbr != v]].mean(axis=0)[None]
+        cands.append(np.concatenate([c, 0.5 * (c + W[v])]))
+    allC = np.asarray(igl.point_mesh_squared_distance(np.concatenate(cands), V, F)[2])
+    for v, C in zip(verts, np.split(allC, np.cumsum([len(c) for c in cands])[:-1])):
+        ring = F[VF[v]]
+        n0 = np.cross(W[ring[:, 1]] - W[ring[:, 0]], W[ring[:, 2]] - W[ring[:, 0]])
+        n0 /= np.linalg.norm(n0, axis=1, keepdims=True)
+        best, pos = triangle_min_angles(W, ring).min(), None
+        for c in C:
+            old = W[v].copy()
+            W[v] = c
+            n1 = np.cross(W[ring[:, 1]] - W[ring[:, 0]], W[ring[:, 2]] - W[ring[:, 0]])
+            ln = np.linalg.norm(n1, axis=1)
+            ok = np.all(ln > 0) and np.all(np.einsum("ij,ij->i", n1 / ln[:, None], n0) >= 0.5)
+            a = triangle_min_angles(W, ring).min()
+            W[v] = old
+            if ok and a > best + 1e-6:
+                best, pos = a, c.copy()
+        if pos is not None:
+            W[v] = pos
+    assert np.allclose(out, W, rtol=0, atol=1e-12 * edge)

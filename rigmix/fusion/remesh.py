@@ -349,6 +349,40 @@ def _ring_min_angle(V, tris):
     return float(np.degrees(corner_angles(V, tris).min(initial=np.inf)))
 
 
+def _ring_candidates(P, at_v, C, n0, min_normal_dot):
+    """A vertex's ring with the vertex at each of the candidate positions, all at once.
+
+    Parameters
+    ----------
+    P : (r, 3, 3) float array
+        The ring's triangles' corners.
+    at_v : (r, 3) bool
+        Corners that are the vertex.
+    C : (k, 3) float array
+        Candidate positions.
+    n0 : (r, 3) float array
+        The ring's unit normals before the move.
+    min_normal_dot : float
+
+    Returns
+    -------
+    ok : (k,) bool
+        No triangle degenerates and none turns past ``min_normal_dot``.
+    angle : (k,) float64
+        Smallest angle of the moved ring, degrees.
+    """
+    k, r = len(C), len(P)
+    T = np.broadcast_to(P, (k, r, 3, 3)).copy()
+    T[:, at_v] = C[:, None, :]
+    T = T.reshape(k * r, 3, 3)
+    n1 = np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0])
+    ln = np.linalg.norm(n1, axis=1)
+    dots = np.einsum("ij,ij->i", n1 / np.where(ln == 0, 1.0, ln)[:, None], np.tile(n0, (k, 1)))
+    ok = ((ln > 0) & (dots >= min_normal_dot)).reshape(k, r).all(axis=1)
+    angle = np.degrees(triangle_corner_angles(T).min(axis=1)).reshape(k, r).min(axis=1)
+    return ok, angle
+
+
 def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterations=4, min_normal_dot=0.5):
     """Move free vertices of poor triangles where it raises the worst angle around them.
 
@@ -431,19 +465,13 @@ def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterat
             n0 = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
             n0 /= np.maximum(np.linalg.norm(n0, axis=1, keepdims=True), 1e-300)
             cur = _ring_min_angle(V, ring)
+            ok, a = _ring_candidates(P, ring == v, C, n0, min_normal_dot)
             best, best_pos = cur, None
-            old = V[v].copy()
-            for c in C:
-                V[v] = c
-                P = V[ring]
-                n1 = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
-                ln = np.linalg.norm(n1, axis=1)
-                if np.any(ln == 0) or np.any(np.einsum("ij,ij->i", n1 / ln[:, None], n0) < min_normal_dot):
-                    continue
-                a = _ring_min_angle(V, ring)
-                if a > best + 1e-6:
-                    best, best_pos = a, c.copy()
-            V[v] = old if best_pos is None else best_pos
+            for c in np.flatnonzero(ok):  # in order: a candidate must beat the best before it
+                if a[c] > best + 1e-6:
+                    best, best_pos = a[c], C[c].copy()
+            if best_pos is not None:
+                V[v] = best_pos
             moved |= best_pos is not None
         if not moved:
             break

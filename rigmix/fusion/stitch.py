@@ -224,15 +224,25 @@ def _spread(X, priority, spacing, avoid=None, avoid_spacing=None):
     ``avoid_spacing`` (default ``spacing``) from the points ``avoid``. Returns indices into ``X``."""
     from scipy.spatial import cKDTree
 
+    X = np.asarray(X, np.float64).reshape(-1, 3)
     order = np.argsort(-np.asarray(priority))
-    tree = cKDTree(avoid) if avoid is not None and len(avoid) else None
+    free = np.ones(len(X), bool)
+    if avoid is not None and len(avoid) and len(X):
+        free = cKDTree(avoid).query(X)[0] >= (spacing if avoid_spacing is None else avoid_spacing)
+    # picked points by cell of side ``spacing``: a point closer than that is in a neighbouring cell
+    cells: dict = {}
+    key = np.floor(X / spacing).astype(np.int64) if spacing > 0 else np.zeros((len(X), 3), np.int64)
+    near = [(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)]
     pick: list[int] = []
     for k in order:
-        if tree is not None and tree.query(X[k])[0] < (spacing if avoid_spacing is None else avoid_spacing):
+        if not free[k]:
             continue
-        if pick and np.min(np.linalg.norm(X[pick] - X[k], axis=1)) < spacing:
+        cx, cy, cz = key[k]
+        close = [q for d in near for q in cells.get((cx + d[0], cy + d[1], cz + d[2]), ())]
+        if close and np.min(np.linalg.norm(X[close] - X[k], axis=1)) < spacing:
             continue
         pick.append(int(k))
+        cells.setdefault((cx, cy, cz), []).append(int(k))
     return np.asarray(pick, np.int64)
 
 
