@@ -12,13 +12,23 @@ space and its inverse bind matrices are the inverses of its rest world matrices 
 rest pose), so later stages never need the original bind space.
 
 Scale matching (automatic, overridable in the config): for a fused pair (joint ``a`` of the
-moved character X, joint ``b`` of the target Y) the scale of X is
+moved character X, joint ``b`` of the target Y) the scale of X is a ratio of two lengths measured
+in each character's rest pose, world space, in its own units (Y already scaled):
 
-* ``replace``: ``chain_length(Y, b) / chain_length(X, a)``, the ratio of the longest bone chains
-  from the fused joints down to a leaf (the replaced limb against the new limb);
-* ``attach``: ``cross_section(Y, b) / cross_section(X, a)``, the ratio of the median distances
-  from the fused joints to the mesh vertices they drive (weight >= 0.5), i.e. the local
-  thickness of the two bodies where they meet;
+* ``replace``: the cross-section of the cut, ``cut_section(Y, b) / cut_section(X, a)``
+  (:func:`cut_section`: the radius of the ring where the replaced part and the new part leave
+  their bodies: a neck's base against a waist), so that the new part fills the hole the old one
+  leaves and is not swallowed by the body around it. The ratio of the longest bone chains from
+  the fused joints down to a leaf (:func:`chain_length`, the replaced limb against the new limb)
+  is taken instead where the two agree within :data:`AGREEMENT` (a factor): then both measure the
+  same limb, and the chain is the steadier measure of a limb's length. They disagree where
+  the chains mean different things (a torso's chain runs out along an arm, a neck's up into
+  the head) or where a rig's bones do not follow its surface; the cross-section is kept there.
+  Without a cut (a part driven by no vertex) the chain ratio is used alone;
+* ``attach``: ``thickness(Y, b) / thickness(X, parent of a)``, the depths of the joints the part
+  hangs from in their bodies (:func:`thickness`: distance to the closest surface point), so that
+  the part keeps its size relative to the body it came from (a tail on a body as thick as the
+  fox's hips is the fox's tail);
 * when a measure is degenerate (a leaf joint, no vertex driven by the joint), the ratio of the
   bounding-box diagonals of the two rest meshes.
 
@@ -41,11 +51,15 @@ from ..skinning import check_rig, linear_blend_skinning
 from ..transforms import matrix_to_trs, quat_multiply, quat_to_matrix
 
 __all__ = [
+    "AGREEMENT",
     "skeleton_adjacency",
     "smooth_translations",
     "rest_world_mesh",
+    "rest_world_faces",
+    "thickness",
     "chain_length",
     "cross_section",
+    "cut_section",
     "size",
     "pair_scale",
     "pose_worlds",
@@ -57,6 +71,10 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+
+#: Largest factor between a replace's chain-length ratio and its cross-section ratio for which the
+#: chain's is used (:func:`pair_scale`): within it both measure the same limb.
+AGREEMENT = 1.5
 
 
 # --------------------------------------------------------------------------------------------
@@ -159,6 +177,41 @@ def rest_world_mesh(character):
     return np.concatenate(Vs), np.concatenate(Ws)
 
 
+def rest_world_faces(character):
+    """Faces of every mesh of ``character``, indexing the rows of :func:`rest_world_mesh`, ``(m, 3)`` int64."""
+    Fs, base = [], 0
+    for mesh in character.meshes:
+        Fs.append(np.asarray(mesh.faces, np.int64).reshape(-1, 3) + base)
+        base += len(mesh.positions)
+    return np.concatenate(Fs) if Fs else np.zeros((0, 3), np.int64)
+
+
+def thickness(V, F, position):
+    """How deep a joint lies in its body: the distance from it to the closest point of the surface.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+        Rest positions, world space.
+    F : (m, 3) int array
+    position : (3,) float array
+        The joint's rest world position.
+
+    Returns
+    -------
+    float or None
+        Same units as ``V`` (the body's half thickness where the joint sits in its middle);
+        ``None`` without faces or for a joint on the surface.
+    """
+    from ..geometry import closest_surface_points
+
+    if len(F) == 0:
+        return None
+    d, _, _ = closest_surface_points(np.asarray(position, np.float64)[None], V, F)
+    r = float(d[0])
+    return r if r > 1e-9 * max(size(V, V), 1e-300) else None
+
+
 def chain_length(parents, positions, j):
     """Length of the longest bone chain from joint ``j`` down to a leaf of its subtree.
 
@@ -216,6 +269,56 @@ def cross_section(V, W, position, j, *, min_weight=0.5, min_vertices=3):
     return r if r > 0 else None
 
 
+def cut_section(V, W, subtree, position, *, band=0.1, min_vertices=8):
+    """Radius of a body part at its cut: the ring of the part's surface nearest where it joins.
+
+    The part is the region the subtree of a joint drives (the vertices whose weights on the
+    subtree's joints sum to at least 0.5), the surface a ``replace`` removes or grafts. Its axis
+    runs from the joint to the region's centroid; the ring is the ``band`` share of its vertices
+    that lie lowest along that axis (at least ``min_vertices``), the end where the part leaves the
+    rest of the body: a torso's waist, a neck's base, a wing's or a tail's root. The radius is the
+    median distance of the ring's vertices from the ring's centre, measured across the axis, so a
+    joint off the part's middle (a shoulder at the top of an arm) does not count.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+        Rest positions, world space (the units of the character as given: a ratio of two of these
+        is a scale between two characters).
+    W : (n, J) float array
+        Dense skin weights.
+    subtree : (J,) bool array
+        The joints of the part (:meth:`rigmix.character.Skeleton.subtree`).
+    position : (3,) float array
+        The part's root joint, rest world position.
+    band : float
+        Share of the part's vertices in the ring.
+    min_vertices : int
+        A part with fewer vertices, or a ring with fewer distinct ones, makes the measure degenerate.
+
+    Returns
+    -------
+    float or None
+        Same units as ``V``; ``None`` when degenerate.
+    """
+    if len(V) == 0:
+        return None
+    S = np.unique(V[W[:, np.asarray(subtree, bool)].sum(axis=1) >= 0.5], axis=0)
+    if len(S) < min_vertices:
+        return None
+    axis = S.mean(axis=0) - np.asarray(position, np.float64)
+    n = np.linalg.norm(axis)
+    if n <= 1e-12 * max(size(S, S), 1e-300):
+        return None
+    axis /= n
+    h = S @ axis
+    ring = S[np.argsort(h, kind="stable")[:max(min_vertices, int(np.ceil(band * len(S))))]]
+    X = ring - ring.mean(axis=0)
+    X -= np.outer(X @ axis, axis)
+    r = float(np.median(np.linalg.norm(X, axis=1)))
+    return r if r > 0 else None
+
+
 def size(V, joint_positions):
     """Bounding-box diagonal of the rest mesh (of the joints when there is no mesh)."""
     P = V if len(V) else joint_positions
@@ -225,7 +328,8 @@ def size(V, joint_positions):
 
 
 def pair_scale(op, target, target_joint, source, source_joint, *, eps=1e-9):
-    """Scale to apply to ``source`` so that it matches ``target`` around one fused pair.
+    """Scale to apply to ``source`` so that it matches ``target`` around one fused pair (see the
+    module docstring).
 
     Parameters
     ----------
@@ -239,22 +343,30 @@ def pair_scale(op, target, target_joint, source, source_joint, *, eps=1e-9):
     -------
     scale : float
     method : str
-        ``"limb-length"``, ``"cross-section"`` or ``"size"`` (the fallback).
+        ``"cross-section"``, ``"limb-length"`` or ``"size"`` (the fallback).
     """
     tw = target.skeleton.rest_worlds()[:, :3, 3]
     sw = source.skeleton.rest_worlds()[:, :3, 3]
+    Vt, Wt = rest_world_mesh(target)
+    Vs, Ws = rest_world_mesh(source)
     if op == "replace":
         lt = chain_length(target.skeleton.parents, tw, target_joint)
         ls = chain_length(source.skeleton.parents, sw, source_joint)
-        if lt > eps and ls > eps:
-            return lt / ls, "limb-length"
-    Vt, Wt = rest_world_mesh(target)
-    Vs, Ws = rest_world_mesh(source)
-    if op == "attach":
-        rt = cross_section(Vt, Wt, tw[target_joint], target_joint)
-        rs = cross_section(Vs, Ws, sw[source_joint], source_joint)
-        if rt is not None and rs is not None:
-            return rt / rs, "cross-section"
+        chain = lt / ls if lt > eps and ls > eps else None
+        rt = cut_section(Vt, Wt, target.skeleton.subtree(target_joint), tw[target_joint])
+        rs = cut_section(Vs, Ws, source.skeleton.subtree(source_joint), sw[source_joint])
+        cut = rt / rs if rt is not None and rs is not None else None
+        if cut is not None and (chain is None or max(chain / cut, cut / chain) > AGREEMENT):
+            return cut, "cross-section"
+        if chain is not None:
+            return chain, "limb-length"
+    else:
+        parent = int(source.skeleton.parents[source_joint])
+        if parent >= 0:
+            rt = thickness(Vt, rest_world_faces(target), tw[target_joint])
+            rs = thickness(Vs, rest_world_faces(source), sw[parent])
+            if rt is not None and rs is not None:
+                return rt / rs, "cross-section"
     st, ss = size(Vt, tw), size(Vs, sw)
     if st > eps and ss > eps:
         return st / ss, "size"
