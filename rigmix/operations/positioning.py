@@ -20,8 +20,8 @@ in each character's rest pose, world space, in its own units (Y already scaled):
   their bodies: a neck's base against a waist), so that the new part fills the hole the old one
   leaves and is not swallowed by the body around it. The ratio of the longest bone chains from
   the fused joints down to a leaf (:func:`chain_length`, the replaced limb against the new limb)
-  is taken instead where the two agree within :data:`AGREEMENT` (a factor): then both measure the
-  same limb, and the chain is the steadier measure of a limb's length. They disagree where
+  is taken instead where the two agree within :data:`AGREEMENT` (a factor of 2): then both
+  measure the same limb, and the chain is the steadier measure of a limb's length. They disagree where
   the chains mean different things (a torso's chain runs out along an arm, a neck's up into
   the head) or where a rig's bones do not follow its surface; the cross-section is kept there.
   Without a cut (a part driven by no vertex) the chain ratio is used alone;
@@ -74,7 +74,7 @@ logger = logging.getLogger(__name__)
 
 #: Largest factor between a replace's chain-length ratio and its cross-section ratio for which the
 #: chain's is used (:func:`pair_scale`): within it both measure the same limb.
-AGREEMENT = 1.5
+AGREEMENT = 2.0
 
 
 # --------------------------------------------------------------------------------------------
@@ -269,53 +269,47 @@ def cross_section(V, W, position, j, *, min_weight=0.5, min_vertices=3):
     return r if r > 0 else None
 
 
-def cut_section(V, W, subtree, position, *, band=0.1, min_vertices=8):
-    """Radius of a body part at its cut: the ring of the part's surface nearest where it joins.
+def cut_section(V, W, subtree, *, band=0.1, min_vertices=8):
+    """Radius of a body part at its cut: the ring where the part leaves the rest of its body.
 
-    The part is the region the subtree of a joint drives (the vertices whose weights on the
-    subtree's joints sum to at least 0.5), the surface a ``replace`` removes or grafts. Its axis
-    runs from the joint to the region's centroid; the ring is the ``band`` share of its vertices
-    that lie lowest along that axis (at least ``min_vertices``), the end where the part leaves the
-    rest of the body: a torso's waist, a neck's base, a wing's or a tail's root. The radius is the
-    median distance of the ring's vertices from the ring's centre, measured across the axis, so a
-    joint off the part's middle (a shoulder at the top of an arm) does not count.
+    The part is the region the subtree of a joint drives, the surface a ``replace`` removes or
+    grafts: the vertices whose weights on the subtree's joints sum to at least 0.5. Its cut is the
+    ``band`` share of those vertices (at least ``min_vertices``) closest to the rest of the body
+    (the other vertices): the row along a skinned part's weight transition (a waist under a torso,
+    a neck's base, a tail's root), the end of a rigid piece that sits in its socket (a robot's leg).
+    The radius is the median distance of the cut's vertices from their centroid.
 
     Parameters
     ----------
     V : (n, 3) float array
-        Rest positions, world space (the units of the character as given: a ratio of two of these
-        is a scale between two characters).
+        Rest positions, world space, in the character's own units (a ratio of two of these is a
+        scale between two characters).
     W : (n, J) float array
         Dense skin weights.
     subtree : (J,) bool array
         The joints of the part (:meth:`rigmix.character.Skeleton.subtree`).
-    position : (3,) float array
-        The part's root joint, rest world position.
     band : float
-        Share of the part's vertices in the ring.
+        Share of the part's vertices in its cut.
     min_vertices : int
-        A part with fewer vertices, or a ring with fewer distinct ones, makes the measure degenerate.
+        Fewer distinct vertices in the part, or in the rest, make the measure degenerate.
 
     Returns
     -------
     float or None
         Same units as ``V``; ``None`` when degenerate.
     """
+    from scipy.spatial import cKDTree
+
+    V = np.asarray(V, np.float64)
     if len(V) == 0:
         return None
-    S = np.unique(V[W[:, np.asarray(subtree, bool)].sum(axis=1) >= 0.5], axis=0)
-    if len(S) < min_vertices:
+    w = np.asarray(W)[:, np.asarray(subtree, bool)].sum(axis=1)
+    inside, outside = np.unique(V[w >= 0.5], axis=0), np.unique(V[w < 0.5], axis=0)
+    if len(inside) < min_vertices or len(outside) < min_vertices:
         return None
-    axis = S.mean(axis=0) - np.asarray(position, np.float64)
-    n = np.linalg.norm(axis)
-    if n <= 1e-12 * max(size(S, S), 1e-300):
-        return None
-    axis /= n
-    h = S @ axis
-    ring = S[np.argsort(h, kind="stable")[:max(min_vertices, int(np.ceil(band * len(S))))]]
-    X = ring - ring.mean(axis=0)
-    X -= np.outer(X @ axis, axis)
-    r = float(np.median(np.linalg.norm(X, axis=1)))
+    d, _ = cKDTree(outside).query(inside)
+    P = inside[np.argsort(d, kind="stable")[:max(min_vertices, int(np.ceil(band * len(inside))))]]
+    r = float(np.median(np.linalg.norm(P - P.mean(axis=0), axis=1)))
     return r if r > 0 else None
 
 
@@ -353,8 +347,8 @@ def pair_scale(op, target, target_joint, source, source_joint, *, eps=1e-9):
         lt = chain_length(target.skeleton.parents, tw, target_joint)
         ls = chain_length(source.skeleton.parents, sw, source_joint)
         chain = lt / ls if lt > eps and ls > eps else None
-        rt = cut_section(Vt, Wt, target.skeleton.subtree(target_joint), tw[target_joint])
-        rs = cut_section(Vs, Ws, source.skeleton.subtree(source_joint), sw[source_joint])
+        rt = cut_section(Vt, Wt, target.skeleton.subtree(target_joint))
+        rs = cut_section(Vs, Ws, source.skeleton.subtree(source_joint))
         cut = rt / rs if rt is not None and rs is not None else None
         if cut is not None and (chain is None or max(chain / cut, cut / chain) > AGREEMENT):
             return cut, "cross-section"
