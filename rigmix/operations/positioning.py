@@ -20,7 +20,7 @@ in each character's rest pose, world space, in its own units (Y already scaled):
   their bodies: a neck's base against a waist), so that the new part fills the hole the old one
   leaves and is not swallowed by the body around it. The ratio of the longest bone chains from
   the fused joints down to a leaf (:func:`chain_length`, the replaced limb against the new limb)
-  is taken instead where the two agree within :data:`AGREEMENT` (a factor of 2): then both
+  is taken instead where the two agree within :data:`AGREEMENT` (a factor of 2.5): then both
   measure the same limb, and the chain is the steadier measure of a limb's length. They disagree where
   the chains mean different things (a torso's chain runs out along an arm, a neck's up into
   the head) or where a rig's bones do not follow its surface; the cross-section is kept there.
@@ -73,8 +73,10 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 #: Largest factor between a replace's chain-length ratio and its cross-section ratio for which the
-#: chain's is used (:func:`pair_scale`): within it both measure the same limb.
-AGREEMENT = 2.0
+#: chain's is used (:func:`pair_scale`): within it both measure the same limb. Limbs of different
+#: species differ in thickness by up to about 2.4 for the same length (a fox's foreleg on a human's
+#: shoulder); a torso's chain against a neck's is off by 4 to 10.
+AGREEMENT = 2.5
 
 
 # --------------------------------------------------------------------------------------------
@@ -269,29 +271,32 @@ def cross_section(V, W, position, j, *, min_weight=0.5, min_vertices=3):
     return r if r > 0 else None
 
 
-def cut_section(V, W, subtree, *, band=0.1, min_vertices=8):
+def cut_section(V, F, W, subtree, *, min_points=8, band=0.1):
     """Radius of a body part at its cut: the ring where the part leaves the rest of its body.
 
     The part is the region the subtree of a joint drives, the surface a ``replace`` removes or
-    grafts: the vertices whose weights on the subtree's joints sum to at least 0.5. Its cut is the
-    ``band`` share of those vertices (at least ``min_vertices``) closest to the rest of the body
-    (the other vertices): the row along a skinned part's weight transition (a waist under a torso,
-    a neck's base, a tail's root), the end of a rigid piece that sits in its socket (a robot's leg).
-    The radius is the median distance of the cut's vertices from their centroid.
+    grafts: its share ``w`` of a vertex is the sum of the vertex's weights on the subtree's
+    joints. The cut is where ``w`` crosses 0.5 on the surface: one point on every edge whose ends
+    lie on either side, linearly interpolated (a waist under a torso, a neck's base, a tail's
+    root). A part that is a rigid piece of its own (``w`` 0 or 1 on every edge: a robot's leg)
+    has fewer than ``min_points`` such edges; its cut is then the ``band`` share of its vertices
+    (at least ``min_points``) closest to the rest of the body (the end that sits in its socket).
+    The radius is the median distance of the cut's points from their centroid.
 
     Parameters
     ----------
     V : (n, 3) float array
         Rest positions, world space, in the character's own units (a ratio of two of these is a
         scale between two characters).
+    F : (m, 3) int array
     W : (n, J) float array
         Dense skin weights.
     subtree : (J,) bool array
         The joints of the part (:meth:`rigmix.character.Skeleton.subtree`).
+    min_points : int
+        Fewer cut points (or distinct part vertices, or other vertices) make the measure degenerate.
     band : float
-        Share of the part's vertices in its cut.
-    min_vertices : int
-        Fewer distinct vertices in the part, or in the rest, make the measure degenerate.
+        Share of a rigid part's vertices taken as its cut.
 
     Returns
     -------
@@ -301,14 +306,22 @@ def cut_section(V, W, subtree, *, band=0.1, min_vertices=8):
     from scipy.spatial import cKDTree
 
     V = np.asarray(V, np.float64)
-    if len(V) == 0:
+    F = np.asarray(F, np.int64).reshape(-1, 3)
+    if len(V) == 0 or len(F) == 0:
         return None
     w = np.asarray(W)[:, np.asarray(subtree, bool)].sum(axis=1)
-    inside, outside = np.unique(V[w >= 0.5], axis=0), np.unique(V[w < 0.5], axis=0)
-    if len(inside) < min_vertices or len(outside) < min_vertices:
-        return None
-    d, _ = cKDTree(outside).query(inside)
-    P = inside[np.argsort(d, kind="stable")[:max(min_vertices, int(np.ceil(band * len(inside))))]]
+    E = np.unique(np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1), axis=0)
+    a, b = w[E[:, 0]], w[E[:, 1]]
+    cross = (a - 0.5) * (b - 0.5) < 0
+    if cross.sum() >= min_points:
+        t = ((0.5 - a[cross]) / (b[cross] - a[cross]))[:, None]
+        P = V[E[cross, 0]] + t * (V[E[cross, 1]] - V[E[cross, 0]])
+    else:
+        inside, outside = np.unique(V[w >= 0.5], axis=0), np.unique(V[w < 0.5], axis=0)
+        if len(inside) < min_points or len(outside) < min_points:
+            return None
+        d, _ = cKDTree(outside).query(inside)
+        P = inside[np.argsort(d, kind="stable")[:max(min_points, int(np.ceil(band * len(inside))))]]
     r = float(np.median(np.linalg.norm(P - P.mean(axis=0), axis=1)))
     return r if r > 0 else None
 
@@ -347,8 +360,8 @@ def pair_scale(op, target, target_joint, source, source_joint, *, eps=1e-9):
         lt = chain_length(target.skeleton.parents, tw, target_joint)
         ls = chain_length(source.skeleton.parents, sw, source_joint)
         chain = lt / ls if lt > eps and ls > eps else None
-        rt = cut_section(Vt, Wt, target.skeleton.subtree(target_joint))
-        rs = cut_section(Vs, Ws, source.skeleton.subtree(source_joint))
+        rt = cut_section(Vt, rest_world_faces(target), Wt, target.skeleton.subtree(target_joint))
+        rs = cut_section(Vs, rest_world_faces(source), Ws, source.skeleton.subtree(source_joint))
         cut = rt / rs if rt is not None and rs is not None else None
         if cut is not None and (chain is None or max(chain / cut, cut / chain) > AGREEMENT):
             return cut, "cross-section"
