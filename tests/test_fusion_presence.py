@@ -86,3 +86,23 @@ def test_loops_and_angles_helpers():
     assert len(loops) == 1 and closed[0]
     ang = triangle_min_angles(V, F)
     assert 30 < ang.min() <= 60 and ang.max() <= 60 + 1e-9
+
+
+def test_rigid_piece_on_a_replaced_joint_goes_with_the_part():
+    """A replace's target keeps its fused joint, but a rigid piece riding on it (a robot's thigh
+    plate) belongs to the replaced part: dropped whole. The skinned body across that joint stays
+    blended, and a piece on another kept joint stays."""
+    V1, F1 = ellipsoid((1.5, 0.4, 0.4))
+    V2, F2 = ellipsoid((0.2, 0.2, 0.2), center=(0, 1.0, 0), subdivisions=2)   # a piece on joint 0
+    V3, F3 = ellipsoid((0.2, 0.2, 0.2), center=(1.0, 1.0, 0), subdivisions=2)  # a piece on joint 1
+    V = np.concatenate([V1, V2, V3])
+    F = np.concatenate([F1, F2 + len(V1), F3 + len(V1) + len(V2)])
+    W = np.concatenate([two_joint_weights(V1), np.tile([1.0, 0.0], (len(V2), 1)), np.tile([0.0, 1.0], (len(V3), 1))])
+    used = np.array([True, True])
+    body, piece0, piece1 = np.split(np.arange(len(F)), [len(F1), len(F1) + len(F2)])
+    kept = compute_presence(V, F, W, used)
+    assert kept.preserved[piece1].all() and kept.preserved[body].all()
+    P = compute_presence(V, F, W, used, replaced=np.array([False, True]))
+    assert P.absent[piece1].all() and not P.preserved[piece1].any()
+    assert P.preserved[piece0].all()
+    assert np.array_equal(P.preserved[body], kept.preserved[body])  # the body's faces are not affected

@@ -32,8 +32,8 @@ CONFIGS = Path(__file__).parent / "configs"
 # --------------------------------------------------------------------------------------------
 
 
-def toy(names, parents, positions, name="toy"):
-    """A character with identity rest rotations and one small triangle per joint, fully weighted."""
+def toy(names, parents, positions, name="toy", tri=0.05):
+    """A character with identity rest rotations and one small triangle (legs ``tri``) per joint, fully weighted."""
     P = np.asarray(positions, dtype=float)
     parents = np.asarray(parents)
     J = len(names)
@@ -41,7 +41,7 @@ def toy(names, parents, positions, name="toy"):
     ibm = np.tile(np.eye(4), (J, 1, 1))
     ibm[:, :3, 3] = -P
     sk = Skeleton(names, parents, T, np.tile([0, 0, 0, 1.0], (J, 1)), np.ones((J, 3)), ibm)
-    V = np.concatenate([P + [0.05, 0, 0], P + [0, 0.05, 0], P + [0, 0, 0.05]])
+    V = np.concatenate([P + [tri, 0, 0], P + [0, tri, 0], P + [0, 0, tri]])
     F = np.stack([np.arange(J), np.arange(J) + J, np.arange(J) + 2 * J], axis=1)
     joints = np.zeros((3 * J, 4), dtype=int)
     joints[:, 0] = np.tile(np.arange(J), 3)
@@ -58,7 +58,7 @@ def biped(name="biped", scale=1.0):
                   [0.2, 1.45, 0], [0.45, 1.45, 0], [0.7, 1.45, 0],
                   [-0.2, 1.45, 0], [-0.45, 1.45, 0], [-0.7, 1.45, 0],
                   [0.1, 0.95, 0], [0.1, 0.5, 0], [-0.1, 0.95, 0], [-0.1, 0.5, 0]]) * scale
-    return toy(names, parents, P, name)
+    return toy(names, parents, P, name, tri=0.05 * scale)  # the surface scales with the skeleton
 
 
 def plan_for(chars, actions, **characters):

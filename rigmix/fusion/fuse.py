@@ -78,6 +78,10 @@ class FusionInput:
     colors : (n, 4) float64, optional
         Linear RGBA (textures baked to vertex colours by the caller), interpolated at the junction.
     name : str
+    replaced : (J,) bool, optional
+        Joints kept in the output only as the fused joint of a ``replace`` that another input's
+        part takes the place of (:func:`rigmix.fusion.presence.compute_presence`: a rigid piece
+        of this input riding on them goes with the replaced part).
     """
 
     V: np.ndarray
@@ -89,6 +93,7 @@ class FusionInput:
     normals: np.ndarray | None = None
     colors: np.ndarray | None = None
     name: str = ""
+    replaced: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -387,7 +392,7 @@ def _partition(inputs, actions, params) -> _Partition:
     pres = [compute_presence(x.V, x.F, x.W, x.used, snap=params.snap, iterations=params.smooth_iterations,
                              alpha=params.smooth_alpha, preserve_threshold=params.preserve_threshold,
                              morphology_rounds=params.morphology_rounds,
-                             secondary_variance=params.secondary_variance) for x in inputs]
+                             secondary_variance=params.secondary_variance, replaced=x.replaced) for x in inputs]
     edge_lengths = [average_edge_length(P.welded.V, P.welded.F) for P in pres]
     h0 = params.voxel_factor * min([e for e in edge_lengths if e > 0] or [1.0])
     diagonal = min([bounding_box_diagonal(P.welded.V) for P in pres if len(P.welded.V)] or [0.0])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from ..errors import InputError
@@ -137,7 +139,8 @@ def fusion_inputs_from_plan(plan):
     Returns
     -------
     inputs : list of FusionInput
-        One per character id, in ``plan.positioned`` order.
+        One per character id, in ``plan.positioned`` order; a ``replace``'s target has its fused
+        joint marked ``replaced``.
     actions : list of FusionAction
         ``replace`` in blend mode -> ``"replace"``; ``attach`` and ``replace`` in union mode ->
         ``"attach"``; ``remove`` adds no action (its cut is capped).
@@ -147,6 +150,13 @@ def fusion_inputs_from_plan(plan):
     ids = list(plan.positioned)
     index = {cid: i for i, cid in enumerate(ids)}
     inputs = [fusion_input(plan.positioned[cid], plan.used[cid], name=cid) for cid in ids]
+    # the target's fused joint of a replace: its rigid pieces go with the part the source replaces
+    for a in plan.actions:
+        if a.op == "replace" and a.source is not None and a.source != a.target:
+            x = inputs[index[a.target]]
+            replaced = np.zeros(len(x.used), bool) if x.replaced is None else x.replaced.copy()
+            replaced[a.target_joint] = True
+            inputs[index[a.target]] = replace(x, replaced=replaced)
     actions = []
     for a in plan.actions:
         if a.op == "remove" or a.source is None:

@@ -208,7 +208,7 @@ class Presence:
 
 
 def compute_presence(V, F, W, used, *, snap=0.02, iterations=10, alpha=0.8, preserve_threshold=0.999,
-                     morphology_rounds=2, secondary_variance=0.04) -> Presence:
+                     morphology_rounds=2, secondary_variance=0.04, replaced=None) -> Presence:
     """Presence, secondary components and preserved faces of one input.
 
     Parameters
@@ -220,6 +220,13 @@ def compute_presence(V, F, W, used, *, snap=0.02, iterations=10, alpha=0.8, pres
         Dense skin weights.
     used : (J,) bool array
         Joints kept in the output.
+    replaced : (J,) bool array, optional
+        Kept joints that are the fused joint of a ``replace`` whose part comes from another
+        input. A secondary component (a rigid piece, kept or dropped whole) is kept when its
+        presence without them is at least 0.5: a piece riding on the replaced joint (a robot's
+        thigh plate, a shoulder pad) is part of what is replaced, and the other input brings its
+        own; left in place, it covers the new part (a mirrored leg inside the old one's shell).
+        Blended regions keep the joint's weight: the skin around the fused joint is the junction.
 
     Returns
     -------
@@ -233,6 +240,12 @@ def compute_presence(V, F, W, used, *, snap=0.02, iterations=10, alpha=0.8, pres
     pw = np.bincount(wm.index, weights=raw, minlength=k) / np.maximum(cnt, 1)
     pw = smooth_presence(pw, wm.F, snap=snap, iterations=iterations, alpha=alpha)
     labels, decision = classify_components(pw, wm.F, max_variance=secondary_variance)
+    if replaced is not None and np.any(replaced) and np.any(decision >= 0):
+        own = raw_presence(W, np.asarray(used, bool) & ~np.asarray(replaced, bool))
+        own_w = np.bincount(wm.index, weights=own, minlength=k) / np.maximum(cnt, 1)
+        c = len(decision)
+        mean = np.bincount(labels, weights=own_w, minlength=c) / np.maximum(np.bincount(labels, minlength=c), 1)
+        decision = np.where(decision >= 0, (mean >= 0.5).astype(np.int8), decision).astype(np.int8)
     sec = decision[labels] >= 0
     pw = np.where(sec, decision[labels].astype(np.float64), pw)
 

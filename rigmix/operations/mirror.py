@@ -13,11 +13,15 @@ The plane
 Always perpendicular to one axis of the model space (x, y or z): a reflection across such a
 plane keeps every local scale diagonal (a glTF TRS holds no shear), and the three axes cover every
 character authored facing an axis. ``axis=None`` (the config's ``mirror = true``) picks the axis
-whose plane the rest-pose surface is most symmetric about (x for the shared characters that face
-+Z with +Y up as glTF asks, z for the Wasp, which faces +X); when no axis plane is a symmetry
-within ``tol`` it falls back to x. The offset along the axis is the detected centre of
-symmetry, so a symmetric character stays where it is (any offset gives the same character up
-to a translation, which the composition's positioning removes anyway).
+that separates the character's sides: the one along which its side-named joint pairs
+(``UpperLeg.L``/``UpperLeg.R``, :func:`swap_side`) lie apart at rest (x for the shared characters
+that face +Z with +Y up as glTF asks, z for the Wasp, which faces +X). The surface alone can
+mislead: a robot whose legs are posed unequally at rest is more symmetric front to back than
+left to right. Without such pairs it picks the axis whose plane the rest-pose surface is most
+symmetric about; when no axis plane is a symmetry within ``tol`` it falls back to x.
+The offset along the axis is the detected centre of symmetry, so a symmetric character stays
+where it is (any offset gives the same character up to a translation, which the composition's
+positioning removes anyway).
 
 The maths
 ---------
@@ -53,7 +57,7 @@ from ..character import Anchor, Character, Clip, Mesh, Prop, Skeleton, Track
 from ..errors import InputError
 from ..rig import swap_side
 
-__all__ = ["MirrorPlane", "mirror_plane", "mirror_character", "swap_side", "AXES"]
+__all__ = ["MirrorPlane", "mirror_plane", "side_axis", "mirror_character", "swap_side", "AXES"]
 
 log = logging.getLogger(__name__)
 
@@ -139,9 +143,10 @@ def mirror_plane(character: Character, axis=None, *, tol=0.02, iterations=3) -> 
     ----------
     character : Character
     axis : {"x", "y", "z", 0, 1, 2} or None
-        The axis the plane is perpendicular to; ``None`` picks the axis whose plane the rest-pose
-        surface is most symmetric about (mean reflection error relative to the bounding-box
-        diagonal), or x when none is within ``tol``.
+        The axis the plane is perpendicular to; ``None``: :func:`side_axis` where the skeleton has
+        side-named joint pairs, otherwise the axis whose plane the rest-pose surface is most
+        symmetric about (mean reflection error relative to the bounding-box diagonal), or x when
+        none is within ``tol``.
     tol : float
         Largest reflection error of a detected symmetry (relative to the diagonal).
     iterations : int
@@ -158,6 +163,8 @@ def mirror_plane(character: Character, axis=None, *, tol=0.02, iterations=3) -> 
         if axis.lower() not in AXES:
             raise InputError(f"mirror: unknown axis {axis!r}; use one of {', '.join(AXES)}")
         axis = AXES.index(axis.lower())
+    if axis is None:
+        axis = side_axis(character.skeleton)
     V = np.unique(_rest_positions(character), axis=0)
     if len(V) < 3:
         return MirrorPlane(0 if axis is None else int(axis), 0.0)
@@ -178,6 +185,31 @@ def mirror_plane(character: Character, axis=None, *, tol=0.02, iterations=3) -> 
                  character.name, AXES[best.axis], best.error)
         return planes[0]
     return best
+
+
+def side_axis(skeleton) -> int | None:
+    """The model-space axis along which a skeleton's left and right joints lie apart at rest.
+
+    Parameters
+    ----------
+    skeleton : rigmix.character.Skeleton
+
+    Returns
+    -------
+    int or None
+        0, 1 or 2: the axis with the largest sum, over the joint pairs named for their sides
+        (:func:`swap_side`), of the absolute difference of the two joints' rest world positions
+        along it. ``None`` without such a pair, or when the pairs coincide.
+    """
+    names = list(skeleton.names)
+    index = {n: i for i, n in enumerate(names)}
+    pairs = [(i, index[m]) for i, n in enumerate(names) if (m := swap_side(n)) != n and m in index and i < index[m]]
+    if not pairs:
+        return None
+    P = skeleton.rest_worlds()[:, :3, 3]
+    i, j = np.asarray(pairs).T
+    spread = np.abs(P[i] - P[j]).sum(axis=0)
+    return int(np.argmax(spread)) if spread.max() > 0 else None
 
 
 def _swapped_names(names) -> tuple[str, ...]:

@@ -12,13 +12,27 @@ space and its inverse bind matrices are the inverses of its rest world matrices 
 rest pose), so later stages never need the original bind space.
 
 Scale matching (automatic, overridable in the config): for a fused pair (joint ``a`` of the
-moved character X, joint ``b`` of the target Y) the scale of X is
+moved character X, joint ``b`` of the target Y) the scale of X is a ratio of two lengths measured
+in each character's rest pose, world space, in its own units (Y already scaled):
 
-* ``replace``: ``chain_length(Y, b) / chain_length(X, a)``, the ratio of the longest bone chains
-  from the fused joints down to a leaf (the replaced limb against the new limb);
-* ``attach``: ``cross_section(Y, b) / cross_section(X, a)``, the ratio of the median distances
-  from the fused joints to the mesh vertices they drive (weight >= 0.5), i.e. the local
-  thickness of the two bodies where they meet;
+* ``replace``: the cross-section of the cut, ``cut_section(Y, b) / cut_section(X, a)``
+  (:func:`cut_section`: the radius of the ring where the replaced part and the new part pass
+  into their bodies: a neck's base against a waist), so that the new part fills the hole the
+  old one leaves and is not swallowed by the body around it. A part modelled as a rigid piece
+  has no such ring; the ratio of the parts' sizes (:func:`part_size`: bounding-box diagonals)
+  stands in for it. The ratio of the longest bone chains from the fused joints down to a leaf
+  (:func:`chain_length`, the replaced limb against the new limb) is taken instead where the two
+  agree within :data:`AGREEMENT` (a factor of 2.5): then both measure the same limb, and the
+  chain is the steadier measure of a limb's length. They disagree where the chains mean
+  different things (a torso's chain runs out along an arm, a neck's up into the head) or where
+  a rig's bones do not follow its surface; the surface's measure is kept there. Without either
+  (a part driven by no vertex) the chain ratio is used alone;
+* ``attach``: the median of three estimates of how the two bodies compare where the part
+  hangs (:func:`attach_scale`): the depths of the joints in their bodies (:func:`thickness`,
+  the target's joint against the one the part hung from), the median distances from the fused
+  joints to the vertices they drive (:func:`cross_section`), and the bounding-box diagonals of
+  the two rest meshes, so that the part keeps its size relative to the body it came from (a fox's
+  tail on a knight is a knight-sized fox's tail) unless one estimate is far off;
 * when a measure is degenerate (a leaf joint, no vertex driven by the joint), the ratio of the
   bounding-box diagonals of the two rest meshes.
 
@@ -41,13 +55,20 @@ from ..skinning import check_rig, linear_blend_skinning
 from ..transforms import matrix_to_trs, quat_multiply, quat_to_matrix
 
 __all__ = [
+    "AGREEMENT",
     "skeleton_adjacency",
     "smooth_translations",
     "rest_world_mesh",
+    "rest_world_faces",
+    "thickness",
     "chain_length",
     "cross_section",
+    "part_weights",
+    "cut_section",
+    "part_size",
     "size",
     "pair_scale",
+    "attach_scale",
     "pose_worlds",
     "rebase",
     "position_character",
@@ -57,6 +78,12 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+
+#: Largest factor between a replace's chain-length ratio and its cross-section ratio for which the
+#: chain's is used (:func:`pair_scale`): within it both measure the same limb. Limbs of different
+#: species differ in thickness by up to about 2.4 for the same length (a fox's foreleg on a human's
+#: shoulder); a torso's chain against a neck's is off by 4 to 10.
+AGREEMENT = 2.5
 
 
 # --------------------------------------------------------------------------------------------
@@ -159,6 +186,41 @@ def rest_world_mesh(character):
     return np.concatenate(Vs), np.concatenate(Ws)
 
 
+def rest_world_faces(character):
+    """Faces of every mesh of ``character``, indexing the rows of :func:`rest_world_mesh`, ``(m, 3)`` int64."""
+    Fs, base = [], 0
+    for mesh in character.meshes:
+        Fs.append(np.asarray(mesh.faces, np.int64).reshape(-1, 3) + base)
+        base += len(mesh.positions)
+    return np.concatenate(Fs) if Fs else np.zeros((0, 3), np.int64)
+
+
+def thickness(V, F, position):
+    """How deep a joint lies in its body: the distance from it to the closest point of the surface.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+        Rest positions, world space.
+    F : (m, 3) int array
+    position : (3,) float array
+        The joint's rest world position.
+
+    Returns
+    -------
+    float or None
+        Same units as ``V`` (the body's half thickness where the joint sits in its middle);
+        ``None`` without faces or for a joint on the surface.
+    """
+    from ..geometry import closest_surface_points
+
+    if len(F) == 0:
+        return None
+    d, _, _ = closest_surface_points(np.asarray(position, np.float64)[None], V, F)
+    r = float(d[0])
+    return r if r > 1e-9 * max(size(V, V), 1e-300) else None
+
+
 def chain_length(parents, positions, j):
     """Length of the longest bone chain from joint ``j`` down to a leaf of its subtree.
 
@@ -216,6 +278,80 @@ def cross_section(V, W, position, j, *, min_weight=0.5, min_vertices=3):
     return r if r > 0 else None
 
 
+def part_weights(W, subtree):
+    """Share of each vertex that belongs to a joint's part: its weights on the subtree's joints, summed.
+
+    Parameters
+    ----------
+    W : (n, J) float array
+        Dense skin weights.
+    subtree : (J,) bool array
+        The joints of the part (:meth:`rigmix.character.Skeleton.subtree`).
+
+    Returns
+    -------
+    (n,) float64
+    """
+    return np.asarray(W, np.float64)[:, np.asarray(subtree, bool)].sum(axis=1)
+
+
+def cut_section(V, F, W, subtree, *, min_points=12):
+    """Radius of a body part at its cut: the ring where its skin passes to the rest of its body.
+
+    The part is the region the subtree of a joint drives, the surface a ``replace`` removes or
+    grafts (:func:`part_weights`: ``w``). Its cut is where ``w`` crosses 0.5 on the surface: one
+    point on every edge whose ends lie on either side, linearly interpolated (a waist under a
+    torso, a neck's base, a tail's root). The radius is the median distance of those points from
+    their centroid.
+
+    A part that is a rigid piece of its own (``w`` 0 or 1 on nearly every edge: a robot's leg, a
+    head modelled apart from its body) has no such ring: fewer crossing edges than ``min_points``
+    (a ring around the coarsest tube, a six-sided prism of triangles, crosses 12: a side and a
+    diagonal per face; fewer are a detail skinned across, such as a small collar). The measure
+    is then degenerate.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+        Rest positions, world space, in the character's own units (a ratio of two of these is a
+        scale between two characters).
+    F : (m, 3) int array
+    W : (n, J) float array
+        Dense skin weights.
+    subtree : (J,) bool array
+    min_points : int
+
+    Returns
+    -------
+    float or None
+        Same units as ``V``; ``None`` when degenerate.
+    """
+    V = np.asarray(V, np.float64)
+    F = np.asarray(F, np.int64).reshape(-1, 3)
+    if len(V) == 0 or len(F) == 0:
+        return None
+    w = part_weights(W, subtree)
+    E = np.unique(np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1), axis=0)
+    a, b = w[E[:, 0]], w[E[:, 1]]
+    cross = (a - 0.5) * (b - 0.5) < 0
+    if cross.sum() < min_points:
+        return None
+    t = ((0.5 - a[cross]) / (b[cross] - a[cross]))[:, None]
+    P = V[E[cross, 0]] + t * (V[E[cross, 1]] - V[E[cross, 0]])
+    r = float(np.median(np.linalg.norm(P - P.mean(axis=0), axis=1)))
+    return r if r > 0 else None
+
+
+def part_size(V, W, subtree, *, min_vertices=3):
+    """Bounding-box diagonal of a joint's part (the vertices :func:`part_weights` gives at least
+    0.5), same units as ``V``; ``None`` with fewer than ``min_vertices``."""
+    P = np.asarray(V, np.float64)[part_weights(W, subtree) >= 0.5]
+    if len(P) < min_vertices:
+        return None
+    d = size(P, P)
+    return d if d > 0 else None
+
+
 def size(V, joint_positions):
     """Bounding-box diagonal of the rest mesh (of the joints when there is no mesh)."""
     P = V if len(V) else joint_positions
@@ -225,7 +361,8 @@ def size(V, joint_positions):
 
 
 def pair_scale(op, target, target_joint, source, source_joint, *, eps=1e-9):
-    """Scale to apply to ``source`` so that it matches ``target`` around one fused pair.
+    """Scale to apply to ``source`` so that it matches ``target`` around one fused pair (see the
+    module docstring).
 
     Parameters
     ----------
@@ -239,26 +376,74 @@ def pair_scale(op, target, target_joint, source, source_joint, *, eps=1e-9):
     -------
     scale : float
     method : str
-        ``"limb-length"``, ``"cross-section"`` or ``"size"`` (the fallback).
+        ``"cross-section"``, ``"part-size"``, ``"limb-length"`` or ``"size"`` (the fallback).
     """
+    if op != "replace":
+        return attach_scale(target, target_joint, source, source_joint, eps=eps)
     tw = target.skeleton.rest_worlds()[:, :3, 3]
     sw = source.skeleton.rest_worlds()[:, :3, 3]
-    if op == "replace":
-        lt = chain_length(target.skeleton.parents, tw, target_joint)
-        ls = chain_length(source.skeleton.parents, sw, source_joint)
-        if lt > eps and ls > eps:
-            return lt / ls, "limb-length"
     Vt, Wt = rest_world_mesh(target)
     Vs, Ws = rest_world_mesh(source)
-    if op == "attach":
-        rt = cross_section(Vt, Wt, tw[target_joint], target_joint)
-        rs = cross_section(Vs, Ws, sw[source_joint], source_joint)
-        if rt is not None and rs is not None:
-            return rt / rs, "cross-section"
+    lt = chain_length(target.skeleton.parents, tw, target_joint)
+    ls = chain_length(source.skeleton.parents, sw, source_joint)
+    chain = lt / ls if lt > eps and ls > eps else None
+    sub_t, sub_s = target.skeleton.subtree(target_joint), source.skeleton.subtree(source_joint)
+    rt = cut_section(Vt, rest_world_faces(target), Wt, sub_t)
+    rs = cut_section(Vs, rest_world_faces(source), Ws, sub_s)
+    if rt is not None and rs is not None:
+        surface, method = rt / rs, "cross-section"
+    else:
+        pt, ps = part_size(Vt, Wt, sub_t), part_size(Vs, Ws, sub_s)
+        surface, method = (pt / ps, "part-size") if pt is not None and ps is not None else (None, "")
+    if surface is not None and (chain is None or max(chain / surface, surface / chain) > AGREEMENT):
+        return surface, method
+    if chain is not None:
+        return chain, "limb-length"
     st, ss = size(Vt, tw), size(Vs, sw)
     if st > eps and ss > eps:
         return st / ss, "size"
     return 1.0, "size"
+
+
+def attach_scale(target, target_joint, source, source_joint, *, eps=1e-9):
+    """Scale of ``source`` whose part at ``source_joint`` is attached to ``target`` at ``target_joint``.
+
+    Three estimates of how the two bodies compare where the part hangs, each fooled by something
+    different, and their median (a missing one stands in by the third, so that it counts twice):
+
+    * depth: :func:`thickness` of ``target`` at its joint over that of ``source`` at the joint its
+      part hangs from (``source_joint``'s parent): the part keeps its size to the body it came
+      from. Fooled by inner layers (a body under clothes puts the closest surface near the joint);
+    * cross-section: :func:`cross_section` at the two fused joints, the median distance to the
+      vertices each drives. Fooled where a joint drives little of its body (a hip joint that only
+      holds a belt) and by parts that are not round (a wing measures its length);
+    * size: the bounding-box diagonals of the two rest meshes. Fooled by long parts (a sauropod's
+      neck and tail).
+
+    Parameters and units as :func:`pair_scale` (both characters at rest in world space).
+
+    Returns
+    -------
+    scale : float
+    method : str
+        ``"depth"``, ``"cross-section"`` or ``"size"``: the estimate the median is.
+    """
+    tw = target.skeleton.rest_worlds()[:, :3, 3]
+    sw = source.skeleton.rest_worlds()[:, :3, 3]
+    Vt, Wt = rest_world_mesh(target)
+    Vs, Ws = rest_world_mesh(source)
+    st, ss = size(Vt, tw), size(Vs, sw)
+    whole = st / ss if st > eps and ss > eps else 1.0
+    parent = int(source.skeleton.parents[source_joint])
+    rt = thickness(Vt, rest_world_faces(target), tw[target_joint])
+    rs = thickness(Vs, rest_world_faces(source), sw[parent]) if parent >= 0 else None
+    ct = cross_section(Vt, Wt, tw[target_joint], target_joint)
+    cs = cross_section(Vs, Ws, sw[source_joint], source_joint)
+    estimates = [(rt / rs if rt is not None and rs is not None else whole, "depth"),
+                 (ct / cs if ct is not None and cs is not None else whole, "cross-section"),
+                 (whole, "size")]
+    estimates = [(r, m if r != whole or m == "size" else "size") for r, m in estimates]
+    return sorted(estimates, key=lambda e: e[0])[1]
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,0 +1,136 @@
+"""Grafted parts that show (issue 25), on real characters: ``scale = "auto"`` by the cross-section
+of the cut (a torso on a fox's neck, a fox's tail on a knight), and a mirror across the plane that
+separates the character's sides (a robot whose legs are posed unequally at rest)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import asset, corpus
+
+from rigmix.gates import MIN_GRAFTED_VISIBLE
+from rigmix.io import load_character
+from rigmix.operations.mirror import mirror_plane, side_axis
+from rigmix.operations.positioning import (
+    cut_section,
+    position_character,
+    rebase,
+    rest_world_faces,
+    rest_world_mesh,
+    thickness,
+)
+from rigmix.pipeline import compose
+
+
+def _config(tmp_path, name, body, donor, action):
+    path = tmp_path / f"{name}.toml"
+    path.write_text(f"""name = "{name}"
+[characters.body]
+path = "{body}"
+[characters.donor]
+path = "{donor}"
+scale = "auto"
+[[actions]]
+{action}
+""")
+    return path
+
+
+def _cut(character, joint):
+    """The cut radius of ``joint``'s part in a positioned character (world units)."""
+    V, W = rest_world_mesh(character)
+    sk = character.skeleton
+    return cut_section(V, rest_world_faces(character), W, sk.subtree(sk.index(joint)))
+
+
+def test_torso_on_a_fox_is_scaled_to_its_neck_and_shows(tmp_path):
+    """The Knight's upper body replacing the Fox's neck: its chain (out along an arm) is a third of
+    the Fox's neck and head chain, which buried it in the Fox's chest (6% showed). By the cut, its
+    waist meets the Fox's neck base, and it shows."""
+    cfg = _config(tmp_path, "fox_torso", asset("Fox"), asset("Knight"),
+                  'op = "replace"\nsource = "donor"\nsource_joint = "Abdomen"\n'
+                  'target = "body"\ntarget_joint = "b_Neck_04"\nmode = "blend"')
+    c = compose(cfg, until="fusion")
+    info = c.plan.report["characters"]["donor"]
+    assert info["scale_method"] == "cross-section"
+    # the scaled waist is as wide as the neck base it replaces (the same measure on both sides,
+    # so within a factor of the positioning's rounding only), and much wider than the chain made it
+    neck, waist = _cut(c.plan.positioned["body"], "b_Neck_04"), _cut(c.plan.positioned["donor"], "Abdomen")
+    assert 0.9 < waist / neck < 1.1
+    assert c.report["mesh"]["grafted_visible_min"] >= MIN_GRAFTED_VISIBLE
+
+
+def test_fox_tail_on_a_knight_keeps_its_size_to_the_body_and_shows(tmp_path):
+    """The Fox's tail on the Knight's hips: scaled by the median of three comparisons of the bodies
+    (here the joints' depths: the Fox's hips as deep as the Knight's body where it attaches); the
+    tail's root is then thinner than that body, and it shows (the driven-vertex cross-section alone
+    gave 0.013: the Knight's hip joint drives little more than a belt, and the tail vanished)."""
+    cfg = _config(tmp_path, "knight_tail", asset("Knight"), asset("Fox"),
+                  'op = "attach"\nsource = "donor"\nsource_joint = "b_Tail01_012"\n'
+                  'target = "body"\ntarget_joint = "Body"')
+    c = compose(cfg, until="fusion")
+    knight, fox = c.plan.positioned["body"], c.plan.positioned["donor"]
+    Vk, _ = rest_world_mesh(knight)
+    depth = thickness(Vk, rest_world_faces(knight), knight.skeleton.rest_worlds()[knight.skeleton.index("Body"), :3, 3])
+    root = _cut(fox, "b_Tail01_012")
+    assert 0.1 * depth < root < 1.5 * depth
+    assert c.report["mesh"]["grafted_visible_min"] >= MIN_GRAFTED_VISIBLE
+
+
+def test_mirror_plane_separates_the_sides_of_an_unequally_posed_robot():
+    """EnemyTwoLegs' rest pose has one leg forward: its surface is more symmetric front to back
+    (z) than left to right, but its .L/.R joints lie apart along x, the plane a mirror must use."""
+    robot = load_character(corpus("EnemyTwoLegs"))
+    assert side_axis(robot.skeleton) == 0
+    assert mirror_plane(robot).axis == 0
+    # the surface alone prefers z
+    assert mirror_plane(robot, "z").error < mirror_plane(robot, "x").error
+    wasp = load_character(asset("Wasp"))  # faces +X: its sides lie along z
+    assert side_axis(wasp.skeleton) == 2 and mirror_plane(wasp).axis == 2
+
+
+@pytest.mark.parametrize("name, joint", [("CesiumMan", "Skeleton_arm_joint_L__4_"), ("Fox", "b_Neck_04"),
+                                         ("Knight", "Abdomen")])
+def test_cut_section_scales_with_the_character(name, joint):
+    """The cut measures a character scaled by 3 three times as wide (a ratio of two is a scale),
+    and lies between the part's thinnest and widest extent."""
+    ch = rebase(load_character(asset(name)))
+    big = position_character(ch, scale=3.0)
+    r1, r3 = _cut(ch, joint), _cut(big, joint)
+    assert r1 is not None and r3 == pytest.approx(3.0 * r1, rel=1e-6)
+    V, W = rest_world_mesh(ch)
+    part = V[W[:, ch.skeleton.subtree(ch.skeleton.index(joint))].sum(axis=1) >= 0.5]
+    assert 0 < r1 < np.linalg.norm(np.ptp(part, axis=0))
+
+
+def test_mirrored_robot_leg_is_not_covered_by_the_old_one(tmp_path):
+    """Leela's left leg replaced by its right leg, mirrored. The robot's leg is a rigid plate on the
+    fused joint (and its foot on the foot's): kept by the body as well, the old plates lay a
+    thousandth of the diagonal from the new ones and hid a third of them. They go with the
+    replaced part, and the new leg shows as the old one did."""
+    leela = corpus("Leela")
+    path = tmp_path / "leela_mirror.toml"
+    path.write_text(f"""name = "leela_mirror"
+[characters.body]
+path = "{leela}"
+[characters.mirror]
+path = "{leela}"
+mirror = true
+scale = 1.0
+""" + "".join(f"""[[actions]]
+op = "replace"
+source = "mirror"
+source_joint = "{j}"
+target = "body"
+target_joint = "{j}"
+mode = "blend"
+""" for j in ("UpperLeg.L", "Foot.L")))
+    c = compose(path, until="fusion")
+    assert c.report["mesh"]["grafted_visible_min"] >= MIN_GRAFTED_VISIBLE
+    # the body keeps none of the faces skinned to the replaced leg's joints alone
+    body = c.fusion_ids.index("body")
+    x = c.fusion_inputs[body]
+    sk = c.plan.positioned["body"].skeleton
+    on_leg = x.W[:, [sk.index("UpperLeg.L"), sk.index("Foot.L")]].sum(axis=1) > 0.999
+    kept = np.asarray(c.surface.face_origin_face)[np.asarray(c.surface.face_origin_input) == body]
+    assert not on_leg[np.asarray(x.F)[kept]].all(axis=1).any()
