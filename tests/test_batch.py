@@ -13,11 +13,12 @@ import importlib.util
 import json
 import subprocess
 import sys
+import tempfile
 
 import pytest
 from conftest import ROOT, require
 
-from rigmix.batch import MANIFEST, plan_batch, read_manifest, run_batch, run_one
+from rigmix.batch import MANIFEST, builtin_names, plan_batch, read_manifest, run_batch, run_one
 from rigmix.errors import InputError
 from rigmix.io.gltf import read_gltf
 from rigmix.safety import file_digest
@@ -101,13 +102,25 @@ def check_second_run(run, configs, out, broken=7):
 
 
 @pytest.mark.slow
-def test_batch_process_pool(tmp_path):
+def test_batch_process_pool(tmp_path, monkeypatch):
     configs = make_configs(tmp_path / "configs")
     out = tmp_path / "out"
+    (tmp_path / "tmp").mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))  # where the batch's private folder goes
     seen = []
     entries = run_batch(configs, out, workers=2, progress=lambda d, t, e: seen.append((d, t)))
     assert seen[-1] == (20, 20) and sorted(d for d, _ in seen) == list(range(1, 21))
     check_first_run(entries, configs, out)
+    assert all(e["timings"]["cpu"] > 0 for e in entries if e["status"] == "ok")
+    # the humanoid was built by one worker and read by the other (rigmix.batch.share_builtins), through
+    # a folder removed after the batch: the first two jobs, one per worker, give what this process gives
+    assert builtin_names(configs) == ["humanoid"]
+    assert not list((tmp_path / "tmp").glob("rigmix-builtins-*"))
+    solo = tmp_path / "solo"
+    solo.mkdir()
+    for p in configs[:2]:
+        assert run_one(p, solo)["status"] == "ok"
+        assert (solo / f"{p.stem}.glb").read_bytes() == (out / f"{p.stem}.glb").read_bytes(), p.name
     check_second_run(lambda: run_batch(configs, out, workers=2), configs, out)
     # an edited config is run again even though its entry is ok
     configs[0].write_text(configs[0].read_text().replace("scale = 1.0", "scale = 0.95"))
