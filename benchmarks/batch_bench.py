@@ -3,12 +3,16 @@
 Eight configs built from the shipped built-in example compositions (``examples/*.toml``: tail
 graft, arm self-composition, centaur, beast arms), each also with the prototype's mapping score,
 all with the ``nearest`` junction weights so that the batch machinery and the surface fusion
-dominate rather than the weight solver. Each worker process builds the built-in characters
-once (included in the wall time, reported separately as the first job's load time).
+dominate rather than the weight solver. The built-in characters are built once per batch
+(:func:`rigmix.batch.share_builtins`; included in the wall time, reported separately as the largest
+load stage of a job).
 
 Writes ``benchmarks/results/batch_bench.json`` and ``batch_bench.md``: wall time, compositions
 per minute, mean and median compose time per job, the speed-up of 2 workers over 1, and the
-machine's load average (the timings are only comparable on an otherwise idle machine).
+machine's load average (the timings are only comparable on an otherwise idle machine). CPU
+seconds say what the load does not change: the jobs' own (``timings.cpu`` of the manifest, summed),
+and all the worker processes' (start-up, imports, built-in characters and the validator's
+subprocesses included); from the speed-up S, the serial fraction by Amdahl's law, 2 / S - 1.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import json
 import os
 import platform
 import re
+import resource
 import statistics
 import sys
 import tempfile
@@ -46,10 +51,17 @@ def make_configs(folder: Path) -> list[Path]:
     return paths
 
 
+def _children_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)  # the workers, once the pool has joined them
+    return r.ru_utime + r.ru_stime
+
+
 def run(workers: int, configs: list[Path], out: Path) -> dict:
+    c0 = _children_cpu()
     t0 = time.perf_counter()
     entries = run_batch(configs, out, workers=workers)
     wall = time.perf_counter() - t0
+    workers_cpu = _children_cpu() - c0
     ok = [e for e in entries if e["status"] == "ok"]
     compose = [e["timings"]["compose"] for e in ok]
     load = [e["timings"].get("stages", {}).get("load", 0.0) for e in ok]
@@ -63,6 +75,8 @@ def run(workers: int, configs: list[Path], out: Path) -> dict:
         "compose_mean_s": round(statistics.mean(compose), 3) if compose else None,
         "compose_median_s": round(statistics.median(compose), 3) if compose else None,
         "load_max_s": round(max(load), 3) if load else None,
+        "jobs_cpu_s": round(sum(e["timings"].get("cpu", 0.0) for e in ok), 2),
+        "workers_cpu_s": round(workers_cpu, 2),
     }
 
 
@@ -77,11 +91,13 @@ def main():
         for w in WORKERS:
             rows.append(run(w, configs, tmp / f"out{w}"))
     speedup = rows[0]["wall_s"] / rows[1]["wall_s"] if rows[1]["wall_s"] else None
+    serial = 2.0 / speedup - 1.0 if speedup else None
     result = {
         "benchmark": "batch_bench",
         "configs": [p.name for p in configs],
         "runs": rows,
         "speedup_2_over_1": round(speedup, 2) if speedup else None,
+        "serial_fraction": round(serial, 3) if serial is not None else None,
         "cpu_count": os.cpu_count(),
         "load_average_before": [round(x, 2) for x in load_before],
         "load_average_after": [round(x, 2) for x in os.getloadavg()],
@@ -94,13 +110,15 @@ def main():
         f"{os.cpu_count()} CPUs, load average {result['load_average_before'][0]} before the run.",
         "",
         "| workers | jobs ok | wall (s) | compositions / min | compose mean (s) | compose median (s) | "
-        "built-in load, max (s) |",
-        "|---:|---:|---:|---:|---:|---:|---:|",
+        "built-in load, max (s) | jobs' CPU (s) | worker processes' CPU (s) |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         lines.append(f"| {r['workers']} | {r['ok']}/{r['jobs']} | {r['wall_s']} | {r['per_minute']} | "
-                     f"{r['compose_mean_s']} | {r['compose_median_s']} | {r['load_max_s']} |")
-    lines += ["", f"Speed-up of 2 workers over 1: {result['speedup_2_over_1']}x."]
+                     f"{r['compose_mean_s']} | {r['compose_median_s']} | {r['load_max_s']} | {r['jobs_cpu_s']} | "
+                     f"{r['workers_cpu_s']} |")
+    lines += ["", f"Speed-up of 2 workers over 1: {result['speedup_2_over_1']}x (serial fraction by Amdahl's law, "
+              f"2 / S - 1: {result['serial_fraction']}); load average {result['load_average_after'][0]} after."]
     failed = [f for r in rows for f in r["failed"]]
     if failed:
         lines += ["", "Failed jobs: " + "; ".join(sorted(set(failed)))]

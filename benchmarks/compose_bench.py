@@ -7,6 +7,11 @@
    (18,688 / 74,752 / 1,196,032 faces: the 10k, 100k and 1M orders of magnitude), its left arm
    replaced by itself. Each case runs in a child process (its peak memory is reported) with a
    time limit, so a case that runs away is recorded rather than stopping the benchmark.
+3. The reference operation of issue 26 (:func:`benchmarks.common.reference_operation`: libigl's
+   fast winding number of 1M points against the Horse subdivided to 78,552 faces), timed before
+   the configs and again after the scaling cases; every timing is also given as a multiple of
+   the median of both (``x ref``), so runs on idle and loaded machines compare. The per-stage
+   medians over the configs are given in seconds and in multiples.
 
 Writes ``benchmarks/results/compose_bench.json`` and ``compose_bench.md``.
 Usage: ``python -m benchmarks.compose_bench``.
@@ -27,10 +32,13 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import git_commit, ratio, reference_operation
+
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).resolve().parent / "results"
 CONFIGS = sorted((ROOT / "tests" / "configs").glob("*.toml")) + sorted((ROOT / "examples").glob("*.toml"))
 SUBDIVISIONS = (1, 2, 4)
+STAGES = ("load", "operations", "mapping", "fusion", "weights", "completion", "assembly", "quality", "total")
 CASE_TIMEOUT = 900.0  # seconds per scaling case
 
 
@@ -151,13 +159,40 @@ def run_scaling():
     return rows
 
 
-def _markdown(configs, scaling):
-    stages = ["load", "operations", "mapping", "fusion", "weights", "completion", "assembly", "quality", "total"]
-    lines = ["Per-stage times of `rigmix.compose` (seconds; the SkinMixer paper reports 12 s on average "
-             "per composition).", "",
-             "| config | " + " | ".join(stages) + " | faces | voxels | min angle p05 | crossing pairs | stretch ratio "
-             "| weight roughness max, junction / sources |",
-             "|---|" + "---:|" * (len(stages) + 6)]
+def combine_references(first: dict, last: dict) -> dict:
+    """One reference from the timings before and after the benchmark: ``seconds`` the median of
+    every call, ``before`` and ``after`` each time's median and load average."""
+    runs = first["runs"] + last["runs"]
+    return {**first, "seconds": round(float(np.median(runs)), 4), "runs": runs,
+            "before": {"seconds": first["seconds"], "load_average": first["load_average"], "date": first["date"]},
+            "after": {"seconds": last["seconds"], "load_average": last["load_average"], "date": last["date"]}}
+
+
+def stage_medians(configs) -> dict:
+    """Stage -> median seconds over the configs that composed."""
+    ok = [r["timings"] for r in configs if "error" not in r]
+    return {s: round(float(np.median([t[s] for t in ok if s in t])), 4) for s in STAGES if any(s in t for t in ok)}
+
+
+def _markdown(configs, scaling, reference):
+    stages = list(STAGES)
+    ref = reference["seconds"]
+    medians = stage_medians(configs)
+    lines = [f"Reference operation (issue 26): {reference['operation']}: **{ref:.2f} s** (median of "
+             f"{len(reference['runs'])} calls, {reference['before']['seconds']:.2f} s before the configs at load "
+             f"average {reference['before']['load_average'][0]:g}, {reference['after']['seconds']:.2f} s after the "
+             f"scaling cases at {reference['after']['load_average'][0]:g}); commit {reference['commit']}, "
+             f"{reference['machine']}, {reference['cpus']} CPUs, {reference['date']}. `x ref`: a time divided by "
+             "it, comparable between idle and loaded machines.", "",
+             "Median per stage over the configs (seconds, and x ref):", "",
+             "| | " + " | ".join(medians) + " |", "|---|" + "---:|" * len(medians),
+             "| median s | " + " | ".join(f"{v:.2f}" for v in medians.values()) + " |",
+             "| median x ref | " + " | ".join(f"{ratio(v, ref):.3f}" for v in medians.values()) + " |", "",
+             "Per-stage times of `rigmix.compose` (seconds; the SkinMixer paper reports 12 s on average "
+             "per composition), then the total as x ref.", "",
+             "| config | " + " | ".join(stages) + " | total x ref | faces | voxels | min angle p05 | crossing pairs "
+             "| stretch ratio | weight roughness max, junction / sources |",
+             "|---|" + "---:|" * (len(stages) + 7)]
     for r in configs:
         if "error" in r:
             lines.append(f"| {r['config']} | error: {r['error']} |")
@@ -168,25 +203,28 @@ def _markdown(configs, scaling):
         sr = r["junction_stretch_ratio"]
         rough = " / ".join("-" if r.get(k) is None else f"{r[k]:.2f}"
                            for k in ("junction_weight_roughness_max", "source_weight_roughness_max"))
-        lines.append(f"| {r['config']} | " + " | ".join(cells) +
+        tr = ratio(t.get("total"), ref)
+        lines.append(f"| {r['config']} | " + " | ".join(cells) + f" | {'' if tr is None else f'{tr:.3f}'}" +
                      f" | {r['faces']} | {r['voxels']} | {'' if ang is None else f'{ang:.1f}'} | "
                      f"{r.get('junction_self_intersections', '')} | {'' if sr is None else f'{sr:.2f}'} | {rough} |")
     lines += ["", "Fusion time against mesh resolution (CesiumMan subdivided, left arm replaced by itself, "
               "junction rebuilt from the fields):", "",
-              "| input faces | fusion s | total s | output faces | voxels | peak RSS MB |",
-              "|---:|---:|---:|---:|---:|---:|"]
+              "| input faces | fusion s | fusion x ref | total s | total x ref | output faces | voxels | peak RSS MB |",
+              "|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in scaling:
         if "error" in r:
-            lines.append(f"| x{4 ** r['subdivisions']} | error: {r['error']} | | | | |")
+            lines.append(f"| x{4 ** r['subdivisions']} | error: {r['error']} | | | | | | |")
             continue
-        lines.append(f"| {r['input_faces']} | {r['timings'].get('fusion', float('nan')):.2f} | "
-                     f"{r['timings'].get('total', float('nan')):.2f} | {r['faces']} | {r['voxels']} | "
-                     f"{r['peak_rss_mb']} |")
+        fusion, total = r["timings"].get("fusion"), r["timings"].get("total")
+        lines.append(f"| {r['input_faces']} | {fusion:.2f} | {ratio(fusion, ref):.3f} | {total:.2f} | "
+                     f"{ratio(total, ref):.3f} | {r['faces']} | {r['voxels']} | {r['peak_rss_mb']} |")
     return "\n".join(lines) + "\n"
 
 
 def main(argv=None):
     os.environ.setdefault("CI", "false")
+    first = reference_operation()
+    print(json.dumps({"reference_before": first}), flush=True)
     configs = []
     for path in CONFIGS:
         try:
@@ -197,11 +235,19 @@ def main(argv=None):
     scaling = run_scaling()
     for row in scaling:
         print(json.dumps(row), flush=True)
+    reference = combine_references(first, reference_operation())
+    for row in configs + scaling:
+        if "timings" in row:
+            row["timings_x_ref"] = {k: ratio(v, reference["seconds"]) for k, v in row["timings"].items()}
     RESULTS.mkdir(parents=True, exist_ok=True)
-    meta = {"machine": platform.platform(), "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%d %H:%M")}
-    (RESULTS / "compose_bench.json").write_text(json.dumps({"meta": meta, "configs": configs, "scaling": scaling},
-                                                           indent=2) + "\n")
-    (RESULTS / "compose_bench.md").write_text(_markdown(configs, scaling))
+    meta = {"machine": platform.platform(), "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%d %H:%M"),
+            "commit": git_commit(), "load_average_after": [round(x, 2) for x in os.getloadavg()]}
+    medians = stage_medians(configs)
+    (RESULTS / "compose_bench.json").write_text(json.dumps(
+        {"meta": meta, "reference": reference, "stage_medians_s": medians,
+         "stage_medians_x_ref": {k: ratio(v, reference["seconds"]) for k, v in medians.items()},
+         "configs": configs, "scaling": scaling}, indent=2) + "\n")
+    (RESULTS / "compose_bench.md").write_text(_markdown(configs, scaling, reference))
     return 0
 
 

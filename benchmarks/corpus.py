@@ -20,8 +20,17 @@ per-stage ``timings``, its ``mesh``, ``quality`` and ``weights`` figures, and th
 
 A case passes when every gate passes. Results: ``benchmarks/results/corpus.json`` (every row, one
 a line, each gate packed as a list of :data:`GATE_FIELDS`; :func:`load_rows` reads it back) and
-``corpus.md`` (the pass rate by kind, the failures with their failing gates and message, one row
-per case with each gate and the time per stage), both rewritten after every case.
+``corpus.md`` (the pass rate by kind, the median time per stage, the failures with their failing
+gates and message, one row per case with each gate and the time per stage), both rewritten after
+every case.
+
+The reference operation (issue 26, :func:`benchmarks.common.reference_operation`: libigl's fast
+winding number of 1M points against the Horse subdivided to 78,552 faces) is timed once before a
+run's first case; ``corpus.json`` keeps it (``reference``) and each row run then its seconds
+(``reference_s``), and ``corpus.md`` gives every median also as a multiple of it, so runs on idle
+and loaded machines compare. A row from a run that did not time it is divided by the stored
+``reference`` (the table says so). ``--tables`` rewrites both files from the stored rows with the
+reference timed now, composing nothing.
 
 Resuming: a row whose config text is unchanged (SHA-256) is kept and its case skipped;
 ``--fresh`` runs everything again, ``--rerun-failed`` the cases that did not pass. Slices:
@@ -29,7 +38,7 @@ Resuming: a row whose config text is unchanged (SHA-256) is kept and its case sk
 ``--limit N`` (the first N of the selection left to run), ``--ci`` (the CI slice).
 
 Usage: ``python -m benchmarks.corpus [--fresh] [--rerun-failed] [--only PATTERN] [--kind KIND]
-[--limit N] [--ci] [--jobs N] [--timeout S] [--out DIR] [--results DIR] [--list]``.
+[--limit N] [--ci] [--jobs N] [--timeout S] [--out DIR] [--results DIR] [--list] [--tables]``.
 Exit status 0 when every row passes, 1 otherwise, 2 when the characters are missing.
 """
 
@@ -47,6 +56,9 @@ import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
 
+import numpy as np
+
+from benchmarks.common import git_commit, ratio, reference_operation
 from benchmarks.corpus_matrix import (
     ASSETS,
     CORPUS,
@@ -73,6 +85,9 @@ TIME_BOUND = 60.0
 DEFAULT_TIMEOUT = 120.0
 #: the report's figures a row keeps
 REPORT_FIGURES = ("timings", "mesh", "quality", "weights")
+#: the stages of the time table, in pipeline order (then any other the rows have)
+STAGES = ("load", "operations", "mapping", "fusion", "weights", "completion", "assembly", "quality", "total",
+          "write", "gates")
 #: a weight row sums to 1 within this (float32 in the file)
 SUM_TOLERANCE = 1e-3
 
@@ -302,15 +317,15 @@ def load_rows(path: Path) -> dict:
             for r in json.loads(path.read_text()).get("rows", [])}
 
 
+def load_reference(path: Path) -> dict | None:
+    """The reference operation stored with ``corpus.json`` (:func:`benchmarks.common.reference_operation`),
+    or None."""
+    if not path.is_file():
+        return None
+    return json.loads(path.read_text()).get("reference")
+
+
 # --------------------------------------------------------------------------- tables
-
-
-def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
-                              timeout=10).stdout.strip() or "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
 
 
 def summary(cases, rows: dict) -> list[dict]:
@@ -325,13 +340,60 @@ def summary(cases, rows: dict) -> list[dict]:
     return out
 
 
+def stage_times(rows, reference: dict | None) -> list[dict]:
+    """Per stage (:data:`STAGES`, then ``process``: the row's ``wall_s``), over the rows with
+    timings, passing or failing: the count, the median and largest seconds, and the median and
+    largest multiple of the reference operation (each row divided by its run's ``reference_s``,
+    else by ``reference["seconds"]``; None without either)."""
+    timed = [r for r in rows if r.get("timings")]
+    names = list(STAGES) + [k for r in timed for k in r["timings"] if k not in STAGES]
+    out = []
+    for name in list(dict.fromkeys(names)) + ["process"]:
+        secs, mult = [], []
+        for r in timed:
+            v = r.get("wall_s") if name == "process" else r["timings"].get(name)
+            if v is None:
+                continue
+            secs.append(float(v))
+            mult.append(ratio(v, r.get("reference_s") or (reference or {}).get("seconds")))
+        if not secs:
+            continue
+        known = [m for m in mult if m is not None]
+        out.append({"stage": name, "rows": len(secs), "median_s": round(float(np.median(secs)), 3),
+                    "max_s": round(max(secs), 3),
+                    "median_ratio": round(float(np.median(known)), 3) if len(known) == len(mult) else None,
+                    "max_ratio": round(max(known), 3) if len(known) == len(mult) else None})
+    return out
+
+
+def reference_lines(rows, reference: dict | None) -> list[str]:
+    """What the ratios of the time table are divided by: the reference of each row's run, or the
+    stored one (named with its commit, machine, date and load)."""
+    own = sum(1 for r in rows if r.get("reference_s"))
+    lines = []
+    if reference:
+        lines.append(f"Reference operation: {reference['operation']}; median of {len(reference['runs'])} calls "
+                     f"{reference['seconds']:.2f} s, measured on commit {reference['commit']}, {reference['machine']}, "
+                     f"{reference['cpus']} CPUs, {reference['date']}, load average {reference['load_average'][0]:g} "
+                     "before it.")
+    if own:
+        lines.append(f"{own} rows are divided by the reference timed in their own run (`reference_s`).")
+    if own < len(rows):
+        commits = ", ".join(sorted({r.get("commit", "?") for r in rows if not r.get("reference_s")}))
+        lines.append(f"{len(rows) - own} rows (commit(s) {commits}) come from runs that did not time it: they "
+                     "are divided by the reference above, measured when these tables were written, **not in "
+                     "their run** (their machine and load may differ)." if reference else
+                     f"{len(rows) - own} rows have no reference: no ratio.")
+    return lines
+
+
 def _cell(g: dict) -> str:
     mark = {True: "✓", False: "✗", None: "·"}[g["pass"]]
     return f"{mark} {_fmt(g['value'])}"
 
 
-def markdown(cases, rows: dict, *, timeout: float) -> str:
-    """``corpus.md``: header, pass rate by kind, failing gates, failures, every row."""
+def markdown(cases, rows: dict, *, timeout: float, reference: dict | None = None) -> str:
+    """``corpus.md``: header, pass rate by kind, time per stage, failing gates, failures, every row."""
     ordered = [rows[c.name] for c in cases if c.name in rows]
     fallback = sum(1 for r in ordered if r.get("gates_source") == "fallback")
     commits = sorted({r.get("commit", "?") for r in ordered})
@@ -349,6 +411,16 @@ def markdown(cases, rows: dict, *, timeout: float) -> str:
     for s in summary(cases, rows):
         rate = "-" if s["pass_rate"] is None else f"{100 * s['pass_rate']:.1f} %"
         lines.append(f"| {s['kind']} | {s['cases']} | {s['run']} | {s['passed']} | {rate} |")
+    timed = [r for r in ordered if r.get("timings")]
+    lines += ["", "## Time per stage", "",
+              f"Over the {len(timed)} rows with timings, passing and failing: seconds, and multiples of the "
+              "reference operation (`x ref`; each row's seconds divided by its reference, then the median or "
+              "largest). `process`: the whole `rigmix compose` command, interpreter start-up included.", ""]
+    lines += reference_lines(timed, reference)
+    lines += ["", "| stage | rows | median s | median x ref | max s | max x ref |", "|---|---:|---:|---:|---:|---:|"]
+    for t in stage_times(timed, reference):
+        lines.append(f"| {t['stage']} | {t['rows']} | {t['median_s']:.2f} | {_fmt(t['median_ratio'])} | "
+                     f"{t['max_s']:.2f} | {_fmt(t['max_ratio'])} |")
     counts: dict[str, int] = {}
     for r in ordered:
         for name in r.get("failed", []):
@@ -383,18 +455,20 @@ def _atomic_write(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def write_results(cases, rows: dict, results: Path, *, timeout: float) -> None:
-    """``corpus.json`` (rows of the current matrix, in its order) and ``corpus.md``."""
+def write_results(cases, rows: dict, results: Path, *, timeout: float, reference: dict | None = None) -> None:
+    """``corpus.json`` (rows of the current matrix, in its order, and the ``reference`` operation)
+    and ``corpus.md``."""
     results.mkdir(parents=True, exist_ok=True)
     ordered = [rows[c.name] for c in cases if c.name in rows]
     head = json.dumps({"cases": len(cases), "by_kind": {k: sum(1 for c in cases if c.kind == k) for k in KINDS},
                        "ci_slice": [c.name for c in ci_slice(cases)], "timeout_s": timeout,
-                       "time_bound_s": TIME_BOUND, "summary": summary(cases, rows)}, separators=(",", ":"))
+                       "time_bound_s": TIME_BOUND, "summary": summary(cases, rows), "reference": reference},
+                      separators=(",", ":"))
     # one row a line, gates packed (:func:`pack_gate`): readable in a diff, small in the repository
     packed = [json.dumps({**r, "gates": [pack_gate(g) for g in r.get("gates", [])]}, separators=(",", ":"))
               for r in ordered]
     _atomic_write(results / "corpus.json", head[:-1] + ',"rows":[\n' + ",\n".join(packed) + "\n]}\n")
-    _atomic_write(results / "corpus.md", markdown(cases, rows, timeout=timeout))
+    _atomic_write(results / "corpus.md", markdown(cases, rows, timeout=timeout, reference=reference))
 
 
 # --------------------------------------------------------------------------- main
@@ -415,6 +489,8 @@ def main(argv=None) -> int:
     ap.add_argument("--results", type=Path, default=RESULTS, help="corpus.json and corpus.md (default "
                                                                     "benchmarks/results)")
     ap.add_argument("--list", action="store_true", help="print the selected cases and exit")
+    ap.add_argument("--tables", action="store_true", help="time the reference operation and rewrite corpus.json "
+                                                           "and corpus.md from the stored rows; compose nothing")
     args = ap.parse_args(argv)
 
     from rigmix.errors import InputError
@@ -436,19 +512,26 @@ def main(argv=None) -> int:
     pending = to_run(chosen, rows, fresh=args.fresh, rerun_failed=args.rerun_failed)
     if args.limit is not None:
         pending = pending[:args.limit]
+    if args.tables:
+        pending = []
     print(f"corpus: {len(cases)} cases, {len(chosen)} selected, {len(chosen) - len(pending)} kept from "
           f"{results_json}, {len(pending)} to run", flush=True)
-    commit = _commit()
+    reference = load_reference(results_json)
+    if pending or args.tables:  # timed in this run, before its first composition
+        reference = reference_operation()
+        print(f"corpus: reference operation {reference['seconds']:.2f} s ({reference['operation']})", flush=True)
+    commit = git_commit()
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         futures = {pool.submit(run_case, c, configs[c.name], args.out, timeout=args.timeout): c for c in pending}
         for i, fut in enumerate(as_completed(futures), 1):
             row = fut.result()
             row["commit"] = commit
+            row["reference_s"] = reference["seconds"]
             rows[row["name"]] = row
-            write_results(cases, rows, args.results, timeout=args.timeout)
+            write_results(cases, rows, args.results, timeout=args.timeout, reference=reference)
             verdict = "pass" if row["passed"] else f"FAIL {row['message']}"
             print(f"[{i}/{len(pending)}] {row['name']}: {row['wall_s']} s {verdict}", flush=True)
-    write_results(cases, rows, args.results, timeout=args.timeout)
+    write_results(cases, rows, args.results, timeout=args.timeout, reference=reference)
     done = [rows[c.name] for c in chosen if c.name in rows]
     passed = sum(1 for r in done if r.get("passed"))
     print(f"corpus: {passed}/{len(done)} selected cases pass; {args.results / 'corpus.md'}")

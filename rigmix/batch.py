@@ -10,19 +10,23 @@ Each config is one independent job (:func:`run_one`): compose it, write ``<stem>
   folder must then be on a file system the workers share).
 
 Only paths travel between processes (never characters or arrays); each worker reads its
-inputs itself (built-in characters are built once per worker process).
+inputs itself. Built-in characters (``builtin:NAME``) are built once per batch on the process
+pool: each by one worker at start-up, the workers taking them in different orders so that two
+are built at once, and read by the others from a private folder of the batch
+(:func:`share_builtins`); building one takes seconds, as long as several compositions.
 
 One failing job does not stop the others: its error is recorded and the batch goes on. Every
 finished job appends one JSON line to ``DIR/manifest.jsonl``::
 
     {"config": "/abs/path/centaur.toml", "config_sha256": "...", "stem": "centaur",
      "status": "ok" | "failed", "outputs": {"glb": "centaur.glb", "report": "centaur.report.json"},
-     "timings": {"compose": 3.2, "write": 0.1, "total": 3.3, "stages": {...}},
+     "timings": {"compose": 3.2, "write": 0.1, "total": 3.3, "cpu": 3.1, "stages": {...}},
      "error": null | "one-line message", "error_kind": null | "input" | "internal",
      "gates_failed": ["junction_self_intersections = 3 (bound <= 0)", ...],
      "finished": "2026-11-22T01:02:03Z"}
 
-``error_kind`` is ``"input"`` for a :class:`RigmixError` (a bad config or input file) and
+``timings`` are wall-clock seconds, except ``cpu``: the CPU seconds of the job's process (all its
+threads) over the job. ``error_kind`` is ``"input"`` for a :class:`RigmixError` (a bad config or input file) and
 ``"internal"`` for anything else (a bug, a worker process that died). ``gates_failed`` lists the
 hard gates of the report that failed (:mod:`rigmix.gates`; the job is still ``ok``, its outputs
 written). :func:`exit_status` turns the entries into the exit status of ``rigmix batch`` (0, 2
@@ -50,7 +54,10 @@ from __future__ import annotations
 import json
 import logging
 import os
+import pickle
+import shutil
 import signal
+import tempfile
 import time
 import traceback
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -64,8 +71,8 @@ from .export import config_inputs, json_default, write_outputs
 from .gates import failure_items
 from .safety import Interrupted, check_outputs, file_digest
 
-__all__ = ["MANIFEST", "LOCAL_DASK", "STOP_TIMEOUT", "run_one", "run_batch", "read_manifest", "plan_batch",
-           "exit_status"]
+__all__ = ["MANIFEST", "LOCAL_DASK", "STOP_TIMEOUT", "BUILTIN_WAIT", "run_one", "run_batch", "read_manifest",
+           "plan_batch", "exit_status", "builtin_names", "share_builtins"]
 
 logger = logging.getLogger(__name__)
 
@@ -75,6 +82,9 @@ MANIFEST = "manifest.jsonl"
 LOCAL_DASK = "local-dask"
 #: Seconds a worker has to remove its temporary files after SIGTERM before it is killed.
 STOP_TIMEOUT = 20.0
+#: Seconds a worker waits for a built-in character another worker builds (:func:`share_builtins`)
+#: before its jobs build it themselves.
+BUILTIN_WAIT = 120.0
 
 #: ``progress(done, total, entry)``: called in the calling process as each job ends (skipped
 #: jobs included); the CLI turns it into a progress bar.
@@ -119,7 +129,7 @@ def run_one(config_path, out_dir) -> dict:
     entry = {"config": str(config_path), "config_sha256": None, "stem": stem, "status": "failed",
              "outputs": outputs, "timings": {}, "error": None, "error_kind": None, "gates_failed": [],
              "finished": None}
-    t_start = time.perf_counter()
+    t_start, cpu_start = time.perf_counter(), time.process_time()
     try:
         try:
             entry["config_sha256"] = file_digest(config_path)
@@ -146,6 +156,7 @@ def run_one(config_path, out_dir) -> dict:
         entry["error"] = _one_line(f"internal error ({type(exc).__name__}: {exc})")
         entry["error_kind"] = "internal"
     entry["timings"]["total"] = round(time.perf_counter() - t_start, 4)
+    entry["timings"]["cpu"] = round(time.process_time() - cpu_start, 4)
     entry["finished"] = _now()
     return entry
 
@@ -353,9 +364,73 @@ def run_batch(configs, out_dir, *, workers: int | None = None, scheduler: str | 
     return [results[c] for c in order]
 
 
-def _init_worker() -> None:
+def builtin_names(configs: Iterable) -> list[str]:
+    """The built-in characters (``builtin:NAME`` paths) that the configs use, in order of first use;
+    a config that does not load is passed over (its job reports why)."""
+    from .config import BUILTIN_PREFIX, load_config
+
+    names = []
+    for p in configs:
+        try:
+            config = load_config(Path(p))
+        except Exception:  # noqa: BLE001 - that job fails with this error when it runs
+            continue
+        for cid in config.characters:
+            path = config.character_path(cid)
+            if isinstance(path, str) and path.startswith(BUILTIN_PREFIX) and path[len(BUILTIN_PREFIX):] not in names:
+                names.append(path[len(BUILTIN_PREFIX):])
+    return names
+
+
+def share_builtins(folder, names) -> None:
+    """Worker start-up: build each built-in character of ``names`` in one worker of the batch only,
+    and read the ones the others build.
+
+    The first worker to create ``folder/NAME.lock`` builds ``NAME`` (:func:`rigmix.pipeline.builtin_character`)
+    and writes ``NAME.pickle`` (renamed into place when complete); a worker that finds the lock taken
+    goes on to the next name, then waits for the files it did not build (at most :data:`BUILTIN_WAIT`
+    seconds) and reads them (:func:`rigmix.pipeline.keep_builtin`). Given the names in different
+    orders, workers build different characters at once. Building is deterministic, so every worker
+    composes as if it had built them itself; one that gets no file builds the character when a job
+    needs it.
+
+    Parameters
+    ----------
+    folder : str or Path
+        A folder private to the batch (made by the calling process, removed after the batch).
+    names : sequence of str
+        Built-in character names, e.g. ``("humanoid", "quadruped")``.
+    """
+    from .pipeline import builtin_character, keep_builtin
+
+    folder = Path(folder)
+    waiting = []
+    for name in names:
+        try:
+            os.close(os.open(folder / f"{name}.lock", os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+        except FileExistsError:
+            waiting.append(name)
+            continue
+        character = builtin_character(name)
+        tmp = folder / f".{name}.{os.getpid()}.tmp"
+        with open(tmp, "wb") as fh:
+            pickle.dump(character, fh, protocol=pickle.HIGHEST_PROTOCOL)
+        os.replace(tmp, folder / f"{name}.pickle")
+    deadline = time.monotonic() + BUILTIN_WAIT
+    for name in waiting:
+        done = folder / f"{name}.pickle"
+        while not done.is_file() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        if done.is_file():
+            with open(done, "rb") as fh:  # written by a worker of this batch into its private folder
+                keep_builtin(name, pickle.load(fh))
+
+
+def _init_worker(builtins: str | None = None, names: tuple = ()) -> None:
     """Worker start-up: SIGINT is the calling process's business (it stops the workers); SIGTERM
-    raises :class:`Interrupted`, so that the job's temporary files are removed (:func:`_job`)."""
+    raises :class:`Interrupted`, so that the job's temporary files are removed (:func:`_job`).
+    With ``builtins`` (a folder), the built-in characters ``names`` are shared with the other
+    workers (:func:`share_builtins`); a failure there is logged and leaves them to the jobs."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     def stop(signum, frame):
@@ -365,6 +440,12 @@ def _init_worker() -> None:
         raise Interrupted(signum)
 
     signal.signal(signal.SIGTERM, stop)
+    if builtins is not None:
+        try:
+            share_builtins(builtins, names)
+        except Exception as exc:  # noqa: BLE001 - an initializer that raises would fail every job of the slot
+            logger.warning("batch: built-in characters not shared (%s: %s); each job builds its own",
+                           type(exc).__name__, exc)
 
 
 _in_job = False
@@ -384,8 +465,8 @@ def _job(config: str, out_dir: str) -> dict:
         _in_job = False
 
 
-def _new_slot(ctx) -> ProcessPoolExecutor:
-    return ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_init_worker)
+def _new_slot(ctx, initargs: tuple = ()) -> ProcessPoolExecutor:
+    return ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_init_worker, initargs=initargs)
 
 
 def _run_pool(todo: list[Path], out_dir: Path, workers: int | None, finish, *, job=_job) -> None:
@@ -393,12 +474,18 @@ def _run_pool(todo: list[Path], out_dir: Path, workers: int | None, finish, *, j
 
     One job at a time per slot, so the job of a worker that dies is known: it alone fails, with
     an internal error, and its slot is rebuilt. ``job`` must be a module-level function (it is
-    pickled by name into the workers).
+    pickled by name into the workers). With more than one slot, the built-in characters of the
+    configs are shared (:func:`share_builtins`, slot ``i`` taking the names rotated by ``i``)
+    through a private folder removed afterwards.
     """
     import multiprocessing
 
     n = max(1, min(workers or os.cpu_count() or 1, len(todo)))
     ctx = multiprocessing.get_context("spawn")  # no fork of a threaded parent
+    names = builtin_names(todo) if n > 1 else []
+    shared = tempfile.mkdtemp(prefix="rigmix-builtins-") if names else None  # mode 0700
+    initargs = [(shared, tuple(names[i % len(names):] + names[:i % len(names)])) if names else ()
+                for i in range(n)]
     queue = list(reversed(todo))
     slots: list[ProcessPoolExecutor | None] = [None] * n
     running: dict = {}  # future -> (slot index, config)
@@ -407,7 +494,7 @@ def _run_pool(todo: list[Path], out_dir: Path, workers: int | None, finish, *, j
             for i in range(n):
                 if queue and i not in {k for k, _ in running.values()}:
                     if slots[i] is None:
-                        slots[i] = _new_slot(ctx)
+                        slots[i] = _new_slot(ctx, initargs[i])
                     p = queue.pop()
                     running[slots[i].submit(job, str(p), str(out_dir))] = (i, p)
             finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
@@ -426,9 +513,12 @@ def _run_pool(todo: list[Path], out_dir: Path, workers: int | None, finish, *, j
     except BaseException:
         _stop_slots([s for s in slots if s is not None])
         raise
-    for s in slots:
-        if s is not None:
-            s.shutdown(wait=True)
+    finally:
+        for s in slots:
+            if s is not None:
+                s.shutdown(wait=True)
+        if shared is not None:
+            shutil.rmtree(shared, ignore_errors=True)
 
 
 def _stop_slots(pools: list) -> None:

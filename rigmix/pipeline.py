@@ -40,7 +40,8 @@ if TYPE_CHECKING:  # the annotations of Composition; the stages import their pac
     from .weights import SkinWeights
 
 __all__ = ["Composition", "Progress", "STAGE_NAMES", "check_input", "load_characters", "compose", "mapping_table",
-           "fusion_stage", "weights_stage", "completion_stage", "assembly_stage", "quality_stage"]
+           "fusion_stage", "weights_stage", "completion_stage", "assembly_stage", "quality_stage",
+           "builtin_character", "keep_builtin"]
 
 logger = logging.getLogger(__name__)
 
@@ -197,15 +198,35 @@ def quality_stage(composition: Composition, progress: Progress | None = None) ->
     return replace(composition, report={**composition.report, "quality": q})
 
 
-@lru_cache(maxsize=8)
-def _builtin(name: str) -> Character:
-    from . import examples  # imported on use: building an example takes seconds
+#: name -> built-in character built (or received, :func:`keep_builtin`) in this process
+_BUILTINS: dict[str, Character] = {}
 
-    fn = getattr(examples, name, None)
-    if name.startswith("_") or not callable(fn) or name not in getattr(examples, "__all__", ()):
-        known = [n for n in getattr(examples, "__all__", ()) if n.islower() and callable(getattr(examples, n))]
-        raise KeyError(", ".join(known))
-    return fn()
+
+def builtin_character(name: str) -> Character:
+    """The built-in example character ``name`` (a function of :mod:`rigmix.examples`, e.g.
+    ``"humanoid"``), built once per process: building one takes seconds.
+
+    Raises
+    ------
+    KeyError
+        Not a built-in character; its message lists the known names.
+    """
+    if name not in _BUILTINS:
+        from . import examples  # imported on use
+
+        fn = getattr(examples, name, None)
+        if name.startswith("_") or not callable(fn) or name not in getattr(examples, "__all__", ()):
+            known = [n for n in getattr(examples, "__all__", ()) if n.islower() and callable(getattr(examples, n))]
+            raise KeyError(", ".join(known))
+        _BUILTINS[name] = fn()
+    return _BUILTINS[name]
+
+
+def keep_builtin(name: str, character: Character) -> None:
+    """Use ``character`` as the built-in ``name`` in this process from now on: one that another
+    process built with :func:`builtin_character` (:mod:`rigmix.batch` shares them between its
+    workers). Building is deterministic, so the composition is the same."""
+    _BUILTINS[name] = character
 
 
 def check_input(character: Character, *, fps: float | None = None) -> None:
@@ -275,7 +296,7 @@ def load_characters(config: Config) -> dict:
         if isinstance(p, str):
             name = p[len(BUILTIN_PREFIX):]
             try:
-                out[cid] = _builtin(name)
+                out[cid] = builtin_character(name)
             except KeyError as e:
                 raise InputError(f"config {config.source}: characters.{cid}.path: no built-in character "
                                  f"{name!r}; known: {e.args[0]}") from None

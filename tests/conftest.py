@@ -2,10 +2,15 @@
 corpus in ../shared/data/corpus (or $RIGMIX_CORPUS).
 
 With CI=true a missing asset is a failure, not a skip.
+
+``composed`` (session): a composition config composed once per test run, for the tests that
+check the same composition; they carry the ``xdist_group`` mark :data:`COMPOSED_GROUP`, so that
+``make test`` (``--dist loadgroup``) runs them in one worker process and the cache serves them all.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 from pathlib import Path
 
@@ -49,6 +54,12 @@ CHARACTERS = {
     "Velociraptor": "QuaterniusVelociraptor/Velociraptor.glb",
     "SimpleSkin": "SimpleSkin/SimpleSkin.gltf",
 }
+
+
+#: ``pytest.mark.xdist_group`` name of the tests that share :func:`composed`'s compositions
+COMPOSED_GROUP = "composed"
+#: mark for such a test (``pytestmark = IN_COMPOSED_GROUP`` for a whole module)
+IN_COMPOSED_GROUP = pytest.mark.xdist_group(COMPOSED_GROUP)
 
 
 def require(what: str, ok: bool) -> None:
@@ -112,3 +123,25 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="session")
+def composed():
+    """``composed(config_path)``: :func:`rigmix.compose` of a TOML config, every stage, made once per
+    test run (each xdist worker) and shared: keyed by the file's bytes and folder (relative character
+    paths resolve from it). A :class:`rigmix.pipeline.Composition` is immutable (stages return new
+    ones), so a test may ``dataclasses.replace`` it or run stages on it, never change its arrays in
+    place. The full composition serves a test that needs fewer stages: each stage only adds fields.
+    """
+    from rigmix.pipeline import compose
+
+    cache = {}
+
+    def get(path):
+        path = Path(path).resolve()
+        key = (hashlib.sha256(path.read_bytes()).hexdigest(), str(path.parent))
+        if key not in cache:
+            cache[key] = compose(path)
+        return cache[key]
+
+    return get

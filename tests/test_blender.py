@@ -9,9 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import ROOT, require
+from conftest import IN_COMPOSED_GROUP, ROOT, require
 
-import rigmix
 from rigmix.io import load_character
 from rigmix.io.blender_check import blender_available, blender_roundtrip
 from rigmix.io.gltf import write_gltf
@@ -22,10 +21,11 @@ FIDELITY_TOLERANCE = 1e-4
 SCALE_TOLERANCE = 1e-6
 
 
+@IN_COMPOSED_GROUP
 @pytest.mark.parametrize("cfg", EXAMPLES, ids=lambda p: p.stem)
-def test_example_round_trips_through_blender(cfg, tmp_path):
+def test_example_round_trips_through_blender(cfg, tmp_path, composed):
     require("Blender (Debian package blender)", blender_available())
-    comp = rigmix.compose(cfg)
+    comp = composed(cfg)
     assert all(f <= FIDELITY_TOLERANCE for f in comp.report["animation"]["fidelity_max"].values()), \
         comp.report["animation"]
     glb = tmp_path / f"{cfg.stem}.glb"

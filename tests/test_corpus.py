@@ -131,6 +131,19 @@ def test_ci_slice_covers_every_kind(matrix):
     assert ci_slice(matrix) == picked and all(c in matrix for c in picked)
 
 
+#: a reference operation as :func:`benchmarks.common.reference_operation` returns it (not timed: seconds)
+FAKE_REFERENCE = {"operation": "fake", "seconds": 2.0, "runs": [2.0], "faces": 1, "points": 1, "commit": "abc1234",
+                  "machine": "test machine", "cpus": 2, "load_average": [0.5, 0.5, 0.5], "date": "2026-01-01 00:00 UTC"}
+
+
+@pytest.fixture
+def fake_reference(monkeypatch):
+    """The runner's reference operation replaced by :data:`FAKE_REFERENCE`; returns the call count."""
+    calls = []
+    monkeypatch.setattr(runner, "reference_operation", lambda: calls.append(1) or dict(FAKE_REFERENCE))
+    return calls
+
+
 def _fake_row(calls):
     def run_case(case, config, scratch, *, timeout):
         calls.append(case.name)
@@ -141,7 +154,7 @@ def _fake_row(calls):
     return run_case
 
 
-def test_runner_resumes_unchanged_rows(tmp_path, monkeypatch, subjects):
+def test_runner_resumes_unchanged_rows(tmp_path, monkeypatch, subjects, fake_reference):
     calls = []
     monkeypatch.setattr(runner, "load_subjects", lambda: subjects)
     monkeypatch.setattr(runner, "run_case", _fake_row(calls))
@@ -161,9 +174,41 @@ def test_runner_resumes_unchanged_rows(tmp_path, monkeypatch, subjects):
     assert runner.main(args + ["--fresh", "--limit", "2"]) == 0 and len(calls) == 11
     md = (tmp_path / "results" / "corpus.md").read_text()
     assert "| three | 7 | 7 | 7 | 100.0 % |" in md
+    # the reference was timed once per run that composed something, and every row keeps its run's
+    assert len(fake_reference) == 4
+    assert runner.load_reference(path) == FAKE_REFERENCE
+    assert all(r["reference_s"] == 2.0 for r in runner.load_rows(path).values())
+    # fusion 0.5 s, total and process 1.0 s: 0.25 and 0.5 times the reference's 2 s
+    assert "| fusion | 7 | 0.50 | 0.25 | 0.50 | 0.25 |" in md and "| process | 7 | 1.00 | 0.5 | 1.00 | 0.5 |" in md
 
 
-def test_runner_composes_a_case_and_records_its_gates(tmp_path, monkeypatch, subjects):
+def test_tables_divide_rows_without_a_reference_by_the_one_timed_now(tmp_path, monkeypatch, subjects, fake_reference):
+    """``--tables`` composes nothing; rows of a run that did not time the reference are divided by the
+    one timed now, and the table says which."""
+    calls = []
+    monkeypatch.setattr(runner, "load_subjects", lambda: subjects)
+    monkeypatch.setattr(runner, "run_case", _fake_row(calls))
+    results = tmp_path / "results"
+    args = ["--kind", "three", "--results", str(results), "--out", str(tmp_path / "out")]
+    assert runner.main(args) == 0 and len(calls) == 7
+    path = results / "corpus.json"
+    data = json.loads(path.read_text())
+    for r in data["rows"][:3]:  # as rows of older runs are stored
+        del r["reference_s"]
+        r["commit"], r["timings"]["fusion"] = "old1234", 4.0
+    del data["reference"]
+    path.write_text(json.dumps(data))
+    assert runner.main(args + ["--tables"]) == 0 and len(calls) == 7 and len(fake_reference) == 2
+    md = (results / "corpus.md").read_text()
+    assert "3 rows (commit(s) old1234) come from runs that did not time it" in md
+    assert "4 rows are divided by the reference timed in their own run" in md
+    assert "measured on commit abc1234, test machine" in md
+    # fusion: 0.5 s in 4 rows, 4.0 s in 3, all divided by 2 s
+    assert "| fusion | 7 | 0.50 | 0.25 | 4.00 | 2 |" in md
+    assert runner.load_rows(path).keys() == {r["name"] for r in data["rows"]}
+
+
+def test_runner_composes_a_case_and_records_its_gates(tmp_path, monkeypatch, subjects, fake_reference):
     monkeypatch.setattr(runner, "load_subjects", lambda: subjects)
     results = tmp_path / "results"
     rc = runner.main(["--only", "identity__SimpleSkin__*", "--results", str(results), "--out", str(tmp_path / "out")])

@@ -75,7 +75,6 @@ def _without_timings(obj):
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(1200)
 def test_compose_twice_in_two_processes_is_identical(tmp_path):
     cfg = tmp_path / "tail.toml"
     cfg.write_text(CONFIG)
@@ -187,7 +186,6 @@ target_joint = "UpperArm.L"
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(900)
 def test_mirrored_arm_swap_is_identical_with_1_2_and_3_threads(tmp_path):
     """The finding's case: a 55-joint humanoid (the corpus' PlatformerCharacter with 26 leaf
     joints on its head, so that the scores' K = 550 passes OpenBLAS's blocking threshold) gets
@@ -225,7 +223,6 @@ print(h.hexdigest())
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(600)
 def test_feature_field_does_not_depend_on_the_thread_count():
     """The DFD field (it judges the mirror prior of junction weights) trains to the same
     weights with 1 and 2 torch threads (before the fix, the batch reductions of the backward

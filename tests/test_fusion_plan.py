@@ -8,16 +8,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import IN_COMPOSED_GROUP
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 
+@IN_COMPOSED_GROUP
 @pytest.mark.parametrize("name", ["centaur", "self_arm", "beast_arms", "tailed_humanoid"])
-def test_example_fuses_cleanly(name):
-    from rigmix.pipeline import compose, fusion_stage
-
-    comp = compose(EXAMPLES / f"{name}.toml", until="mapping")
-    comp = fusion_stage(comp)
+def test_example_fuses_cleanly(name, composed):
+    comp = composed(EXAMPLES / f"{name}.toml")
     surface = comp.surface
     m = comp.surface.report["mesh"]
     assert m["junction_faces"] > 0

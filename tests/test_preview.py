@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import asset, require
+from conftest import IN_COMPOSED_GROUP, asset, require
 
 from rigmix.cli import main
 from rigmix.errors import InputError
@@ -72,18 +72,18 @@ const fs = require('fs');
 
 
 @pytest.fixture(scope="module")
-def composed_glb(tmp_path_factory):
+def composed_glb(tmp_path_factory, composed):
     """The built-in centaur (examples/centaur.toml) composed end to end: fused surface, junction
     weights and completed clips, written as GLB."""
-    import rigmix
     from rigmix.io.gltf import write_gltf
 
-    character = rigmix.compose(ROOT / "examples" / "centaur.toml").character
+    character = composed(ROOT / "examples" / "centaur.toml").character
     path = tmp_path_factory.mktemp("composed") / "centaur.glb"
     write_gltf(character, path)
     return path, [c.name for c in character.clips]
 
 
+@IN_COMPOSED_GROUP
 def test_write_viewer_is_self_contained(composed_glb, tmp_path):
     glb, _ = composed_glb
     index = write_viewer(glb, tmp_path / "v", title="centaur <test>")
@@ -102,6 +102,7 @@ def test_write_viewer_is_self_contained(composed_glb, tmp_path):
     assert "http://" not in (out / "viewer.js").read_text() and "https://" not in page
 
 
+@IN_COMPOSED_GROUP
 def test_server_serves_modules_and_model(composed_glb, tmp_path):
     glb, _ = composed_glb
     write_viewer(glb, tmp_path)
@@ -130,6 +131,7 @@ def test_clear_errors(tmp_path):
     assert (tmp_path / "w" / "index.html").is_file()
 
 
+@IN_COMPOSED_GROUP
 def test_cli_prints_the_address_and_serves(composed_glb, tmp_path):
     """`rigmix preview FILE`: the first line of output is the address; the page is served there."""
     import re
@@ -151,6 +153,7 @@ def test_cli_prints_the_address_and_serves(composed_glb, tmp_path):
         proc.wait(timeout=30)
 
 
+@IN_COMPOSED_GROUP
 def test_viewer_in_headless_chromium(composed_glb, tmp_path):
     """Acceptance: the page lists the composed clips, selects each, and animates."""
     from PIL import Image
@@ -190,6 +193,7 @@ def test_viewer_in_headless_chromium(composed_glb, tmp_path):
         assert info["shots"][0]["clock"] != info["shots"][1]["clock"]
 
 
+@IN_COMPOSED_GROUP
 def test_composed_clips_round_trip_through_gltf(composed_glb):
     """The completed clips, written with the character: 0 validator errors, names and keys kept."""
     from rigmix.io import load_character

@@ -202,7 +202,6 @@ def test_batch_of_bad_inputs_exits_2(tmp_path, capsys):
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(900)
 def test_a_dying_worker_fails_its_own_job_only(tmp_path):
     """A real segmentation fault in one job: that job fails (internal, exit 1), the others finish."""
     cfgs = tmp_path / "configs"
@@ -231,7 +230,6 @@ def test_a_dying_worker_fails_its_own_job_only(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(600)
 def test_sigterm_while_writing_leaves_nothing(tmp_path):
     (tmp_path / "tail.toml").write_text(tail_config(extra=""))
     hold = tmp_path / "hold"
@@ -256,7 +254,6 @@ def test_sigterm_while_writing_leaves_nothing(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(900)
 def test_sigterm_stops_the_batch_workers(tmp_path):
     cfgs = tmp_path / "configs"
     cfgs.mkdir()

@@ -6,7 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from conftest import ROOT, asset
+from conftest import IN_COMPOSED_GROUP, ROOT, asset
 
 from rigmix.errors import InputError
 from rigmix.fusion import FusedSurface, FusionInput
@@ -308,16 +308,17 @@ def _check_invariants(comp):
         assert np.array_equal(W[rows[small]], Wr[surf.origin_vertex[rows[small]]])
 
 
+@IN_COMPOSED_GROUP
 @pytest.mark.parametrize("cfg", EXAMPLES, ids=lambda c: c.stem)
-def test_every_example_config_weight_invariants_and_stretch_ratio_for_every_method(cfg):
+def test_every_example_config_weight_invariants_and_stretch_ratio_for_every_method(cfg, composed):
     """Composed once per config: W_R invariants (dfd), then every method's junction stretch ratio
     (acceptance 3 on the built-in examples: dfd <= 1.5) and junction weight roughness (dfd's
     seam no spikier than the paper's blend nor than 1.5x the inputs' painting; measured max
     dfd / nearest / inputs: beast_arms 0.17 / 0.83 / 0.14, centaur 0.19 / 0.49 / 0.14,
     tailed_humanoid 0.17 / 0.34 / 0.14)."""
-    from rigmix.pipeline import assembly_stage, compose, quality_stage
+    from rigmix.pipeline import assembly_stage, quality_stage
 
-    comp = compose(cfg, until="completion")
+    comp = composed(cfg)
     _check_invariants(comp)
     ids = comp.fusion_ids
     ratios, roughness, source_roughness = {}, {}, None

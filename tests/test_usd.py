@@ -10,7 +10,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from conftest import asset
+from conftest import IN_COMPOSED_GROUP, ROOT, asset
 from pxr import Sdf, Usd, UsdGeom, UsdShade, UsdSkel, UsdValidation
 from test_skinning import chain_character
 
@@ -601,15 +601,11 @@ def test_read_face_varying_quads(tmp_path):
     np.testing.assert_allclose(rest_pose(ch)[0], m.positions, atol=1e-12)
 
 
-def test_composed_centaur_keeps_every_clip_in_usd(tmp_path):
+@IN_COMPOSED_GROUP
+def test_composed_centaur_keeps_every_clip_in_usd(tmp_path, composed):
     """End to end (issue 7): the built-in centaur's completed clips, by source name, in a valid USD
     file whose UsdSkel skinning matches ours on every clip."""
-    from pathlib import Path
-
-    from rigmix.pipeline import compose
-
-    config = Path(__file__).resolve().parent.parent / "examples" / "centaur.toml"
-    ch = compose(config).character
+    ch = composed(ROOT / "examples" / "centaur.toml").character
     path = write_usd(ch, tmp_path / "centaur.usdc")
     assert validation_errors(path) == []
     stage = Usd.Stage.Open(str(path))
