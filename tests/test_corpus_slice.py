@@ -1,8 +1,6 @@
 """The CI slice of the composition matrix (issue 24): twelve compositions over every kind, each
 composed by ``rigmix compose`` in a subprocess and held to the report's gates
-(:mod:`rigmix.gates`) and the runner's exit status 0. A slice case longer than a test may take
-(:data:`CHEAPER`) is composed as a cheaper case of its kind that fails the same gates for the
-same cause.
+(:mod:`rigmix.gates`) and the runner's exit status 0.
 
 A gate a case does not pass yet is listed in :data:`KNOWN_FAILURES` with its cause: the test
 fails when an unlisted gate fails, and warns when a listed one passes (remove it then). The time
@@ -31,18 +29,8 @@ SLICE = (
 #: Matrix cases beside the slice, for the failure kinds of issue 24 it does not hold: a humanoid
 #: torso on a six-legged body (the Wasp's thorax replaced).
 FAILURE_KINDS = ("torso__Wasp__PlatformerCharacter",)
-#: Slice cases over the suite's 60 s per test (``make corpus`` on 918740c: 68 s and 49 s per
-#: process, 124 s and 95 s in this test at load average 5 on 2 cores; fusion is 90% of it) -> the
-#: case composed in their place (28 s and 24 s there; 41 s and 53 s here at load average 8, 16 s and
-#: 21 s of CPU). The Frog's torso fails two gates: its crossings (a layered
-#: junction) are guarded on a torso by torso__Wasp__PlatformerCharacter, and its covered torso
-#: (scaled 0.099 by chain length) by the Velociraptor's, a torso scaled 0.185 whose output shows 0.47
-#: of it. The Witch's Horse head (scaled 0.03, covered, and a layered junction) becomes the Knight's
-#: Deer head (scaled 0.049, 0.15 of it shows, and a layered junction).
-CHEAPER = {"torso__Frog__PlatformerCharacter": "torso__Velociraptor__Knight",
-           "three__RiggedFigure__Horse__Witch": "three__CyberpunkCharacter__Deer__Knight"}
 #: the cases composed here
-COMPOSED = tuple(CHEAPER.get(n, n) for n in SLICE) + FAILURE_KINDS
+COMPOSED = SLICE + FAILURE_KINDS
 #: Gates on time, measured by ``make corpus`` and not asserted here.
 TIME_GATES = {"wall_seconds", "process_seconds"}
 #: Seconds before a slice composition is killed when the suite sets no per-test timeout.
@@ -74,13 +62,9 @@ KNOWN_FAILURES: dict[str, dict[str, str]] = {
                           "junction_stretch_ratio": "the wings' root junction on the Deer's back stretches as the "
                                                     "back bends (1.55)"},
     "torso__Wasp__PlatformerCharacter": {"junction_self_intersections": _LAYERED},
-    "torso__Velociraptor__Knight": {"grafted_visible": "the torso, scaled 0.185 by chain length, is partly covered "
-                                                       "by the Velociraptor's junction surface"},
-    "three__CyberpunkCharacter__Deer__Knight": {"junction_self_intersections": _LAYERED,
-                                                "grafted_visible": "the Deer's head, scaled 0.049 by chain length, "
-                                                                   "is covered by the figure's junction surface",
-                                                "junction_min_angle_p05": "slivers in the neck junction (p05 18.8 "
-                                                                          "degrees on 918740c), cause not studied"},
+    "torso__Frog__PlatformerCharacter": {"junction_self_intersections": _LAYERED},
+    "three__RiggedFigure__Horse__Witch": {"grafted_visible": "the Horse's head (scaled 0.095 by its cut) shows "
+                                                             "0.81 of its surface; not diagnosed further"},
 }
 
 
@@ -91,16 +75,15 @@ def cases(tmp_path_factory):
     for name in CORPUS_CHARACTERS:
         corpus(name)
     matrix = generate_matrix(load_subjects())
-    picked = ci_slice(matrix) + [c for c in matrix if c.name in FAILURE_KINDS + tuple(CHEAPER.values())]
+    picked = ci_slice(matrix) + [c for c in matrix if c.name in FAILURE_KINDS]
     folder = tmp_path_factory.mktemp("slice")
     configs = write_configs(picked, folder / "configs")
     return {c.name: (c, configs[c.name], folder) for c in picked}
 
 
 def test_the_slice_is_the_matrix_slice(cases):
-    assert tuple(c for c in cases if c not in FAILURE_KINDS and c not in CHEAPER.values()) == SLICE
-    assert set(FAILURE_KINDS) | set(CHEAPER.values()) <= set(cases)
-    assert set(CHEAPER) <= set(SLICE) and all(cases[a][0].kind == cases[b][0].kind for a, b in CHEAPER.items())
+    assert tuple(c for c in cases if c not in FAILURE_KINDS) == SLICE
+    assert set(FAILURE_KINDS) <= set(cases)
     assert set(KNOWN_FAILURES) <= set(COMPOSED)
 
 
