@@ -53,15 +53,23 @@ def chain_character(num_joints: int, rings: int, sides: int = 4, name: str = "ch
     return Character(name, sk, (mesh,))
 
 
+#: The child's own peak RSS (KiB): VmHWM of its process image. ``ru_maxrss`` would not do: Linux
+#: keeps it across exec, so it counts the forking parent (a pytest worker grown by other tests).
+_PEAK = """
+def peak_kib():
+    with open("/proc/self/status") as f:
+        return next(line.split()[1] for line in f if line.startswith("VmHWM:"))
+"""
+
 #: Runs ``rigmix compose`` and writes the child's own peak RSS (KiB) to argv[1].
-_CHILD = """
-import resource, sys
+_CHILD = _PEAK + """
+import sys
 import rigmix.operations  # noqa: F401
 from rigmix.cli import main
 try:
     code = main(["compose", *sys.argv[2:]])
 finally:
-    open(sys.argv[1], "w").write(str(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))
+    open(sys.argv[1], "w").write(peak_kib())
 sys.exit(code)
 """
 
@@ -116,13 +124,13 @@ def _run_child(args, rss_file, env, timeout=600):
 
 
 #: Runs ``rigmix ARGS`` and writes the child's own peak RSS (KiB) to argv[1].
-_CHILD_ANY = """
-import resource, sys
+_CHILD_ANY = _PEAK + """
+import sys
 from rigmix.cli import main
 try:
     code = main(sys.argv[2:])
 finally:
-    open(sys.argv[1], "w").write(str(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))
+    open(sys.argv[1], "w").write(peak_kib())
 sys.exit(code)
 """
 
