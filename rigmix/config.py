@@ -359,6 +359,7 @@ FUSION_RANGES: dict[str, dict] = {
     "bridge_recuts": {"ge": 0},
     "untangle_move": {"ge": 0},
     "crossing_rounds": {"ge": 0, "le": MAX_ITERATIONS},
+    "shell_clearance_voxels": {"ge": 0, "le": 16},
     "backend": {},
     "keep_fields": {},
 }

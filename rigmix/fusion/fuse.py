@@ -33,7 +33,7 @@ import numpy as np
 from ..errors import InputError
 from ..geometry import bounding_box_diagonal, check_coordinates
 from .fields import get_backend, prepare_surface
-from .meshutil import average_edge_length
+from .meshutil import average_edge_length, edge_counts, vertex_components
 from .presence import compute_presence
 from .report import mesh_report
 from .seams import (
@@ -211,6 +211,12 @@ class FusionParams:
         the Horse + Knight centaur, 14 on the built-in centaur); the report's
         ``junction_crossings_repaired``, ``junction_faces_released`` and
         ``junction_crossings_layered`` say what the repair did and what it left.
+    shell_clearance_voxels : where crossings are left after the repair and an input keeps closed
+        parts whole (a robot's plates, an arm band: secondary components, never blended), the
+        junction is made again around them, this many voxels clear, and kept if it crosses less
+        (0 disables it). Sunk into the surface they cover, such parts are crossed by the
+        isosurface of that surface (a cyberpunk figure's arm plates by its own arm, 46 pairs on
+        the Triceratops' tail on it).
     backend : "numpy" (numpy + libigl) or "openvdb".
     keep_fields : keep the blended grids in the result (for ``dump_fields``).
     """
@@ -249,6 +255,7 @@ class FusionParams:
     bridge_recuts: int = 6
     untangle_move: float = 2.0
     crossing_rounds: int = 6
+    shell_clearance_voxels: float = 1.0
     backend: str = "numpy"
     keep_fields: bool = False
 
@@ -462,6 +469,84 @@ def _cluster_fields(grid, band, pres, surfaces, backend):
     return fields
 
 
+def _kept_shells(P, kept):
+    """Faces of the closed parts of an input kept whole: its secondary components (a robot's
+    plates, an arm band, a buckle) the output keeps, each without a boundary edge.
+
+    Such a part is not in the fields (it is never blended), so the isosurface of the parts it
+    sits on would run through it; :func:`_shell_clearance` keeps the junction out of it.
+
+    Parameters
+    ----------
+    P : Presence
+    kept : (m,) bool
+        The input's kept welded faces.
+
+    Returns
+    -------
+    (s, 3) int64
+        Welded faces of ``P``, empty when there are none.
+    """
+    F = P.welded.F[P.secondary & kept]
+    if not len(F):
+        return F
+    labels = vertex_components(F, len(P.welded.V))
+    uE, cnt = edge_counts(F)
+    open_parts = np.unique(labels[uE[cnt == 1].ravel()])
+    return F[~np.isin(labels[F[:, 0]], open_parts)]
+
+
+def _shells_near(grid, band, pres, shells):
+    """Per input, its kept closed parts (:func:`_kept_shells`) whose box meets ``grid`` grown by
+    ``band``; empty arrays elsewhere."""
+    out = []
+    for i, P in enumerate(pres):
+        Fs = shells[i]
+        if len(Fs):
+            X = P.welded.V[Fs].reshape(-1, 3)
+            if np.any(X.min(axis=0) > grid.upper + band) or np.any(X.max(axis=0) < grid.origin - band):
+                Fs = Fs[:0]
+        out.append(Fs)
+    return out
+
+
+def _shell_clearance(grid, band, pres, shells, backend, clearance_voxels):
+    """Lower bound of the blended field that keeps the junction out of the kept closed parts.
+
+    ``clearance - d``, ``d`` the signed distance to the parts (negative inside), ``clearance``
+    ``clearance_voxels`` voxels: positive (outside the junction's solid) inside a part
+    and within the clearance around it, so that the isosurface of ``max(field, bound)`` goes
+    around a part it would have passed through (the solid minus the part), and is unchanged
+    farther away.
+
+    Parameters
+    ----------
+    grid : Grid
+    band : float
+        Distances are exact within ``band`` of a part.
+    pres : list of Presence
+    shells : list of (s_i, 3) int arrays
+        Per input, welded faces of its kept closed parts near ``grid`` (:func:`_shells_near`).
+    backend : the field backend
+    clearance_voxels : float
+
+    Returns
+    -------
+    (grid.size,) float64 or None
+        None when no part is near the grid.
+    """
+    out = None
+    clearance = clearance_voxels * grid.voxel
+    for i, P in enumerate(pres):
+        Fs = shells[i]
+        if not len(Fs):
+            continue
+        d, _ = backend.signed_distance(grid, P.welded.V, Fs, np.zeros((len(P.welded.V), 1)), band=band)
+        bound = clearance - d
+        out = bound if out is None else np.maximum(out, bound)
+    return out
+
+
 @dataclass(frozen=True)
 class _ClusterResult:
     """One junction cluster's contribution to the output.
@@ -488,8 +573,11 @@ class _ClusterResult:
     timings: dict
 
 
-def _fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params) -> _ClusterResult:
-    """Fields and junction surface of cluster ``ci`` (box ``lo``, ``hi``).
+def _fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params,
+                  shells=None) -> _ClusterResult | None:
+    """Fields and junction surface of cluster ``ci`` (box ``lo``, ``hi``); with ``shells`` (per
+    input, welded faces of its kept closed parts: :func:`_kept_shells`), a junction that goes
+    around those near the cluster (:func:`_shell_clearance`), None when none is near.
 
     Where the isosurface cannot close the junction (open sheets have no inside; loops left
     unmatched), the cluster's input faces are kept instead from the input most present on each
@@ -498,22 +586,28 @@ def _fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, param
     pres = part.pres
     grid = cluster_grid(lo, hi, part.h0, params, part.diagonal)
     band = params.band_voxels * grid.voxel
+    near = None if shells is None else _shells_near(grid, band, pres, shells)
+    if near is not None and not any(len(Fs) for Fs in near):
+        return None
     t0 = time.perf_counter()
     fields = _cluster_fields(grid, band, pres, surfaces, backend)
+    clearance = None
+    if near is not None:
+        clearance = _shell_clearance(grid, band, pres, near, backend, params.shell_clearance_voxels)
     t_fields = time.perf_counter() - t0
     lo_g, hi_g = grid.origin, grid.upper
     cl = [L for L in loops_all
           if np.all(L.positions.mean(axis=0) >= lo_g) and np.all(L.positions.mean(axis=0) <= hi_g)]
     cj = junction_for_cluster(grid, pres, surfaces, part.kept, cl, fields, actions, params, band,
                               local_edge_length(pres, part.junction, grid), junction_masks=part.junction,
-                              diagonal=part.diagonal)
+                              diagonal=part.diagonal, floor=clearance)
     info = {**cj.info, "voxel_size": grid.voxel, "voxels": grid.size, "shape": list(grid.shape), "loops": len(cl)}
+    if clearance is not None:
+        info["shell_clearance"] = True
     JV, JF, selected = cj.V, cj.F, None
     if info["unmatched_preserved_loops"] > 0 or len(JF) == 0:
         selected = most_present_faces(pres, part.junction, grid)
         info["fallback"] = "face-selection"
-        log.warning("fusion: junction %d could not be closed by the isosurface (%d loops left); "
-                    "kept the most present input faces instead", ci, info["unmatched_preserved_loops"])
         JV, JF = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
     kept_field = (f"junction_{ci}", grid, cj.field.astype(np.float32)) if params.keep_fields else None
     return _ClusterResult(V=JV, F=JF, info=info, selected=selected, field=kept_field,
@@ -702,6 +796,34 @@ def _assemble(inputs, part: _Partition, selected, JV, JF, fields) -> FusedSurfac
     )
 
 
+def _fallbacks(clusters) -> int:
+    """Clusters whose junction is input faces kept instead of a closed isosurface."""
+    return sum(1 for c in clusters if c.info.get("fallback"))
+
+
+def _made(repaired) -> int:
+    """Crossing pairs left after the repair that no input had: not a kept face through its own
+    input (:attr:`_Repaired.layered`)."""
+    return repaired.left - repaired.layered
+
+
+def _overused_edges(F) -> int:
+    """Edges of the faces ``F`` (q, 3) shared by more than two of them."""
+    _, counts = edge_counts(F)
+    return int(np.count_nonzero(counts > 2))
+
+
+def _repair_clusters(inputs, part: _Partition, clusters, params) -> _Repaired:
+    """The clusters' junctions and fallback-selected faces as one surface, its crossing faces
+    repaired (:func:`_repair_crossings`)."""
+    selected = [np.zeros(len(P.welded.F), bool) for P in part.pres]
+    for c in clusters:
+        if c.selected is not None:
+            selected = [s | c.selected[i] for i, s in enumerate(selected)]
+    JV, JF = _junction_geometry(clusters)
+    return _repair_crossings(inputs, part, selected, JV, JF, params)
+
+
 def _junction_geometry(clusters):
     """The clusters' junction surfaces as one: ``(JV (k, 3), JF (q, 3))``."""
     JV = np.concatenate([c.V for c in clusters]) if clusters else np.zeros((0, 3))
@@ -886,6 +1008,7 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     backend = get_backend(params.backend)
     # secondary components are kept whole or dropped, never blended: not in the fields
     surfaces = [prepare_surface(P.welded.V, P.welded.F[~P.secondary]) for P in part.pres]
+    shells = [_kept_shells(P, part.kept[i]) for i, P in enumerate(part.pres)]
     timings["setup"] = time.perf_counter() - t0
 
     clusters = [_fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params)
@@ -893,15 +1016,26 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     for c in clusters:
         for k, v in c.timings.items():
             timings[k] = timings.get(k, 0.0) + v
-    selected = [np.zeros(len(P.welded.F), bool) for P in part.pres]
-    for c in clusters:
-        if c.selected is not None:
-            selected = [s | c.selected[i] for i, s in enumerate(selected)]
-
     t0 = time.perf_counter()
-    JV, JF = _junction_geometry(clusters)
-    repaired = _repair_crossings(inputs, part, selected, JV, JF, params)
+    repaired = _repair_clusters(inputs, part, clusters, params)
     timings["crossings"] = time.perf_counter() - t0
+    shells = [_kept_shells(P, part.kept[i]) for i, P in enumerate(part.pres)] if _made(repaired) else []
+    if _made(repaired) > 0 and params.shell_clearance_voxels > 0 and any(len(Fs) for Fs in shells):
+        # a junction that still crosses, with kept closed parts about: try it around them
+        t0 = time.perf_counter()
+        carved = [_fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params, shells=shells)
+                  for ci, (lo, hi) in enumerate(boxes)]
+        if any(c is not None for c in carved):
+            carved = [c if c is not None else o for c, o in zip(carved, clusters)]
+            alt = _repair_clusters(inputs, part, carved, params)
+            if (_made(alt) < _made(repaired) and _fallbacks(carved) <= _fallbacks(clusters)
+                    and _overused_edges(alt.JF) <= _overused_edges(repaired.JF)):
+                clusters, repaired = carved, alt
+        timings["shell_clearance"] = time.perf_counter() - t0
+    for ci, c in enumerate(clusters):
+        if c.info.get("fallback"):
+            log.warning("fusion: junction %d could not be closed by the isosurface (%d loops left); "
+                        "kept the most present input faces instead", ci, c.info["unmatched_preserved_loops"])
     t0 = time.perf_counter()
     surface = _assemble(inputs, repaired.part, repaired.selected, repaired.JV, repaired.JF,
                         [c.field for c in clusters if c.field is not None])

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -67,13 +68,14 @@ def _field_for_cluster(n, inputs_fields, actions, band):
     return out
 
 
-def _project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels):
+def _project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels, clear=None):
     """Pull free junction vertices onto the presence-weighted average of their closest points.
 
     The isosurface is only accurate to a fraction of a voxel at creases; where the inputs agree
     (a character composed with itself) this puts the junction back on the input surface. Moves
     are limited to ``max_voxels`` voxels so that a wide blend between different shapes keeps
-    the field's shape.
+    the field's shape. With ``clear`` (points ``(k, 3)`` -> ``(k,) bool``), a vertex whose
+    target is not clear stays (the input surface runs under a kept part there).
     """
     import igl
 
@@ -101,6 +103,8 @@ def _project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels):
     n = np.linalg.norm(move, axis=1)
     lim = max_voxels * h
     move *= np.minimum(1.0, lim / np.maximum(n, 1e-300))[:, None]
+    if clear is not None:
+        move[~clear(Q + move)] = 0.0
     out = U.copy()
     out[nfixed:] = Q + move
     return out
@@ -169,6 +173,18 @@ def _surface_input_vertices(X, grid, field3, h):
     ijk = (X - grid.origin) / grid.voxel
     f = map_coordinates(field3, ijk.T, order=1, mode="nearest")
     return X[np.abs(f) < 0.25 * h]
+
+
+def _clear_of_parts(X, grid, floor3):
+    """``(k,) bool``: the points ``X`` (k, 3) outside the kept closed parts' clearance, where
+    the sampled field floor (:func:`junction_for_cluster`'s ``floor``) is not positive; all of
+    them without a floor."""
+    from scipy.ndimage import map_coordinates
+
+    if floor3 is None or len(X) == 0:
+        return np.ones(len(X), bool)
+    ijk = (np.asarray(X, np.float64) - grid.origin) / grid.voxel
+    return map_coordinates(floor3, ijk.T, order=1, mode="nearest") <= 0.0
 
 
 def _separate_coincident(U, G, nfixed):
@@ -574,6 +590,9 @@ class _RemeshJob:
         Input vertices junction vertices may snap to.
     pres, surfaces, inputs_fields, params
         As in :func:`junction_for_cluster`.
+    clear : callable or None
+        Points ``(k, 3)`` -> ``(k,) bool``: outside the kept closed parts' clearance
+        (:func:`_clear_of_parts`); None where no part is near.
     """
 
     V: np.ndarray
@@ -589,6 +608,7 @@ class _RemeshJob:
     surfaces: list
     inputs_fields: dict
     params: object
+    clear: object = None
 
 
 def _remesh_attempt(job, feature_tol):
@@ -608,7 +628,7 @@ def _remesh_attempt(job, feature_tol):
                                                    feature_tol, params.feature_rounds, points=job.corners,
                                                    points_tol=0.1 * h, max_insert=3.0 * h)
     U = smooth_interior(U, G, np.arange(nfix), iterations=params.taubin_iterations)
-    U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels)
+    U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels, job.clear)
     G = flip_to_improve_angles(U, G, forbidden=forb)
     U = relocate_poor_vertices(U, G, nfix, surface=(RV, RF))
     G = flip_to_improve_angles(U, G, forbidden=forb)
@@ -623,7 +643,7 @@ def _remesh_attempt(job, feature_tol):
     if feature_tol > 0:
         # the quality moves above slide vertices along the reference, whose bridge
         # strips chord across a voxel or two: back onto the inputs where they agree
-        U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels)
+        U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels, job.clear)
     # folds smoothed open only where that keeps the shape-keeping junction's tolerance
     U, _ = untangle(U, G, nfix, max_move=params.untangle_move * feature_tol if feature_tol > 0 else None)
     return _separate_coincident(U, G, len(job.fixed)), G, nfix - len(job.fixed)
@@ -711,7 +731,7 @@ def _folds(V, F):
 
 
 def _remesh_bridged(bridge, grid, pres, surfaces, preserved, inputs_fields, actions, params, band, field3,
-                    local_edge, junction_masks, diagonal):
+                    local_edge, junction_masks, diagonal, floor3=None):
     """Remesh the bridged junction with the seam vertices fixed (unused ones dropped first).
 
     The junction is kept as bridged where it is not edge-manifold or the remeshing fails
@@ -749,13 +769,16 @@ def _remesh_bridged(bridge, grid, pres, surfaces, preserved, inputs_fields, acti
         forb = _preserved_edges_between(pres, preserved, keys, fid_to_final)
         try:
             replaced = _replaced_input_vertices(pres, inputs_fields, junction_masks, preserved, grid)
+            clear = None if floor3 is None else partial(_clear_of_parts, grid=grid, floor3=floor3)
+            if clear is not None:  # input vertices under a kept part are neither targets nor corners
+                replaced = replaced[clear(replaced)]
             targets = _surface_input_vertices(replaced, grid, field3, h) if params.snap_input_vertices else replaced[:0]
             corners = None
             if params.keep_input_corners and tol > 0:
                 corners = _input_vertices_on_surface(replaced, pres, surfaces, inputs_fields, actions, band, 0.1 * h)
             job = _RemeshJob(V=JV, F=JF, fixed=fx, target=target, tol=tol, h=h, forbidden=forb, corners=corners,
                              targets=targets, pres=pres, surfaces=surfaces, inputs_fields=inputs_fields,
-                             params=params)
+                             params=params, clear=clear)
             U, G, nfeat = _remesh_choosing_fidelity(job, info)
             info["self_intersections"] = int(len(intersecting_face_pairs(U, G)))
             info["feature_vertices"] = int(nfeat)
@@ -807,7 +830,7 @@ class ClusterJunction:
 
 
 def junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields, actions, params, band,
-                         local_edge=0.0, junction_masks=None, diagonal=0.0) -> ClusterJunction:
+                         local_edge=0.0, junction_masks=None, diagonal=0.0, floor=None) -> ClusterJunction:
     """Isosurface, cut, bridges and remesh of one cluster.
 
     Parameters
@@ -834,13 +857,17 @@ def junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields, 
         Per input, the welded faces the junction replaces.
     diagonal : float
         Smallest input's bounding-box diagonal (0: no diagonal rule).
+    floor : (grid.size,) float array or None
+        A lower bound of the blended field (the kept closed parts the junction goes around).
 
     Returns
     -------
     ClusterJunction
     """
     t0 = time.perf_counter()
-    field3 = _field_for_cluster(grid.size, inputs_fields, actions, band).reshape(grid.shape)
+    field = _field_for_cluster(grid.size, inputs_fields, actions, band)
+    field3 = (field if floor is None else np.maximum(field, floor)).reshape(grid.shape)
+    floor3 = None if floor is None else np.asarray(floor, np.float64).reshape(grid.shape)
     t_blend = time.perf_counter() - t0
     t0 = time.perf_counter()
     Vi, Fi = isosurface(field3, grid.origin, grid.voxel)
@@ -860,7 +887,8 @@ def junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields, 
 
     t0 = time.perf_counter()
     JV, JF, fkeys, remesh_info = _remesh_bridged(bridge, grid, pres, surfaces, preserved, inputs_fields, actions,
-                                                 params, band, field3, local_edge, junction_masks, diagonal)
+                                                 params, band, field3, local_edge, junction_masks, diagonal,
+                                                 floor3)
     info.update(remesh_info)
     t_remesh = time.perf_counter() - t0
     return ClusterJunction(V=JV, F=JF, fixed_keys=fkeys, info=info, field=field3,
