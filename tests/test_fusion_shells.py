@@ -15,8 +15,8 @@ import pytest
 from conftest import corpus
 
 from rigmix.fusion import fuse_surfaces
-from rigmix.fusion.fuse import _kept_shells
 from rigmix.fusion.meshutil import edge_counts
+from rigmix.fusion.presence import compute_presence, kept_shells
 
 CASE = "tail__CyberpunkCharacter__Triceratops"
 
@@ -51,14 +51,13 @@ def test_the_junction_goes_around_kept_parts(tail_graft):
     assert m["junction_min_angle_p05"] >= 20.0
 
 
-def test_kept_shells_are_closed_secondary_parts(tail_graft):
-    from rigmix.fusion.presence import compute_presence
+def testkept_shells_are_closed_secondary_parts(tail_graft):
 
     inputs, _, _ = tail_graft
     found = 0
     for x in inputs:
         P = compute_presence(x.V, x.F, x.W, x.used)
-        S = _kept_shells(P, np.ones(len(P.welded.F), bool))
+        S = kept_shells(P, np.ones(len(P.welded.F), bool))
         if not len(S):
             continue
         found += 1

@@ -33,8 +33,8 @@ import numpy as np
 from ..errors import InputError
 from ..geometry import bounding_box_diagonal, check_coordinates
 from .fields import get_backend, prepare_surface
-from .meshutil import average_edge_length, edge_counts, vertex_components
-from .presence import compute_presence
+from .meshutil import average_edge_length, edge_counts
+from .presence import compute_presence, kept_shells
 from .report import mesh_report
 from .seams import (
     attach_conflicts,
@@ -469,35 +469,8 @@ def _cluster_fields(grid, band, pres, surfaces, backend):
     return fields
 
 
-def _kept_shells(P, kept):
-    """Faces of the closed parts of an input kept whole: its secondary components (a robot's
-    plates, an arm band, a buckle) the output keeps, each without a boundary edge.
-
-    Such a part is not in the fields (it is never blended), so the isosurface of the parts it
-    sits on would run through it; :func:`_shell_clearance` keeps the junction out of it.
-
-    Parameters
-    ----------
-    P : Presence
-    kept : (m,) bool
-        The input's kept welded faces.
-
-    Returns
-    -------
-    (s, 3) int64
-        Welded faces of ``P``, empty when there are none.
-    """
-    F = P.welded.F[P.secondary & kept]
-    if not len(F):
-        return F
-    labels = vertex_components(F, len(P.welded.V))
-    uE, cnt = edge_counts(F)
-    open_parts = np.unique(labels[uE[cnt == 1].ravel()])
-    return F[~np.isin(labels[F[:, 0]], open_parts)]
-
-
 def _shells_near(grid, band, pres, shells):
-    """Per input, its kept closed parts (:func:`_kept_shells`) whose box meets ``grid`` grown by
+    """Per input, its kept closed parts (:func:`kept_shells`) whose box meets ``grid`` grown by
     ``band``; empty arrays elsewhere."""
     out = []
     for i, P in enumerate(pres):
@@ -576,7 +549,7 @@ class _ClusterResult:
 def _fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params,
                   shells=None) -> _ClusterResult | None:
     """Fields and junction surface of cluster ``ci`` (box ``lo``, ``hi``); with ``shells`` (per
-    input, welded faces of its kept closed parts: :func:`_kept_shells`), a junction that goes
+    input, welded faces of its kept closed parts: :func:`kept_shells`), a junction that goes
     around those near the cluster (:func:`_shell_clearance`), None when none is near.
 
     Where the isosurface cannot close the junction (open sheets have no inside; loops left
@@ -1008,7 +981,6 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     backend = get_backend(params.backend)
     # secondary components are kept whole or dropped, never blended: not in the fields
     surfaces = [prepare_surface(P.welded.V, P.welded.F[~P.secondary]) for P in part.pres]
-    shells = [_kept_shells(P, part.kept[i]) for i, P in enumerate(part.pres)]
     timings["setup"] = time.perf_counter() - t0
 
     clusters = [_fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params)
@@ -1019,7 +991,7 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     t0 = time.perf_counter()
     repaired = _repair_clusters(inputs, part, clusters, params)
     timings["crossings"] = time.perf_counter() - t0
-    shells = [_kept_shells(P, part.kept[i]) for i, P in enumerate(part.pres)] if _made(repaired) else []
+    shells = [kept_shells(P, part.kept[i]) for i, P in enumerate(part.pres)] if _made(repaired) else []
     if _made(repaired) > 0 and params.shell_clearance_voxels > 0 and any(len(Fs) for Fs in shells):
         # a junction that still crosses, with kept closed parts about: try it around them
         t0 = time.perf_counter()

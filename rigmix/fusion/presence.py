@@ -16,7 +16,7 @@ import scipy.sparse as sp
 from dfd.mesh import smooth, weld
 
 from ..sparse_weights import dense_rows, row_blocks
-from .meshutil import face_adjacency, nondegenerate, vertex_adjacency, vertex_components
+from .meshutil import edge_counts, face_adjacency, nondegenerate, vertex_adjacency, vertex_components
 
 __all__ = [
     "WeldedMesh",
@@ -27,6 +27,7 @@ __all__ = [
     "morphological_clean",
     "Presence",
     "compute_presence",
+    "kept_shells",
 ]
 
 
@@ -261,3 +262,31 @@ def compute_presence(V, F, W, used, *, snap=0.02, iterations=10, alpha=0.8, pres
     absent |= fsec & (fp < 0.5)
     junction = ~pres & ~absent
     return Presence(wm, pw, pw[wm.index], pres, absent, junction, decision, fsec)
+
+
+def kept_shells(P, kept):
+    """Faces of the closed parts of an input kept whole: its secondary components (a robot's
+    plates, an arm band, a buckle) the output keeps, each without a boundary edge.
+
+    Such a part is not in the fields (it is never blended), so the isosurface of the parts it
+    sits on would run through it; the fusion makes the junction around it where it crosses
+    (``FusionParams.shell_clearance_voxels``).
+
+    Parameters
+    ----------
+    P : Presence
+    kept : (m,) bool
+        The input's kept welded faces.
+
+    Returns
+    -------
+    (s, 3) int64
+        Welded faces of ``P``, empty when there are none.
+    """
+    F = P.welded.F[P.secondary & kept]
+    if not len(F):
+        return F
+    labels = vertex_components(F, len(P.welded.V))
+    uE, cnt = edge_counts(F)
+    open_parts = np.unique(labels[uE[cnt == 1].ravel()])
+    return F[~np.isin(labels[F[:, 0]], open_parts)]
