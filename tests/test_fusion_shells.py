@@ -19,6 +19,8 @@ from rigmix.fusion.meshutil import edge_counts
 from rigmix.fusion.presence import compute_presence, kept_shells
 
 CASE = "tail__CyberpunkCharacter__Triceratops"
+#: one worker composes the case for both tests (``--dist loadgroup``)
+pytestmark = pytest.mark.xdist_group("fusion_shells")
 
 
 @pytest.fixture(scope="module")
