@@ -23,7 +23,7 @@ CASE = "tail__CyberpunkCharacter__Triceratops"
 pytestmark = pytest.mark.xdist_group("fusion_shells")
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def tail_graft(tmp_path_factory):
     """``(inputs, fused, fused without the clearance)`` of :data:`CASE` (the corpus matrix's config)."""
     from benchmarks.corpus_matrix import load_subjects, tail_cases, write_configs
@@ -53,7 +53,7 @@ def test_the_junction_goes_around_kept_parts(tail_graft):
     assert m["junction_min_angle_p05"] >= 20.0
 
 
-def testkept_shells_are_closed_secondary_parts(tail_graft):
+def test_kept_shells_are_closed_secondary_parts(tail_graft):
 
     inputs, _, _ = tail_graft
     found = 0
