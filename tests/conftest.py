@@ -86,6 +86,30 @@ def corpus(name: str) -> Path:
     return path
 
 
+def fused_twice(config, **changes):
+    """``config`` composed up to its fusion, and its fusion inputs fused again with ``changes`` to
+    its fusion parameters (``crossing_rounds=0``: the same fusion with a stage turned off).
+
+    Returns
+    -------
+    inputs : list of FusionInput
+    surface : FusedSurface
+        The composition's own.
+    changed : FusedSurface
+        With the changed parameters.
+    """
+    from dataclasses import replace
+
+    from rigmix.fusion import fuse_surfaces
+    from rigmix.fusion.inputs import fusion_inputs_from_plan
+    from rigmix.pipeline import compose
+
+    comp = compose(config, until="fusion")
+    inputs, actions, _ = fusion_inputs_from_plan(comp.plan)
+    changed = fuse_surfaces(inputs, actions, params=replace(comp.config.fusion.to_params(), **changes))
+    return inputs, comp.surface, changed
+
+
 def tail_config(scale: float = 0.65, extra: str = "", name: str = "tail") -> str:
     """A composition config ``name``: the built-in humanoid with the quadruped's tail attached,
     nearest junction weights (a few seconds); ``extra`` is TOML inserted before the actions."""

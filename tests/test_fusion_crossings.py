@@ -7,14 +7,11 @@ composition (CesiumMan's arm and leg replaced by RiggedFigure's), with and witho
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
-from conftest import ROOT, asset, corpus
+from conftest import ROOT, asset, corpus, fused_twice
 from fusion_shapes import sphere
 
-from rigmix.fusion import fuse_surfaces
 from rigmix.fusion.crossings import repair_crossings
 from rigmix.fusion.meshutil import intersecting_face_pairs
 
@@ -110,15 +107,9 @@ def test_no_rounds_repair_nothing(capped_sphere):
 @pytest.fixture(scope="module")
 def limb_swap():
     """The fusion of tests/configs/limb_swap.toml, with and without the repair."""
-    from rigmix.fusion.inputs import fusion_inputs_from_plan
-    from rigmix.pipeline import compose
-
     for name in ("CesiumMan", "RiggedFigure"):
         asset(name)
-    comp = compose(ROOT / "tests" / "configs" / "limb_swap.toml", until="fusion")
-    inputs, actions, _ = fusion_inputs_from_plan(comp.plan)
-    bare = fuse_surfaces(inputs, actions, params=replace(comp.config.fusion.to_params(), crossing_rounds=0))
-    return inputs, comp.surface, bare
+    return fused_twice(ROOT / "tests" / "configs" / "limb_swap.toml", crossing_rounds=0)
 
 
 def test_a_real_junction_crosses_nothing_after_the_repair(limb_swap):

@@ -8,18 +8,15 @@ them, it crosses nothing.
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
-from conftest import corpus
+from conftest import corpus, fused_twice
 
-from rigmix.fusion import fuse_surfaces
 from rigmix.fusion.meshutil import edge_counts
 from rigmix.fusion.presence import compute_presence, kept_shells
 
 CASE = "tail__CyberpunkCharacter__Triceratops"
-#: one worker composes the case for both tests (``--dist loadgroup``)
+#: both tests in one ``--dist loadgroup`` group, so that one worker composes the case
 pytestmark = pytest.mark.xdist_group("fusion_shells")
 
 
@@ -27,18 +24,13 @@ pytestmark = pytest.mark.xdist_group("fusion_shells")
 def tail_graft(tmp_path_factory):
     """``(inputs, fused, fused without the clearance)`` of :data:`CASE` (the corpus matrix's config)."""
     from benchmarks.corpus_matrix import load_subjects, tail_cases, write_configs
-    from rigmix.fusion.inputs import fusion_inputs_from_plan
-    from rigmix.pipeline import compose
 
     names = CASE.split("__")[1:]
     for name in names:
         corpus(name)  # skips, or fails under CI=true, when a character is missing
     case = next(c for c in tail_cases(load_subjects(names)) if c.name == CASE)
     config = write_configs([case], tmp_path_factory.mktemp("shells"))[CASE]
-    comp = compose(config, until="fusion")
-    inputs, actions, _ = fusion_inputs_from_plan(comp.plan)
-    bare = fuse_surfaces(inputs, actions, params=replace(comp.config.fusion.to_params(), shell_clearance_voxels=0))
-    return inputs, comp.surface, bare
+    return fused_twice(config, shell_clearance_voxels=0)
 
 
 def test_the_junction_goes_around_kept_parts(tail_graft):
@@ -54,7 +46,6 @@ def test_the_junction_goes_around_kept_parts(tail_graft):
 
 
 def test_kept_shells_are_closed_secondary_parts(tail_graft):
-
     inputs, _, _ = tail_graft
     found = 0
     for x in inputs:

@@ -797,6 +797,33 @@ def _repair_clusters(inputs, part: _Partition, clusters, params) -> _Repaired:
     return _repair_crossings(inputs, part, selected, JV, JF, params)
 
 
+def _around_kept_parts(inputs, part: _Partition, boxes, clusters, repaired: _Repaired, surfaces, loops_all,
+                       backend, actions, params):
+    """The junction made again around the closed parts the inputs keep whole (:func:`kept_shells`),
+    in the clusters near one, where it leaves fewer crossing pairs no input had than
+    ``repaired``, no more clusters falling back to face selection and no more over-shared edges.
+
+    Returns
+    -------
+    clusters : list of _ClusterResult
+    repaired : _Repaired
+        Those given where nothing is better.
+    """
+    shells = [kept_shells(P, part.kept[i]) for i, P in enumerate(part.pres)]
+    if not any(len(Fs) for Fs in shells):
+        return clusters, repaired
+    carved = [_fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params, shells=shells)
+              for ci, (lo, hi) in enumerate(boxes)]
+    if all(c is None for c in carved):
+        return clusters, repaired
+    carved = [c if c is not None else o for c, o in zip(carved, clusters)]
+    alt = _repair_clusters(inputs, part, carved, params)
+    if (_made(alt) < _made(repaired) and _fallbacks(carved) <= _fallbacks(clusters)
+            and _overused_edges(alt.JF) <= _overused_edges(repaired.JF)):
+        return carved, alt
+    return clusters, repaired
+
+
 def _junction_geometry(clusters):
     """The clusters' junction surfaces as one: ``(JV (k, 3), JF (q, 3))``."""
     JV = np.concatenate([c.V for c in clusters]) if clusters else np.zeros((0, 3))
@@ -991,18 +1018,10 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     t0 = time.perf_counter()
     repaired = _repair_clusters(inputs, part, clusters, params)
     timings["crossings"] = time.perf_counter() - t0
-    shells = [kept_shells(P, part.kept[i]) for i, P in enumerate(part.pres)] if _made(repaired) else []
-    if _made(repaired) > 0 and params.shell_clearance_voxels > 0 and any(len(Fs) for Fs in shells):
-        # a junction that still crosses, with kept closed parts about: try it around them
+    if _made(repaired) > 0 and params.shell_clearance_voxels > 0:
         t0 = time.perf_counter()
-        carved = [_fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params, shells=shells)
-                  for ci, (lo, hi) in enumerate(boxes)]
-        if any(c is not None for c in carved):
-            carved = [c if c is not None else o for c, o in zip(carved, clusters)]
-            alt = _repair_clusters(inputs, part, carved, params)
-            if (_made(alt) < _made(repaired) and _fallbacks(carved) <= _fallbacks(clusters)
-                    and _overused_edges(alt.JF) <= _overused_edges(repaired.JF)):
-                clusters, repaired = carved, alt
+        clusters, repaired = _around_kept_parts(inputs, part, boxes, clusters, repaired, surfaces, loops_all,
+                                                backend, actions, params)
         timings["shell_clearance"] = time.perf_counter() - t0
     for ci, c in enumerate(clusters):
         if c.info.get("fallback"):

@@ -177,12 +177,12 @@ def _surface_input_vertices(X, grid, field3, h):
 
 def _clear_of_parts(X, grid, floor3):
     """``(k,) bool``: the points ``X`` (k, 3) outside the kept closed parts' clearance, where
-    the sampled field floor (:func:`junction_for_cluster`'s ``floor``) is not positive; all of
-    them without a floor."""
+    the sampled field floor ``floor3`` (:func:`junction_for_cluster`'s ``floor`` on the grid's
+    shape) is not positive."""
     from scipy.ndimage import map_coordinates
 
-    if floor3 is None or len(X) == 0:
-        return np.ones(len(X), bool)
+    if len(X) == 0:
+        return np.ones(0, bool)
     ijk = (np.asarray(X, np.float64) - grid.origin) / grid.voxel
     return map_coordinates(floor3, ijk.T, order=1, mode="nearest") <= 0.0
 
@@ -867,7 +867,7 @@ def junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields, 
     t0 = time.perf_counter()
     field = _field_for_cluster(grid.size, inputs_fields, actions, band)
     field3 = (field if floor is None else np.maximum(field, floor)).reshape(grid.shape)
-    floor3 = None if floor is None else np.asarray(floor, np.float64).reshape(grid.shape)
+    floor3 = None if floor is None else floor.reshape(grid.shape)
     t_blend = time.perf_counter() - t0
     t0 = time.perf_counter()
     Vi, Fi = isosurface(field3, grid.origin, grid.voxel)
