@@ -49,6 +49,7 @@ outputs of ``compose`` and ``batch`` are written by :func:`rigmix.export.write_o
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -434,20 +435,31 @@ def _one_line(text: str, limit: int | None) -> str:
     return printable(text)
 
 
-def _configure_logging(verbosity: int) -> None:
-    """Warnings (or info/debug with -v/-vv) of rigmix and dfd on stderr, one line each."""
+@contextlib.contextmanager
+def _cli_logging(verbosity: int):
+    """Warnings (or info/debug with -v/-vv) of rigmix and dfd on stderr, one line each, for the
+    duration of one command. The loggers' handlers, levels and propagation and the capture of
+    Python warnings are put back afterwards: ``main()`` called in-process (tests, notebooks)
+    must not leave the library's loggers detached from the root logger."""
     level = logging.WARNING if verbosity <= 0 else logging.INFO if verbosity == 1 else logging.DEBUG
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(_OneLine("rigmix: %(levelname)s: %(message)s"))
-    handler._rigmix_cli = True
-    for name in ("rigmix", "dfd"):
-        log = logging.getLogger(name)
-        for h in [h for h in log.handlers if getattr(h, "_rigmix_cli", False)]:
-            log.removeHandler(h)  # calling main() twice in one process must not double lines
+    loggers = [logging.getLogger(name) for name in ("rigmix", "dfd")]
+    saved = [(log, list(log.handlers), log.level, log.propagate) for log in loggers]
+    warnings_captured = getattr(logging, "_warnings_showwarning", None) is not None
+    for log in loggers:
         log.addHandler(handler)
         log.setLevel(level)
         log.propagate = False
     logging.captureWarnings(True)
+    try:
+        yield
+    finally:
+        for log, handlers, old_level, propagate in saved:
+            log.handlers[:] = handlers
+            log.setLevel(old_level)
+            log.propagate = propagate
+        logging.captureWarnings(warnings_captured)
 
 
 def _error(message: str) -> None:
@@ -462,8 +474,7 @@ def main(argv=None) -> int:
     if args.command is None:
         parser.print_help(sys.stderr)
         return 2
-    _configure_logging(args.verbose)
-    with signals_raise():
+    with _cli_logging(args.verbose), signals_raise():
         try:
             status = _run(args)
         except KeyboardInterrupt:  # a signal in the instant after the command returned

@@ -192,6 +192,25 @@ def test_main_in_process(tmp_path, capsys):
     assert main([]) == 2  # no command: usage, non-zero
 
 
+def test_main_in_process_leaves_the_loggers_as_it_found_them(tmp_path, caplog):
+    """The command line sends rigmix's warnings to stderr while it runs; afterwards the library's
+    loggers propagate to the root logger again, so an application's (or pytest's) handlers see
+    them, and no handler of the command line is left behind."""
+    import logging
+
+    path = tmp_path / "broken.glb"
+    path.write_bytes(b"glTF" + b"\x02\x00\x00\x00")
+    before = {name: (list(logging.getLogger(name).handlers), logging.getLogger(name).level)
+              for name in ("rigmix", "dfd")}
+    assert main(["-v", "inspect", str(path)]) == 2
+    for name, (handlers, level) in before.items():
+        log = logging.getLogger(name)
+        assert log.propagate and log.handlers == handlers and log.level == level
+    with caplog.at_level("WARNING", logger="rigmix.animation.completion"):
+        logging.getLogger("rigmix.animation.completion").warning("seen by the root logger")
+    assert "seen by the root logger" in caplog.text
+
+
 def test_demo_writes_and_inspects(tmp_path):
     out = tmp_path / "demo"
     r = subprocess.run([sys.executable, "-m", "rigmix.demo", "--out", str(out)],
