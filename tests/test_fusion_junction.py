@@ -207,6 +207,37 @@ def test_points_inserted_into_a_mesh_become_vertices():
     assert len(boundary_halfedges(G)) == 0
 
 
+def test_points_inserted_next_to_each_other_get_vertices_of_their_own():
+    """Two points close to one free vertex, the second one waiting a pass (its triangle changed):
+    each ends on a vertex of its own, and the first stays where it was put. A shared vertex
+    made the remesher's feature list repeat a vertex, which shifted every kept vertex after it
+    onto the wrong output vertex (a junction torn across the whole cluster)."""
+    from rigmix.fusion.remesh import insert_points, is_edge_manifold
+
+    V, F = sphere(2)
+    v = 7
+    n = V[v] / np.linalg.norm(V[v])
+    side = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+    X = np.array([V[v] + 0.01 * side, V[v] - 0.01 * side])
+    U, G, placed = insert_points(V, F, np.zeros(len(V), bool), X, max_dist=0.2)
+    assert len(placed) == 2 and len(np.unique(placed)) == 2
+    np.testing.assert_allclose(U[placed], X, atol=1e-12)
+    assert is_edge_manifold(G)
+
+
+def test_remeshing_refuses_a_repeated_fixed_vertex():
+    from rigmix.fusion.remesh import remesh_junction
+
+    V, F = sphere(2)
+    F = F[V[F].mean(axis=1)[:, 2] > 0.0]
+    border = np.unique(boundary_halfedges(F).ravel())
+    with pytest.raises(ValueError, match="repeated fixed"):
+        remesh_junction(V, F, np.r_[border, border[:1]], target=0.3)
+    U, _ = remesh_junction(V, F, border, target=0.3)
+    assert np.array_equal(U[: len(border)], V[border])
+
+
 def test_cancelling_isosurface_faces_are_dropped():
     from rigmix.fusion.junction import drop_cancelling_faces
 

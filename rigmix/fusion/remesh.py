@@ -60,7 +60,7 @@ def remesh_junction(V, F, fixed, *, target, iterations=5):
     F : (m, 3) int array
         An edge-manifold open surface whose boundary vertices are all in ``fixed``.
     fixed : (k,) int array
-        Vertices that must stay, in this order, at the start of the output.
+        Distinct vertices that must stay, in this order, at the start of the output.
     target : float
         Target edge length.
     iterations : int
@@ -70,6 +70,12 @@ def remesh_junction(V, F, fixed, *, target, iterations=5):
     U : (p, 3) float64
         ``U[:k] == V[fixed]`` exactly.
     G : (q, 3) int64
+
+    Raises
+    ------
+    ValueError
+        ``fixed`` repeats a vertex: gpytoolbox would keep it once and every kept vertex after
+        it would then be written over the wrong output vertex.
     """
     import warnings
 
@@ -78,6 +84,8 @@ def remesh_junction(V, F, fixed, *, target, iterations=5):
         import gpytoolbox
 
     fixed = np.asarray(fixed, dtype=np.int64)
+    if len(np.unique(fixed)) != len(fixed):
+        raise ValueError(f"remesh_junction: {len(fixed) - len(np.unique(fixed))} repeated fixed vertices")
     U, G = gpytoolbox.remesh_botsch(
         np.ascontiguousarray(V, dtype=np.float64),
         np.ascontiguousarray(F, dtype=np.int32),
@@ -604,15 +612,16 @@ def insert_points(V, F, fixed, X, *, max_dist, passes=4):
     Returns
     -------
     U : (p, 3) float64, G : (q, 3) int64, placed : (r,) int64
-        ``U[:n]`` are the old vertices (moved ones excepted); ``placed``: the vertices now at
-        points of ``X``.
+        ``U[:n]`` are the old vertices (moved ones excepted); ``placed``: the distinct vertices
+        now at points of ``X``. A placed vertex is fixed for the points after it: two points
+        never share a vertex, and a later one never moves an earlier one away.
     """
     import igl
 
     V = np.asarray(V, dtype=np.float64)
     G = np.asarray(F, dtype=np.int64)
     X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
-    fixed = np.asarray(fixed, bool)
+    fixed = np.array(fixed, bool)  # a copy: placed vertices join it
     if len(X) == 0 or len(G) == 0:
         return V, G, np.zeros(0, np.int64)
     placed: list[int] = []
@@ -638,6 +647,9 @@ def insert_points(V, F, fixed, X, *, max_dist, passes=4):
             V, G, v = _insert_point(V, G, int(rows[0]), bary, x, fixed, inner)
             touched.add(v)
             placed.append(v)
+            if v >= len(fixed):
+                fixed = np.concatenate([fixed, np.zeros(v + 1 - len(fixed), bool)])
+            fixed[v] = True
         X = X[waiting]
     return V, G, np.asarray(placed, np.int64)
 

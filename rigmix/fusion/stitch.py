@@ -318,7 +318,7 @@ def remesh_keeping_features(V, F, fixed, target, iterations, tol, rounds, points
         X = X[_spread(X, dX, 0.5 * target, avoid=V[keep], avoid_spacing=0.15 * target)]
         if len(X) == 0:
             return V, F, keep
-        V, F, placed = insert_points(V, F, np.isin(np.arange(len(V)), fixed), X,
+        V, F, placed = insert_points(V, F, np.isin(np.arange(len(V)), keep), X,
                                      max_dist=4.0 * tol if max_insert is None else max_insert)
         return V, F, np.concatenate([keep, placed[~np.isin(placed, keep)]])
 
