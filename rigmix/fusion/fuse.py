@@ -536,6 +536,9 @@ class _ClusterResult:
         The blended field, with ``FusionParams.keep_fields``.
     timings : dict
         Seconds: ``fields``, then those of :class:`.stitch.ClusterJunction`.
+    input_fields : dict or None
+        The inputs' fields at the cluster's samples (:func:`_cluster_fields`), kept only for a
+        second pass around kept parts (:func:`_around_kept_parts`), which uses the same grid.
     """
 
     V: np.ndarray
@@ -544,13 +547,16 @@ class _ClusterResult:
     selected: list | None
     field: tuple | None
     timings: dict
+    input_fields: dict | None = None
 
 
 def _fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params,
-                  shells=None) -> _ClusterResult | None:
+                  shells=None, input_fields=None, keep_input_fields=False) -> _ClusterResult | None:
     """Fields and junction surface of cluster ``ci`` (box ``lo``, ``hi``); with ``shells`` (per
     input, welded faces of its kept closed parts: :func:`kept_shells`), a junction that goes
     around those near the cluster (:func:`_shell_clearance`), None when none is near.
+    ``input_fields``: the inputs' fields of this cluster from an earlier pass (computed when
+    None); ``keep_input_fields``: return them with the result.
 
     Where the isosurface cannot close the junction (open sheets have no inside; loops left
     unmatched), the cluster's input faces are kept instead from the input most present on each
@@ -563,7 +569,7 @@ def _fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, param
     if near is not None and not any(len(Fs) for Fs in near):
         return None
     t0 = time.perf_counter()
-    fields = _cluster_fields(grid, band, pres, surfaces, backend)
+    fields = _cluster_fields(grid, band, pres, surfaces, backend) if input_fields is None else input_fields
     clearance = None
     if near is not None:
         clearance = _shell_clearance(grid, band, pres, near, backend, params.shell_clearance_voxels)
@@ -584,7 +590,8 @@ def _fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, param
         JV, JF = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
     kept_field = (f"junction_{ci}", grid, cj.field.astype(np.float32)) if params.keep_fields else None
     return _ClusterResult(V=JV, F=JF, info=info, selected=selected, field=kept_field,
-                          timings={"fields": t_fields, **cj.timings})
+                          timings={"fields": t_fields, **cj.timings},
+                          input_fields=fields if keep_input_fields else None)
 
 
 @dataclass(frozen=True)
@@ -797,11 +804,13 @@ def _repair_clusters(inputs, part: _Partition, clusters, params) -> _Repaired:
     return _repair_crossings(inputs, part, selected, JV, JF, params)
 
 
-def _around_kept_parts(inputs, part: _Partition, boxes, clusters, repaired: _Repaired, surfaces, loops_all,
-                       backend, actions, params):
+def _around_kept_parts(inputs, part: _Partition, boxes, clusters, repaired: _Repaired, shells, surfaces,
+                       loops_all, backend, actions, params):
     """The junction made again around the closed parts the inputs keep whole (:func:`kept_shells`),
     in the clusters near one, where it leaves fewer crossing pairs no input had than
     ``repaired``, no more clusters falling back to face selection and no more over-shared edges.
+
+    ``shells``: per input, :func:`kept_shells`; the clusters' ``input_fields`` are used again.
 
     Returns
     -------
@@ -809,10 +818,10 @@ def _around_kept_parts(inputs, part: _Partition, boxes, clusters, repaired: _Rep
     repaired : _Repaired
         Those given where nothing is better.
     """
-    shells = [kept_shells(P, part.kept[i]) for i, P in enumerate(part.pres)]
     if not any(len(Fs) for Fs in shells):
         return clusters, repaired
-    carved = [_fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params, shells=shells)
+    carved = [_fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params, shells=shells,
+                            input_fields=clusters[ci].input_fields)
               for ci, (lo, hi) in enumerate(boxes)]
     if all(c is None for c in carved):
         return clusters, repaired
@@ -1010,7 +1019,12 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     surfaces = [prepare_surface(P.welded.V, P.welded.F[~P.secondary]) for P in part.pres]
     timings["setup"] = time.perf_counter() - t0
 
-    clusters = [_fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params)
+    shells = None
+    if params.shell_clearance_voxels > 0:
+        shells = [kept_shells(P, part.kept[i]) for i, P in enumerate(part.pres)]
+    second_pass = shells is not None and any(len(Fs) for Fs in shells)
+    clusters = [_fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params,
+                              keep_input_fields=second_pass)
                 for ci, (lo, hi) in enumerate(boxes)]
     for c in clusters:
         for k, v in c.timings.items():
@@ -1018,11 +1032,12 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     t0 = time.perf_counter()
     repaired = _repair_clusters(inputs, part, clusters, params)
     timings["crossings"] = time.perf_counter() - t0
-    if _made(repaired) > 0 and params.shell_clearance_voxels > 0:
+    if second_pass and _made(repaired) > 0:
         t0 = time.perf_counter()
-        clusters, repaired = _around_kept_parts(inputs, part, boxes, clusters, repaired, surfaces, loops_all,
-                                                backend, actions, params)
+        clusters, repaired = _around_kept_parts(inputs, part, boxes, clusters, repaired, shells, surfaces,
+                                                loops_all, backend, actions, params)
         timings["shell_clearance"] = time.perf_counter() - t0
+    clusters = [replace(c, input_fields=None) for c in clusters]  # free them before assembly
     for ci, c in enumerate(clusters):
         if c.info.get("fallback"):
             log.warning("fusion: junction %d could not be closed by the isosurface (%d loops left); "
