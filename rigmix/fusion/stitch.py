@@ -638,7 +638,7 @@ def _remesh_attempt(job, feature_tol):
         U = relocate_poor_vertices(U, G, nfix, surface=(RV, RF))
         G = flip_to_improve_angles(U, G, forbidden=forb)
     if len(job.targets):
-        U = snap_to_points(U, G, nfix, job.targets, max_dist=0.5 * job.target)
+        U = snap_to_points(U, G, nfix, job.targets, max_dist=0.5 * job.target, min_angle=params.min_angle_p05)
         G = flip_to_improve_angles(U, G, forbidden=forb)
     if feature_tol > 0:
         # the quality moves above slide vertices along the reference, whose bridge
