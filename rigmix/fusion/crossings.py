@@ -69,6 +69,8 @@ class CrossingRepair:
         Of those left, pairs with a kept face that crosses its own input (not worked on).
     rounds, steps : int
         Rounds run; smoothing and push steps that stood.
+    made : (m,) bool
+        Faces in a pair left that is not layered (a crossing the inputs did not have).
     """
 
     V: np.ndarray
@@ -78,6 +80,7 @@ class CrossingRepair:
     layered: int
     rounds: int
     steps: int
+    made: np.ndarray
 
 
 class _State:
@@ -436,6 +439,8 @@ def repair_crossings(V, F, movable, check, *, target, releasable=None, layered=N
         S.look()
         pairs = S.pairs()
     left = len(pairs)
+    made = np.zeros(m, bool)
+    made[S.targets(pairs).ravel()] = True
     n_layered = left - len(S.targets(pairs))
     released = S.check & ~check
     if found:
@@ -443,7 +448,7 @@ def repair_crossings(V, F, movable, check, *, target, releasable=None, layered=N
                  "%d rounds, %d steps, %d kept faces released)", found, left, n_layered, done, n_steps,
                  int(released.sum()))
     return CrossingRepair(V=S.V, released=released, found=int(found), left=int(left), layered=int(n_layered),
-                          rounds=done, steps=n_steps)
+                          rounds=done, steps=n_steps, made=made)
 
 
 @dataclass(frozen=True)
@@ -461,6 +466,9 @@ class JunctionRepair:
         As :class:`CrossingRepair`.
     moved : bool
         Whether anything changed (else ``JV``, ``JF`` are the input's).
+    made : (mJ,) bool
+        Faces of the given junction ``JF`` in a crossing left that the inputs did not have
+        (:attr:`CrossingRepair.made`); the first ``mJ`` faces of ``JF`` out are these, in order.
     """
 
     JV: np.ndarray
@@ -470,6 +478,7 @@ class JunctionRepair:
     left: int
     layered: int
     moved: bool
+    made: np.ndarray
 
 
 def repair_junction(KV, KF, JV, JF, *, counted, layered=None, rounds=6, min_angle=20.0) -> JunctionRepair:
@@ -501,7 +510,8 @@ def repair_junction(KV, KF, JV, JF, *, counted, layered=None, rounds=6, min_angl
     JF = np.asarray(JF, np.int64).reshape(-1, 3)
     KF = np.asarray(KF, np.int64).reshape(-1, 3)
     nK, mK = len(KV), len(KF)
-    unchanged = JunctionRepair(JV=JV, JF=JF, released=np.zeros(mK, bool), found=0, left=0, layered=0, moved=False)
+    unchanged = JunctionRepair(JV=JV, JF=JF, released=np.zeros(mK, bool), found=0, left=0, layered=0, moved=False,
+                               made=np.zeros(len(JF), bool))
     if rounds <= 0 or len(JF) == 0:
         return unchanged
     Vw, index, Fw = weld(np.concatenate([np.asarray(KV, np.float64).reshape(-1, 3), JV]),
@@ -514,7 +524,7 @@ def repair_junction(KV, KF, JV, JF, *, counted, layered=None, rounds=6, min_angl
     kept = np.arange(len(Fw)) < mK
     rep = repair_crossings(Vw, Fw, movable, check, target=target, releasable=kept, layered=layered, rounds=rounds,
                            min_angle=min_angle)
-    counts = {"found": rep.found, "left": rep.left, "layered": rep.layered}
+    counts = {"found": rep.found, "left": rep.left, "layered": rep.layered, "made": rep.made[mK:]}
     if rep.steps == 0:
         return JunctionRepair(JV=JV, JF=JF, released=np.zeros(mK, bool), moved=False, **counts)
     faces = np.concatenate([np.arange(mK, len(Fw)), np.flatnonzero(rep.released)])

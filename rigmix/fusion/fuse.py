@@ -807,8 +807,9 @@ def _repair_clusters(inputs, part: _Partition, clusters, params) -> _Repaired:
 def _around_kept_parts(inputs, part: _Partition, boxes, clusters, repaired: _Repaired, shells, surfaces,
                        loops_all, backend, actions, params):
     """The junction made again around the closed parts the inputs keep whole (:func:`kept_shells`),
-    in the clusters near one, where it leaves fewer crossing pairs no input had than
-    ``repaired``, no more clusters falling back to face selection and no more over-shared edges.
+    in the clusters near one whose junction has a crossing no input had, where it leaves fewer
+    such crossing pairs than ``repaired``, no more clusters falling back to face selection and
+    no more over-shared edges.
 
     ``shells``: per input, :func:`kept_shells`; the clusters' ``input_fields`` are used again.
 
@@ -820,8 +821,10 @@ def _around_kept_parts(inputs, part: _Partition, boxes, clusters, repaired: _Rep
     """
     if not any(len(Fs) for Fs in shells):
         return clusters, repaired
+    offsets = np.cumsum([0] + [len(c.F) for c in clusters])
+    crossing = [bool(repaired.made[a:b].any()) for a, b in zip(offsets[:-1], offsets[1:])]
     carved = [_fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params, shells=shells,
-                            input_fields=clusters[ci].input_fields)
+                            input_fields=clusters[ci].input_fields) if crossing[ci] else None
               for ci, (lo, hi) in enumerate(boxes)]
     if all(c is None for c in carved):
         return clusters, repaired
@@ -857,6 +860,9 @@ class _Repaired:
     found, left, layered, released : int
         Crossing pairs before and after, those left with overlapping input parts
         (:attr:`.crossings.CrossingRepair.layered`); kept faces that joined the junction.
+    made : (q0,) bool
+        Over the clusters' junction faces before the repair (:func:`_junction_geometry`), those
+        in a crossing left that no input had.
     """
 
     part: _Partition
@@ -867,6 +873,7 @@ class _Repaired:
     left: int
     layered: int
     released: int
+    made: np.ndarray
 
 
 def _crossing_own_input(part: _Partition, parts, faces):
@@ -940,7 +947,8 @@ def _repair_crossings(inputs, part: _Partition, selected, JV, JF, params) -> _Re
         counted[q.copied_faces] = False
     rep = repair_junction(KV, KF, JV, JF, counted=counted, layered=partial(_crossing_own_input, part, parts),
                           rounds=params.crossing_rounds, min_angle=params.min_angle_p05)
-    counts = {"found": rep.found, "left": rep.left, "layered": rep.layered, "released": int(rep.released.sum())}
+    counts = {"found": rep.found, "left": rep.left, "layered": rep.layered, "released": int(rep.released.sum()),
+              "made": rep.made}
     if not rep.released.any():
         return _Repaired(part=part, selected=selected, JV=rep.JV, JF=rep.JF, **counts)
     preserved = [p.copy() for p in part.preserved]
