@@ -48,7 +48,7 @@ def test_the_ratio_is_over_the_most_supple_part(witch_wings):
 @pytest.fixture(scope="module")
 def mirrored_leg(tmp_path_factory):
     """The corpus's mirror case: the Apatosaurus's left front leg (and its foot) replaced by the
-    right ones, mirrored; up to the completion (the fusion does not change the clips)."""
+    right ones, mirrored."""
     from rigmix.pipeline import compose
 
     cfg = tmp_path_factory.mktemp("mirror") / "mirror.toml"
