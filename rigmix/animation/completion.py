@@ -429,8 +429,13 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
         seams = []
         for y, joints in _completing_inputs(completed, owners, frames).items():
             if _mirrored_copies(inputs[cid], inputs[y]):
-                # the clip's own joints of the same names drive them (already mapped in T, R, S)
-                joints = joints[~_same_named(inputs[cid], inputs[y], maps[cid], maps[y], J)[joints]]
+                # the clip's own joints of the same names drive them
+                named = _same_named(inputs[cid], inputs[y], maps[cid], maps[y], J)[joints]
+                own = _clip_pose(skeleton_out, inputs[cid], maps[cid], inputs[cid].clip(clip_name), options.fps,
+                                 None if translations is None else translations[cid])
+                for full, part in zip((T, R, S), own):
+                    full[:, joints[named]] = part[:, joints[named]]
+                joints = joints[~named]
                 if joints.size == 0:
                     continue
             fy = frames[y]
@@ -485,9 +490,9 @@ def _same_named(x: Character, y: Character, map_x, map_y, J: int) -> np.ndarray:
     and that a joint of ``x`` of the same name maps to, whatever its confidence.
 
     For a mirrored copy the names are the correspondence (:func:`rigmix.operations.mirror.
-    mirror_character` swaps the sides in them, so a name stays on its side), while the bone
-    map's confidence reflects where the positioning moved the copy's dropped joints (0.997 to 1
-    measured on the Rat; its blend toward rest turns a joint by at most 0.3 % of its motion).
+    mirror_character` swaps the sides in them, so a name stays on its side); the bone map's
+    confidence only reflects where the positioning moved the dropped joints (0.97 to 1 measured
+    on the Wasp), so the clip drives these joints without the blend toward rest (:func:`_clip_pose`).
     """
     kept = [set() for _ in range(J)]
     for j, (o, c) in enumerate(zip(map_y.target, map_y.confidence)):
@@ -500,13 +505,26 @@ def _same_named(x: Character, y: Character, map_x, map_y, J: int) -> np.ndarray:
     return out
 
 
+def _clip_pose(skeleton_out, character, bone_map, clip, fps, maps=None):
+    """One clip of an input resampled at ``fps`` and mapped onto S_R without the confidence blend.
+
+    Returns
+    -------
+    T, R, S : (F, J, 3), (F, J, 4) xyzw, (F, J, 3) float64
+        Local transforms of S_R, at the times of :func:`_sample_input` for that clip.
+    """
+    T, R, S = sample_clip(character.skeleton, clip, clip_times(clip, fps))
+    T, R, S, _ = map_pose(skeleton_out, character.skeleton, bone_map, T, R, S, blend=False, translation_maps=maps)
+    return T, R, S
+
+
 def _own_clip(x, y, fy, clip_name, seg, rows):
     """Candidate columns that replay ``y``'s own clip ``clip_name`` frame by frame, or None.
 
     When ``y`` is the asset ``x`` is (:func:`same_asset`), the clip being completed exists for
-    ``y``'s joints too: they take it as it is (a mirrored arm swap then punches with the copied
-    arm as the original punches) rather than frames scored from other clips. Other characters'
-    clips of the same name are not the same motion.
+    ``y``'s joints too: they take it as it is rather than frames scored from other clips. Other
+    characters' clips of the same name are not the same motion, nor is a mirrored copy's (the
+    other side's motion reflected; :func:`_same_named`).
     """
     if not same_asset(x, y) or clip_name not in fy.names:
         return None
