@@ -428,6 +428,11 @@ class Character:
         The file it was read from (for messages), ``""`` if built in code.
     warnings : tuple of str
         Defects repaired on load, each naming the file and the object.
+    mirrored : bool
+        Reflected by :func:`rigmix.operations.mirror.mirror_character` an odd number of times:
+        its clips are its file's clips reflected, so a joint named for one side moves as the
+        file's joint of the other side moves (animation completion tells a mirrored copy of an
+        asset from a second copy by it).
     """
 
     name: str
@@ -438,6 +443,7 @@ class Character:
     props: tuple[Prop, ...] = ()
     source: str = ""
     warnings: tuple[str, ...] = ()
+    mirrored: bool = False
 
     def __post_init__(self):
         for attr in ("meshes", "clips", "materials", "props", "warnings"):

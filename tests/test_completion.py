@@ -28,7 +28,7 @@ from rigmix.animation.completion import (
 from rigmix.character import Skeleton
 from rigmix.errors import InputError
 from rigmix.mapping import BoneMap
-from rigmix.transforms import quat_angle, quat_multiply, quat_normalize
+from rigmix.transforms import quat_angle, quat_conjugate, quat_multiply, quat_normalize
 
 # --------------------------------------------------------------------------------------------
 # helpers (acceleration_figures is also used by benchmarks/completion_bench.py)
@@ -707,10 +707,16 @@ def test_fidelity_sees_a_moved_joint():
     assert after["knight"].measured_joints == 7  # the arm from UpperArm.L down, the fused joint included
 
 
-def test_completed_joints_take_their_own_clip():
+def _rest_relative(rest, R):
+    """``rest^-1 R``: local rotations ``(F, k, 4)`` xyzw as deltas from the rest rotations ``(k, 4)``."""
+    return quat_multiply(quat_conjugate(quat_normalize(rest))[None], quat_normalize(R))
+
+
+def test_a_mirrored_copy_follows_the_joints_it_replaces():
     """A mirrored arm swap (the humanoid's right arm, mirrored, on its left): in the body's walk
-    the new arm replays the mirrored character's walk frame by frame, not frames scored from
-    other clips."""
+    the new arm swings as the body's own left arm does, not as the mirrored character's walk
+    swings it (the right arm's swing reflected, half a step out of phase); in the mirrored
+    character's walk the body follows that walk's own joints (the walk reflected, whole)."""
     import rigmix
     from rigmix.config import Config
     from rigmix.pipeline import completion_stage
@@ -721,12 +727,17 @@ def test_completed_joints_take_their_own_clip():
                            "target": "body", "target_joint": "UpperArm.L"}])
     comp = completion_stage(rigmix.compose(cfg, until="mapping"))
     S = comp.plan.skeleton
-    arm = [o for o, prov in enumerate(comp.plan.provenance) if [c for c, _ in prov] == ["donor"]]
-    assert len(arm) >= 2  # LowerArm.L, Hand.L (UpperArm.L is fused)
     by_name = {c.name: c for c in comp.clips}
-    for clip in ("walk", "idle"):
-        body, donor = by_name[f"body:{clip}"], by_name[f"donor:{clip}"]
-        t = clip_times(body, 30.0)
-        _, Rb, _ = sample_clip(S, body, t)
-        _, Rd, _ = sample_clip(S, donor, t)
-        np.testing.assert_allclose(quat_angle(Rb[:, arm], Rd[:, arm]), 0.0, atol=1e-7)
+    for owner, driver in (("donor", "body"), ("body", "donor")):
+        joints = [o for o, prov in enumerate(comp.plan.provenance) if [c for c, _ in prov] == [owner]]
+        assert len(joints) >= 2  # LowerArm.L, Hand.L (UpperArm.L is fused); the body's many
+        src = comp.inputs[driver]
+        same = [src.skeleton.names.index(S.names[o]) for o in joints]
+        for clip in ("walk", "idle"):
+            out = by_name[f"{driver}:{clip}"]
+            t = clip_times(out, 30.0)
+            _, Ro, _ = sample_clip(S, out, t)
+            _, Ri, _ = sample_clip(src.skeleton, src.clip(clip), t)
+            got = _rest_relative(S.rotations[joints], Ro[:, joints])
+            want = _rest_relative(src.skeleton.rotations[same], Ri[:, same])
+            np.testing.assert_allclose(quat_angle(got, want), 0.0, atol=1e-7)

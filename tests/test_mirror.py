@@ -72,6 +72,8 @@ def test_mirror_twice_is_the_original(loaded, name):
     plane = mirror_plane(c)
     back = mirror_character(mirror_character(c, plane), plane)
     assert back.skeleton.names == c.skeleton.names
+    # completion tells a mirrored copy of an asset from a second copy by the flag
+    assert mirror_character(c, plane).mirrored and not back.mirrored and not c.mirrored
     for attr in ("translations", "rotations", "scales", "inverse_binds", "parents"):
         np.testing.assert_allclose(getattr(back.skeleton, attr), getattr(c.skeleton, attr), atol=1e-9)
     for a, b in zip(c.skeleton.anchors, back.skeleton.anchors):

@@ -3,7 +3,9 @@
 For every clip of an input X that the completion writes, the joints of S_R that X keeps (X is in
 their provenance: the clip drives them, nothing completes them) must move as they move in X's
 own clip, once X is scaled, placed and posed as composed. A clip written once for an asset listed
-twice (a self-composition) counts for both ids: the other id's joints replay the same clip.
+twice (a self-composition) counts for both ids: the other id's joints replay the same clip. Not
+for a mirrored copy (:func:`rigmix.animation.completion.same_asset`): its joints follow the clip's
+own joints that they replace, not its reflected clip of the other side.
 Positions are compared relative to the joint's *fused ancestor* (the nearest ancestor-or-self
 fused with another input, or whose parent is not X's), in that ancestor's frame brought back to
 its rest orientation: the fused joint's parent is another input's joint, moved by another clip,

@@ -44,6 +44,7 @@ from ..errors import InputError
 from ..transforms import quat_conjugate, quat_multiply, quat_normalize, quat_slerp
 
 __all__ = [
+    "KEPT_CONFIDENCE",
     "map_pose",
     "forward_kinematics",
     "global_rotations",
@@ -60,7 +61,7 @@ logger = logging.getLogger(__name__)
 
 _IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])
 #: Confidence of an input joint kept in S_R (copied or fused), up to rounding.
-_KEPT = 1.0 - 1e-9
+KEPT_CONFIDENCE = 1.0 - 1e-9
 
 
 # --------------------------------------------------------------------------------------------
@@ -84,7 +85,7 @@ def _map_scale(skeleton_out, skeleton_in, contributors, confidence):
         for i in ins:
             a = np.linalg.norm(skeleton_in.translations[i])
             b = np.linalg.norm(skeleton_out.translations[o])
-            if confidence[i] >= _KEPT and a > 1e-9 and b > 1e-9:
+            if confidence[i] >= KEPT_CONFIDENCE and a > 1e-9 and b > 1e-9:
                 ratios.append(b / a)
     return float(np.median(ratios)) if ratios else 1.0
 
@@ -161,7 +162,7 @@ def map_pose(skeleton_out: Skeleton, skeleton_in: Skeleton, bone_map, T, R, S, *
     delta = np.empty((F, outs.size, 4))
     # a joint kept from this input (a confidence-1 contributor) replays that joint alone: the
     # dropped joints that propagation also put there (a removed thumb on the palm) must not twist it
-    chains = [[i for i in contributors[o] if conf[i] >= _KEPT] or contributors[o] for o in outs]
+    chains = [[i for i in contributors[o] if conf[i] >= KEPT_CONFIDENCE] or contributors[o] for o in outs]
     single = np.array([len(c) == 1 for c in chains])
     first = np.array([c[0] for c in chains])
     delta[:, single] = quat_multiply(quat_conjugate(rest_in[first[single]]), R[:, first[single]])

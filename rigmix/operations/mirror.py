@@ -276,7 +276,8 @@ def mirror_character(character: Character, plane: MirrorPlane | None = None, *, 
     Character
         Same joints (indices and topology), meshes, clips, materials and props, reflected as
         described in the module docstring: skinned with any pose of its clips, every vertex is
-        the reflection of the original's vertex at the same pose. Name and source unchanged.
+        the reflection of the original's vertex at the same pose. Name and source unchanged;
+        ``mirrored`` toggled.
     """
     if plane is None:
         plane = mirror_plane(character, axis)
@@ -304,4 +305,5 @@ def mirror_character(character: Character, plane: MirrorPlane | None = None, *, 
     meshes = tuple(_mirror_mesh(m, plane, affine=True) for m in character.meshes)
     props = tuple(Prop(_mirror_mesh(p.mesh, plane, affine=False), p.joint,
                        _conjugate(p.matrix, plane, outer=p.joint < 0)) for p in character.props)
-    return replace(character, skeleton=skeleton, meshes=meshes, clips=clips, props=props)
+    return replace(character, skeleton=skeleton, meshes=meshes, clips=clips, props=props,
+                   mirrored=not character.mirrored)
