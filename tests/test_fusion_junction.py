@@ -238,6 +238,25 @@ def test_remeshing_refuses_a_repeated_fixed_vertex():
     assert np.array_equal(U[: len(border)], V[border])
 
 
+def test_untangle_leaves_a_surface_folded_everywhere_as_it_is():
+    """A triangle soup crossing itself everywhere (what a junction with its kept vertices written
+    over the wrong vertices looked like): every face's box meets hundreds of others, so the
+    broad phase is over budget and the surface comes back untouched at once, where rounds of
+    smoothing each tested millions of pairs. A healthy surface stays well under the budget."""
+    from rigmix.fusion.meshutil import TooManyCandidates
+    from rigmix.fusion.remesh import UNTANGLE_CANDIDATES_PER_FACE, untangle
+
+    rng = np.random.default_rng(0)
+    V = rng.random((3000, 3))
+    F = np.arange(3000).reshape(-1, 3)
+    U, left = untangle(V, F, 0)
+    assert left == -1 and np.array_equal(U, V)
+    with pytest.raises(TooManyCandidates):
+        intersecting_face_pairs(V, F, max_candidates=UNTANGLE_CANDIDATES_PER_FACE * len(F))
+    S, G = sphere(3)
+    assert len(intersecting_face_pairs(S, G, max_candidates=UNTANGLE_CANDIDATES_PER_FACE * len(G))) == 0
+
+
 def test_cancelling_isosurface_faces_are_dropped():
     from rigmix.fusion.junction import drop_cancelling_faces
 

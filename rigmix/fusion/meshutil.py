@@ -220,7 +220,12 @@ def average_edge_length(V, F):
     return float(np.linalg.norm(V[uE[:, 0]] - V[uE[:, 1]], axis=1).mean())
 
 
-def _grid_pairs(lo, hi, in_set, max_cells=64):
+class TooManyCandidates(RuntimeError):
+    """The broad phase of :func:`intersecting_face_pairs` found more candidate pairs than its
+    budget: the surface is folded onto itself far beyond what a local repair can undo."""
+
+
+def _grid_pairs(lo, hi, in_set, max_cells=64, max_pairs=None):
     """Broad phase: pairs of boxes that share a cell of a uniform grid, one of them in ``in_set``.
 
     Cells are as large as the median box (at least 1/``max_cells`` of the largest box, so that
@@ -232,11 +237,18 @@ def _grid_pairs(lo, hi, in_set, max_cells=64):
     lo, hi : (m, 3) float arrays
         Box corners.
     in_set : (m,) bool array
+    max_pairs : int, optional
+        Budget of box pairs sharing a cell (counted before any is made).
 
     Returns
     -------
     a, b : (p,) int64 arrays
         Each unordered pair once, ``a != b``, ``a`` in ``in_set``.
+
+    Raises
+    ------
+    TooManyCandidates
+        More than ``max_pairs`` pairs share a cell.
     """
     ext = (hi - lo).max(axis=1)
     cell = max(float(np.median(ext)), float(ext.max()) / max_cells, 1e-300)
@@ -256,6 +268,8 @@ def _grid_pairs(lo, hi, in_set, max_cells=64):
     end = np.r_[start[1:], len(key)]
     group_end = np.repeat(end, end - start)
     later = group_end - np.arange(len(key)) - 1  # members after this one in its cell
+    if max_pairs is not None and int(later.sum()) > max_pairs:
+        raise TooManyCandidates(f"{int(later.sum())} box pairs share a grid cell (budget {max_pairs})")
     a = np.repeat(box, later)
     first = np.repeat(np.arange(len(key)) + 1, later)
     b = box[first + np.arange(len(a)) - np.repeat(np.cumsum(later) - later, later)]
@@ -269,7 +283,7 @@ def _grid_pairs(lo, hi, in_set, max_cells=64):
     return a, b
 
 
-def intersecting_face_pairs(V, F, faces=None, *, tol=1e-9):
+def intersecting_face_pairs(V, F, faces=None, *, tol=1e-9, max_candidates=None):
     """Pairs of triangles that cross each other (self-intersections), by the separating axis test.
 
     Triangles that share a corner (an index, or a position) are never paired: neighbours meet by
@@ -283,11 +297,19 @@ def intersecting_face_pairs(V, F, faces=None, *, tol=1e-9):
     faces : (k,) int array, optional
         Only pairs with at least one of these faces (default: all).
     tol : float
+    max_candidates : int, optional
+        Budget of the broad phase (pairs of faces whose boxes share a grid cell); a healthy
+        surface has about 10 per face, one folded onto itself everywhere a thousand.
 
     Returns
     -------
     (p, 2) int64
         Face index pairs ``(a, b)``, ``a`` from ``faces``; each unordered pair once.
+
+    Raises
+    ------
+    TooManyCandidates
+        Over ``max_candidates``.
     """
     V = np.asarray(V, np.float64)
     F = np.asarray(F, np.int64).reshape(-1, 3)
@@ -301,7 +323,7 @@ def intersecting_face_pairs(V, F, faces=None, *, tol=1e-9):
     eps = tol * float(np.ptp(V, axis=0).max() or 1.0)
     in_set = np.zeros(len(F), bool)
     in_set[faces] = True
-    a, b = _grid_pairs(lo - eps, hi + eps, in_set)
+    a, b = _grid_pairs(lo - eps, hi + eps, in_set, max_pairs=max_candidates)
     keep = np.all((lo[a] <= hi[b] + eps) & (lo[b] <= hi[a] + eps), axis=1)
     keep &= ~(F[a][:, :, None] == F[b][:, None, :]).any(axis=(1, 2))
     a, b = a[keep], b[keep]

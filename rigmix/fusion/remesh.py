@@ -7,6 +7,7 @@ import logging
 import numpy as np
 
 from .meshutil import (
+    TooManyCandidates,
     corner_angles,
     edge_counts,
     intersecting_face_pairs,
@@ -16,6 +17,10 @@ from .meshutil import (
 )
 
 log = logging.getLogger(__name__)
+
+#: :func:`untangle`'s budget of broad-phase pairs per face: about 10 on a healthy junction,
+#: about 1500 on one whose kept vertices were written over the wrong vertices
+UNTANGLE_CANDIDATES_PER_FACE = 200
 
 __all__ = [
     "collapse_to_improve_angles",
@@ -662,6 +667,9 @@ def untangle(V, F, nfixed, *, rounds=8, step=0.5, max_move=None):
     left by a projection or an inserted feature point opens up with the least change of shape.
     The result is kept only if it crosses itself less than ``V`` does and, with ``max_move``,
     no vertex moved farther than that (a fold at a sharp corner is not worth the corner).
+    A surface folded onto itself everywhere (over :data:`UNTANGLE_CANDIDATES_PER_FACE` broad
+    phase pairs per face) is returned as it is: smoothing cannot open it, and each round's
+    test would cost time quadratic in its faces.
 
     Parameters
     ----------
@@ -675,11 +683,16 @@ def untangle(V, F, nfixed, *, rounds=8, step=0.5, max_move=None):
     -------
     V_out : (n, 3) float64
     crossings : int
-        Crossing pairs of triangles left.
+        Crossing pairs of triangles left; -1 for a surface over the budget (not counted).
     """
     V = np.array(V, np.float64)
     F = np.asarray(F, np.int64).reshape(-1, 3)
-    start = intersecting_face_pairs(V, F)
+    budget = UNTANGLE_CANDIDATES_PER_FACE * max(len(F), 1)
+    try:
+        start = intersecting_face_pairs(V, F, max_candidates=budget)
+    except TooManyCandidates:
+        log.warning("fusion: a remeshed junction of %d faces folds onto itself everywhere; not untangled", len(F))
+        return V, -1
     if len(start) == 0:
         return V, 0
     A = vertex_adjacency(F, len(V)).astype(np.float64).tocsr()
@@ -694,7 +707,10 @@ def untangle(V, F, nfixed, *, rounds=8, step=0.5, max_move=None):
             break
         mean = (A @ U) / deg[:, None]
         U[move] += step * (mean[move] - U[move])
-        pairs = intersecting_face_pairs(U, F)
+        try:
+            pairs = intersecting_face_pairs(U, F, max_candidates=budget)
+        except TooManyCandidates:
+            return V, int(len(start))
         if len(pairs) == 0:
             break
     moved = float(np.linalg.norm(U - V, axis=1).max())
