@@ -120,6 +120,10 @@ def _seam_components(P: Presence, preserved):
 def pinched_faces(F):
     """Faces at a vertex where the mesh's boundary passes more than once.
 
+    Boundary edges are counted without their direction: where the faces' orientation flips
+    along a line that meets the boundary (the Witch's collar), one pass of the boundary through
+    a vertex has two outgoing half-edges, and counting those took it for two passes.
+
     Parameters
     ----------
     F : (m, 3) int array
@@ -127,13 +131,14 @@ def pinched_faces(F):
     Returns
     -------
     (m,) bool array
+        Faces with a corner on more than two boundary edges.
     """
     B = boundary_halfedges(F)
     if len(B) == 0:
         return np.zeros(len(F), bool)
     n = int(np.max(F)) + 1
-    cnt = np.bincount(B[:, 0], minlength=n)
-    return (cnt[F] > 1).any(axis=1)
+    cnt = np.bincount(B.ravel(), minlength=n)
+    return (cnt[F] > 2).any(axis=1)
 
 
 def unpinch_preserved(pres: list[Presence], preserved, rounds=3):
