@@ -12,7 +12,14 @@ import numpy as np
 from ..geometry import check_grid_voxels
 from .fields import Grid, prepare_surface
 from .junction import boundary_loops
-from .meshutil import boundary_halfedges, corner_angles, edge_counts, face_adjacency
+from .meshutil import (
+    boundary_halfedges,
+    corner_angles,
+    edge_counts,
+    face_adjacency,
+    nondegenerate,
+    undirected_edges,
+)
 from .presence import Presence
 
 __all__ = [
@@ -141,11 +148,12 @@ def pinched_faces(F):
     return (cnt[F] > 2).any(axis=1)
 
 
-def unpinch_preserved(pres: list[Presence], preserved, rounds=3):
-    """Un-preserve the faces at seam vertices the preserved boundary visits twice.
+def unpinch_preserved(pres: list[Presence], preserved, rounds=8):
+    """Un-preserve the faces at seam vertices the preserved boundary visits twice, and those on
+    a non-manifold edge past which the junction continues (:func:`closed_past_junction`).
 
     Two seam loops through one vertex would both be bridged from it and give an edge of three
-    or four faces.
+    or four faces; a seam cannot run along an edge that two preserved faces close.
 
     Parameters
     ----------
@@ -153,7 +161,9 @@ def unpinch_preserved(pres: list[Presence], preserved, rounds=3):
     preserved : list of (m_i,) bool arrays
         Per input, preserved welded faces.
     rounds : int
-        Passes (un-preserving faces can pinch the boundary elsewhere).
+        Passes at most (un-preserving faces can pinch the boundary elsewhere, or bring the
+        junction to another non-manifold edge: the Frog's legs, standing on her body along
+        such edges, take 4 or 5).
 
     Returns
     -------
@@ -167,9 +177,41 @@ def unpinch_preserved(pres: list[Presence], preserved, rounds=3):
             if len(idx) == 0:
                 break
             bad = pinched_faces(P.welded.F[idx])
+            replaced = ~out[i] & ~P.absent & ~P.secondary
+            bad |= closed_past_junction(P.welded.F, out[i], replaced)[idx]
             if not bad.any():
                 break
             out[i][idx[bad]] = False
+    return out
+
+
+def closed_past_junction(F, preserved, replaced):
+    """Preserved faces on a non-manifold edge that two preserved faces close and a replaced face
+    also uses.
+
+    Such an edge is no boundary of the preserved faces, so no seam runs along it, yet the
+    junction face hanging from it is replaced: the seam stops at both its ends, an open chain
+    (the Frog's legs stand on her body along non-manifold edges).
+
+    Parameters
+    ----------
+    F : (m, 3) int array
+        Welded faces of one input.
+    preserved, replaced : (m,) bool arrays
+
+    Returns
+    -------
+    (m,) bool array
+    """
+    ok = nondegenerate(F)
+    idx = np.flatnonzero(ok)
+    _, uE, emap = undirected_edges(F[idx])
+    face = np.tile(idx, 3)
+    kept = np.bincount(emap, weights=preserved[face], minlength=len(uE))
+    gone = np.bincount(emap, weights=replaced[face], minlength=len(uE))
+    bad_edge = (kept >= 2) & (gone >= 1)
+    out = np.zeros(len(F), bool)
+    out[face[bad_edge[emap] & preserved[face]]] = True
     return out
 
 
