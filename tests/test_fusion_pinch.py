@@ -1,9 +1,13 @@
-"""Pinched seams are found by counting boundary edges, whatever the faces' orientation.
+"""Seams that cannot close are opened up before the junction is made (``unpinch_preserved``).
 
 The Witch's welded mesh flips orientation along a line that ends on a T-junction crack at her
 collar: one pass of the collar's boundary through a vertex there has two outgoing half-edges.
 Taken for a pinch, the faces around it (presence 1) left the preserved part and a junction grew
 at the collar in every composition of hers, its seam ending on the crack as open chains.
+
+The Frog's legs stand on her body along non-manifold edges: where two preserved faces close
+such an edge and a junction face hangs from it, no seam runs along it and the seam stopped at
+both its ends.
 """
 
 from __future__ import annotations
@@ -12,9 +16,9 @@ import numpy as np
 import pytest
 from conftest import corpus
 
-from rigmix.fusion.seams import pinched_faces
+from rigmix.fusion.seams import closed_past_junction, pinched_faces
 
-CASE = "mirror__Witch__Shoulder.L"
+CASES = ("mirror__Witch__Shoulder.L", "mirror__Frog__FrontUpLeg.L")
 
 
 def test_a_flipped_face_is_no_pinch():
@@ -31,20 +35,33 @@ def test_two_fans_touching_at_a_vertex_are_pinched():
     assert pinched_faces(F).tolist() == [True, True, False]
 
 
-@pytest.fixture(scope="module")
-def witch_arm_mirrored(tmp_path_factory):
-    """The fused surface of :data:`CASE` (the corpus matrix's config), composed up to its fusion."""
+def test_a_junction_face_hanging_from_a_closed_edge():
+    F = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4], [2, 1, 5]])  # edge (0, 1) has three faces
+    preserved = np.array([True, True, False, True])
+    replaced = ~preserved
+    assert closed_past_junction(F, preserved, replaced).tolist() == [True, True, False, False]
+    # one preserved face on it: an ordinary seam edge
+    assert not closed_past_junction(F, preserved & [True, False, False, True], replaced).any()
+    # nothing replaced hangs from it (a dropped part): no seam needed
+    assert not closed_past_junction(F, preserved, np.zeros(4, bool)).any()
+
+
+@pytest.fixture(scope="module", params=CASES)
+def mirrored_limb(request, tmp_path_factory):
+    """The fused surface of one of :data:`CASES` (the corpus matrix's config), composed up to
+    its fusion."""
     from benchmarks.corpus_matrix import load_subjects, mirror_cases, write_configs
     from rigmix.pipeline import compose
 
-    corpus("Witch")  # skips, or fails under CI=true, when the character is missing
-    case = next(c for c in mirror_cases(load_subjects(["Witch"])) if c.name == CASE)
-    config = write_configs([case], tmp_path_factory.mktemp("pinch"))[CASE]
+    name = request.param.split("__")[1]
+    corpus(name)  # skips, or fails under CI=true, when the character is missing
+    case = next(c for c in mirror_cases(load_subjects([name])) if c.name == request.param)
+    config = write_configs([case], tmp_path_factory.mktemp("pinch"))[request.param]
     return compose(config, until="fusion").surface
 
 
-def test_the_witch_arm_mirrored_leaves_no_gap(witch_arm_mirrored):
-    m = witch_arm_mirrored.report["mesh"]
+def test_a_mirrored_limb_leaves_no_gap(mirrored_limb):
+    m = mirrored_limb.report["mesh"]
     for key in ("junction_boundary_edges", "open_seam_edges", "new_non_manifold_edges", "unmatched_loops"):
         assert m[key] == 0, key
     # whatever crosses was crossing in the input already (her overlapping layers)
