@@ -26,6 +26,7 @@ __all__ = [
     "attach_conflicts",
     "pinched_faces",
     "unpinch_preserved",
+    "closed_past_junction",
     "drop_specks",
     "separate_seams",
     "open_notches",
