@@ -35,8 +35,10 @@ def test_two_fans_touching_at_a_vertex_are_pinched():
     assert pinched_faces(F).tolist() == [True, True, False]
 
 
-def test_a_junction_face_hanging_from_a_closed_edge():
-    F = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4], [2, 1, 5]])  # edge (0, 1) has three faces
+def test_a_seam_ending_at_a_closed_edge_opens_it():
+    # edge (0, 1) has three faces: two preserved, and a replaced one (2) that goes on to
+    # preserved face 3 across edge (1, 4): that seam ends at vertex 1
+    F = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4], [1, 5, 4]])
     preserved = np.array([True, True, False, True])
     replaced = ~preserved
     assert closed_past_junction(F, preserved, replaced).tolist() == [True, True, False, False]
@@ -44,6 +46,12 @@ def test_a_junction_face_hanging_from_a_closed_edge():
     assert not closed_past_junction(F, preserved & [True, False, False, True], replaced).any()
     # nothing replaced hangs from it (a dropped part): no seam needed
     assert not closed_past_junction(F, preserved, np.zeros(4, bool)).any()
+
+
+def test_closed_edges_stay_where_every_seam_closes():
+    F = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4], [2, 1, 5]])  # the replaced face 2 meets no seam
+    preserved = np.array([True, True, False, True])
+    assert not closed_past_junction(F, preserved, ~preserved).any()
 
 
 @pytest.fixture(scope="module", params=CASES)

@@ -188,11 +188,14 @@ def unpinch_preserved(pres: list[Presence], preserved, rounds=8):
 
 def closed_past_junction(F, preserved, replaced):
     """Preserved faces on a non-manifold edge that two preserved faces close and a replaced face
-    also uses.
+    also uses, where a seam ends.
 
     Such an edge is no boundary of the preserved faces, so no seam runs along it, yet the
-    junction face hanging from it is replaced: the seam stops at both its ends, an open chain
-    (the Frog's legs stand on her body along non-manifold edges).
+    junction face hanging from it is replaced: a seam that reaches it stops there, an open chain
+    (the Frog's legs stand on her body along non-manifold edges). Only while some seam ends
+    (a vertex on an odd number of seam edges): where every seam closes, such edges are left
+    alone, the junction meeting the seams elsewhere (opening them all up there leaves small
+    seam loops that no isosurface hole matches: the Frog's right hind leg mirrored).
 
     Parameters
     ----------
@@ -203,13 +206,19 @@ def closed_past_junction(F, preserved, replaced):
     Returns
     -------
     (m,) bool array
+        Preserved faces on such edges; none where no seam ends.
     """
     ok = nondegenerate(F)
     idx = np.flatnonzero(ok)
     _, uE, emap = undirected_edges(F[idx])
     face = np.tile(idx, 3)
+    count = np.bincount(emap, minlength=len(uE))
     kept = np.bincount(emap, weights=preserved[face], minlength=len(uE))
     gone = np.bincount(emap, weights=replaced[face], minlength=len(uE))
+    seam = (kept == 1) & (count >= 2)  # as in preserved_loops
+    ends = np.bincount(uE[seam].ravel(), minlength=len(F) and int(F.max()) + 1) % 2 == 1
+    if not ends.any():
+        return np.zeros(len(F), bool)
     bad_edge = (kept >= 2) & (gone >= 1)
     out = np.zeros(len(F), bool)
     out[face[bad_edge[emap] & preserved[face]]] = True
