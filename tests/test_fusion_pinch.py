@@ -7,7 +7,8 @@ at the collar in every composition of hers, its seam ending on the crack as open
 
 The Frog's legs stand on her body along non-manifold edges: where two preserved faces close
 such an edge and a junction face hangs from it, no seam runs along it and the seam stopped at
-both its ends.
+both its ends. Such edges are opened up only while a seam ends: where every seam closes (her
+mirrored right hind leg), opening them left small seam loops that no isosurface hole matched.
 """
 
 from __future__ import annotations
