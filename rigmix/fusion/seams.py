@@ -12,13 +12,21 @@ import numpy as np
 from ..geometry import check_grid_voxels
 from .fields import Grid, prepare_surface
 from .junction import boundary_loops
-from .meshutil import boundary_halfedges, corner_angles, edge_counts, face_adjacency
+from .meshutil import (
+    boundary_halfedges,
+    corner_angles,
+    edge_counts,
+    face_adjacency,
+    nondegenerate,
+    undirected_edges,
+)
 from .presence import Presence
 
 __all__ = [
     "attach_conflicts",
     "pinched_faces",
     "unpinch_preserved",
+    "closed_past_junction",
     "drop_specks",
     "separate_seams",
     "open_notches",
@@ -120,6 +128,10 @@ def _seam_components(P: Presence, preserved):
 def pinched_faces(F):
     """Faces at a vertex where the mesh's boundary passes more than once.
 
+    Boundary edges are counted without their direction: where the faces' orientation flips
+    along a line that meets the boundary (the Witch's collar), one pass of the boundary through
+    a vertex has two outgoing half-edges, and counting those took it for two passes.
+
     Parameters
     ----------
     F : (m, 3) int array
@@ -127,20 +139,22 @@ def pinched_faces(F):
     Returns
     -------
     (m,) bool array
+        Faces with a corner on more than two boundary edges.
     """
     B = boundary_halfedges(F)
     if len(B) == 0:
         return np.zeros(len(F), bool)
     n = int(np.max(F)) + 1
-    cnt = np.bincount(B[:, 0], minlength=n)
-    return (cnt[F] > 1).any(axis=1)
+    cnt = np.bincount(B.ravel(), minlength=n)
+    return (cnt[F] > 2).any(axis=1)
 
 
-def unpinch_preserved(pres: list[Presence], preserved, rounds=3):
-    """Un-preserve the faces at seam vertices the preserved boundary visits twice.
+def unpinch_preserved(pres: list[Presence], preserved, rounds=8):
+    """Un-preserve the faces at seam vertices the preserved boundary visits twice, and those on
+    a non-manifold edge past which the junction continues (:func:`closed_past_junction`).
 
     Two seam loops through one vertex would both be bridged from it and give an edge of three
-    or four faces.
+    or four faces; a seam cannot run along an edge that two preserved faces close.
 
     Parameters
     ----------
@@ -148,7 +162,9 @@ def unpinch_preserved(pres: list[Presence], preserved, rounds=3):
     preserved : list of (m_i,) bool arrays
         Per input, preserved welded faces.
     rounds : int
-        Passes (un-preserving faces can pinch the boundary elsewhere).
+        Passes at most (un-preserving faces can pinch the boundary elsewhere, or bring the
+        junction to another non-manifold edge: the Frog's legs, standing on her body along
+        such edges, take 4 or 5).
 
     Returns
     -------
@@ -162,9 +178,50 @@ def unpinch_preserved(pres: list[Presence], preserved, rounds=3):
             if len(idx) == 0:
                 break
             bad = pinched_faces(P.welded.F[idx])
+            replaced = ~out[i] & ~P.absent & ~P.secondary
+            bad |= closed_past_junction(P.welded.F, out[i], replaced)[idx]
             if not bad.any():
                 break
             out[i][idx[bad]] = False
+    return out
+
+
+def closed_past_junction(F, preserved, replaced):
+    """Preserved faces on a non-manifold edge that two preserved faces close and a replaced face
+    also uses, where a seam ends.
+
+    Such an edge is no boundary of the preserved faces, so no seam runs along it, yet the
+    junction face hanging from it is replaced: a seam that reaches it stops there, an open chain
+    (the Frog's legs stand on her body along non-manifold edges). Only while some seam ends
+    (a vertex on an odd number of seam edges): where every seam closes, such edges are left
+    alone, the junction meeting the seams elsewhere (opening them all up there leaves small
+    seam loops that no isosurface hole matches: the Frog's right hind leg mirrored).
+
+    Parameters
+    ----------
+    F : (m, 3) int array
+        Welded faces of one input.
+    preserved, replaced : (m,) bool arrays
+
+    Returns
+    -------
+    (m,) bool array
+        Preserved faces on such edges; none where no seam ends.
+    """
+    ok = nondegenerate(F)
+    idx = np.flatnonzero(ok)
+    _, uE, emap = undirected_edges(F[idx])
+    face = np.tile(idx, 3)
+    count = np.bincount(emap, minlength=len(uE))
+    kept = np.bincount(emap, weights=preserved[face], minlength=len(uE))
+    gone = np.bincount(emap, weights=replaced[face], minlength=len(uE))
+    seam = (kept == 1) & (count >= 2)  # as in preserved_loops
+    ends = np.bincount(uE[seam].ravel(), minlength=len(F) and int(F.max()) + 1) % 2 == 1
+    if not ends.any():
+        return np.zeros(len(F), bool)
+    bad_edge = (kept >= 2) & (gone >= 1)
+    out = np.zeros(len(F), bool)
+    out[face[bad_edge[emap] & preserved[face]]] = True
     return out
 
 
