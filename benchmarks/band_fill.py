@@ -757,9 +757,12 @@ def encoder_fields(V, F, positions, parents, *, encoders=FIELD_ENCODERS, direct=
 
 
 def protocol_methods(fields, protocol):
-    """Label -> ``(fill method, options)``: the baselines and, per field, ``dfd`` with it alone,
-    with the borrow prior, and (protocol 3) with ambient handles."""
+    """Label -> ``(fill method, options)``: the baselines, the pipeline's default (``dfd_default``),
+    and, per field, ``dfd`` with it alone, with the borrow prior, and (protocol 3) with ambient handles."""
     methods = {label: (m, dict(o)) for label, (m, o) in BOTH_HIDDEN_METHODS.items()}
+    # the pipeline's default since protocol 3's decision: no distilled field, borrowing with the
+    # skeleton-relative field only next to joints nowhere known (rigmix.weights.ambient)
+    methods["dfd_default"] = ("dfd", {"field": False, "ambient_borrow": BORROW})
     for label, field in fields.items():
         methods[f"dfd[{label}]"] = ("dfd", {"field": field})
         methods[f"dfd[{label}]+borrow"] = ("dfd", {"field": field, "borrow": BORROW})

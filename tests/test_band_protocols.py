@@ -281,3 +281,31 @@ def test_ambient_prior_brings_back_a_tail_nowhere_known(horse):
     assert (filled >= 0).all()
     tail = case["joints"]
     assert filled[unknown][:, tail].sum() > 10 * inpainted[unknown][:, tail].sum()
+
+
+def test_unknown_chains_keep_whole_chains_only():
+    from rigmix.weights.ambient import unknown_chains
+
+    # 0 root, 1 -> 2 -> 3 a tail, 4 a leg whose foot 5 stays painted
+    parents = np.array([-1, 0, 1, 2, 0, 4])
+    ambient = np.array([False, True, True, True, True, False])
+    np.testing.assert_array_equal(unknown_chains(ambient, parents), [False, True, True, True, False, False])
+
+
+def test_default_borrows_only_next_to_a_chain_nowhere_known(horse):
+    """The pipeline's default (``ambient_borrow``) leaves protocol 2's fill as it was, and moves protocol 3's."""
+    from rigmix.weights import fill_weights
+
+    V, F, W, names, positions = character_arrays(horse)
+    index, Wt = welded_truth(V, F, W)
+    skeleton = {"joint_positions": positions, "joint_names": names, "joint_parents": horse.skeleton.parents,
+                "deforming_joints": W.sum(axis=0) > 0}
+    front = protocol_masks(horse, Wt, "similar")["FrontUpperLeg.L|FrontUpperLeg.R"][index]
+    (tail,) = protocol_masks(horse, Wt, "ambient").values()
+    tail = tail[index]
+    for unknown, moved in ((front, False), (tail, True)):
+        hidden = np.where(unknown[:, None], 0.0, W)
+        default = fill_weights(V, F, hidden, unknown, method="dfd", field=False, ambient_borrow=0.5, **skeleton)
+        plain = fill_weights(V, F, hidden, unknown, method="dfd", field=False, **skeleton)
+        np.testing.assert_allclose(default[unknown].sum(axis=1), 1.0, atol=1e-9)
+        assert (np.abs(default - plain).max() > 0.01) == moved
