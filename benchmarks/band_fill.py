@@ -890,7 +890,10 @@ def markdown_protocol(results, summary, protocol, distilled):
         "",
         "`dfd[E]`: the dfd fill with encoder `E`'s field distilled "
         f"({DISTILL}, 24 views at 224 px, no cache: `field s` is the distillation); `E-direct`: the encoder's "
-        f"features evaluated at the points, no distillation; `+borrow`: the borrow prior (confidence {BORROW}).",
+        f"features evaluated at the points, no distillation; `+borrow`: the borrow prior (confidence {BORROW}). "
+        "`dfd_default`: the pipeline's default since protocol 3's decision, no distilled field and the borrow "
+        "prior with the skeleton-relative direct field only next to a chain nowhere known (`ambient_borrow`, "
+        "`rigmix/weights/ambient.py`).",
         "",
         f"**Distilled encoders were run on {len(distilled)} of the {summary['characters']} characters** "
         f"({', '.join(distilled) or 'none'}); the direct variants and the baselines on all of them. Each rule "
