@@ -389,6 +389,7 @@ WEIGHT_RANGES: dict[str, dict] = {
     "mirror_tol": {"ge": 0},
     "strength": {"ge": 0},
     "bone_prior": {"ge": 0, "le": 1},
+    "ambient_borrow": {"ge": 0, "le": 1},
     "field_cache": {},
     "distill_options": {},
 }

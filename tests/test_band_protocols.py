@@ -1,4 +1,5 @@
-"""Issue 27's band-fill protocol 1: a limb's bands hidden together with its mirror partner's."""
+"""Issue 27's band-fill protocols: 1, a limb's bands hidden together with its mirror partner's; 2, the
+same while similar parts stay painted; 3, a tail or wing chain whose painting is nowhere known."""
 
 from __future__ import annotations
 
@@ -15,10 +16,17 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.band_fill import (  # noqa: E402
     HIGH,
     LOW,
+    ambient_cases,
     character_arrays,
+    clip_matrices,
+    mask_errors,
     mirror_joint_pairs,
     pair_band,
     pair_band_errors,
+    protocol_masks,
+    rest_diagonal,
+    similar_part_cases,
+    skinned_error,
     welded_truth,
 )
 
@@ -131,3 +139,173 @@ def test_fill_borrows_from_feature_similar_parts(knight_hidden):
     np.testing.assert_allclose(with_borrow[unknown].sum(axis=1), 1.0, atol=1e-9)
     assert np.isfinite(with_borrow).all() and (with_borrow >= 0).all()
     assert np.abs(with_borrow - without)[unknown].max() > 0.01  # the borrowed prior takes part
+
+
+# --- protocol 2: similar parts stay painted ------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def horse():
+    return load_character(asset("Horse"))
+
+
+def test_similar_hides_a_front_pair_while_back_legs_stay_painted(horse):
+    names = list(horse.skeleton.names)
+    cases = {c["name"]: c for c in similar_part_cases(horse)}
+    front = cases["FrontUpperLeg.L|FrontUpperLeg.R"]
+    assert set(front["painted"]) == {"BackUpperLeg.L", "BackUpperLeg.R"}
+    hidden = {names[j] for j in front["joints"]}
+    assert {"FrontUpperLeg.L", "FrontLowerLeg.L", "FrontUpperLeg.R", "FrontLowerLeg.R"} <= hidden
+    assert not any(n.startswith("Back") for n in hidden)
+    V, F, W, _, _ = character_arrays(horse)
+    index, Wt = welded_truth(V, F, W)
+    mask = protocol_masks(horse, Wt, "similar")[front["name"]]
+    # both front legs' bands are hidden, together ...
+    for n in ("FrontUpperLeg.L", "FrontUpperLeg.R", "FrontLowerLeg.L", "FrontLowerLeg.R"):
+        j = names.index(n)
+        assert mask[(Wt[:, j] > LOW) & (Wt[:, j] < HIGH)].all()
+    # ... and the back legs keep all their painting
+    back = [names.index(n) for n in names if n.startswith("BackUpperLeg") or n.startswith("BackLowerLeg")]
+    assert Wt[mask][:, back].max() < LOW
+    assert (Wt[~mask][:, back] > HIGH).any()
+
+
+def test_similar_cases_on_the_wasp_hide_one_leg_pair_of_three():
+    wasp = load_character(asset("Wasp"))
+    plan = classify_limbs(wasp)
+    legs = {limb.root for limb in plan.of_kind("leg")}
+    pairs = [c for c in similar_part_cases(wasp) if c["kind"] == "leg"]
+    assert len(legs) == 6 and len(pairs) == 3
+    for c in pairs:
+        hidden = set(c["name"].split("|"))
+        assert len(hidden) == 2 and hidden <= legs
+        assert set(c["painted"]) == legs - hidden  # the two other pairs stay painted
+    tail = [c for c in similar_part_cases(wasp) if c["kind"] == "tail segment"]
+    assert len(tail) == 1 and len(tail[0]["joints"]) == 1 and len(tail[0]["painted"]) >= 2
+
+
+def test_similar_errors_measure_the_hidden_rows_and_their_skinning(horse):
+    V, F, W, names, _ = character_arrays(horse)
+    index, Wt = welded_truth(V, F, W)
+    masks = protocol_masks(horse, Wt, "similar")
+    skin = clip_matrices(horse)
+    errors = mask_errors(V, F, W, masks, "nearest", skin=skin, diagonal=rest_diagonal(horse.skeleton, V, W))
+    assert set(errors) == set(masks)
+    for key, e in errors.items():
+        assert e["rows"] == masks[key].sum() > 0
+        assert 0 < e["mean"] <= e["max"] <= 1
+        assert 0 < e["skinned"] <= e["skinned_max"] < 1  # a fraction of the diagonal
+
+
+def test_skinned_error_of_a_rigid_offset():
+    """Weights moved wholly onto a joint translated by t: every vertex is off by |t|."""
+    rng = np.random.default_rng(0)
+    V = rng.normal(size=(20, 3))
+    M = np.zeros((3, 2, 3, 4))
+    M[..., :3] = np.eye(3)
+    t = np.array([0.3, -0.4, 0.0])
+    M[:, 1, :, 3] = t
+    W0 = np.tile([1.0, 0.0], (20, 1))
+    W1 = np.tile([0.0, 1.0], (20, 1))
+    assert skinned_error(V, W0, W0, M, 1.0) == (0.0, 0.0)
+    mean, worst = skinned_error(V, W0, W1, M, 2.0)
+    assert mean == pytest.approx(0.25) and worst == pytest.approx(0.25)
+
+
+# --- protocol 3: ambient handles -------------------------------------------------------------------
+
+
+def test_ambient_hides_a_whole_tail_chain(horse):
+    names = list(horse.skeleton.names)
+    plan = classify_limbs(horse)
+    (tail,) = plan.of_kind("tail")
+    (case,) = ambient_cases(horse)
+    assert case["kind"] == "tail" and {names[j] for j in case["joints"]} == set(tail.joints)
+    V, F, W, _, _ = character_arrays(horse)
+    index, Wt = welded_truth(V, F, W)
+    mask = protocol_masks(horse, Wt, "ambient")[case["name"]]
+    # nowhere known: no vertex left painted carries any tail joint
+    assert (Wt[~mask][:, case["joints"]] == 0).all()
+    assert mask.sum() > 50 and mask[Wt[:, names.index(tail.joints[-1])] > 0].all()
+
+
+def test_ambient_cases_pair_wings():
+    wasp = load_character(asset("Wasp"))
+    kinds = {c["kind"]: c for c in ambient_cases(wasp)}
+    names = list(wasp.skeleton.names)
+    wings = {names[j] for j in kinds["wing"]["joints"]}
+    plan = classify_limbs(wasp)
+    assert wings == {n for limb in plan.of_kind("wing") for n in limb.joints}
+    assert {limb.side for limb in plan.of_kind("wing")} == {"L", "R"}
+
+
+def test_bone_samples_lie_on_the_bones():
+    from rigmix.weights.ambient import bone_samples
+
+    positions = np.array([[0.0, 0, 0], [0, 1, 0], [0, 3, 0]])
+    parents = np.array([-1, 0, 1])
+    X = bone_samples(positions, parents, 1, samples=4)
+    np.testing.assert_allclose(X, [[0, 1, 0], [0, 1.5, 0], [0, 2, 0], [0, 2.5, 0]])
+    tip = bone_samples(positions, parents, 2, samples=2)  # a leaf continues its parent's bone
+    np.testing.assert_allclose(tip, [[0, 3, 0], [0, 3.5, 0]])
+
+
+def test_ambient_prior_brings_back_a_tail_nowhere_known(horse):
+    from dfd.encoders import SkeletonEncoder, bone_segments, point_field
+    from rigmix.weights import fill_weights
+    from rigmix.weights.ambient import ambient_prior
+    from rigmix.weights.mesh import weld_rows, welded_mesh
+
+    V, F, W, names, positions = character_arrays(horse)
+    parents = horse.skeleton.parents
+    index, Wt = welded_truth(V, F, W)
+    (case,) = ambient_cases(horse)
+    unknown = protocol_masks(horse, Wt, "ambient")[case["name"]][index]
+    field = point_field(SkeletonEncoder(*bone_segments(positions, parents)), V)
+    g = welded_mesh(V, F)
+    Ww, unk = weld_rows(np.where(unknown[:, None], 0.0, W), g.index, unknown, len(g.V))
+    deforming = W.sum(axis=0) > 0
+    f = field(g.V)
+    P, c = ambient_prior(g, Ww, unk, f, field, positions, parents, deforming, confidence=0.5)
+    assert (c[~unk] == 0).all() and (P[~unk] == 0).all()
+    assert 0 <= c.min() and c.max() <= 0.5 and (c[unk] > 0).all()
+    np.testing.assert_allclose(P[unk].sum(axis=1), 1.0, atol=1e-9)
+    assert P[unk][:, case["joints"]].sum(axis=1).mean() > 0.5  # the tail's handles take its region
+    hidden = np.where(unknown[:, None], 0.0, W)
+    skeleton = {"joint_positions": positions, "joint_names": names, "joint_parents": parents,
+                "deforming_joints": deforming}
+    filled = fill_weights(V, F, hidden, unknown, method="dfd", field=field, ambient=0.5, **skeleton)
+    inpainted = fill_weights(V, F, hidden, unknown, method="inpaint")
+    np.testing.assert_array_equal(filled[~unknown], W[~unknown])
+    np.testing.assert_allclose(filled[unknown].sum(axis=1), 1.0, atol=1e-9)
+    assert (filled >= 0).all()
+    tail = case["joints"]
+    assert filled[unknown][:, tail].sum() > 10 * inpainted[unknown][:, tail].sum()
+
+
+def test_unknown_chains_keep_whole_chains_only():
+    from rigmix.weights.ambient import unknown_chains
+
+    # 0 root, 1 -> 2 -> 3 a tail, 4 a leg whose foot 5 stays painted
+    parents = np.array([-1, 0, 1, 2, 0, 4])
+    ambient = np.array([False, True, True, True, True, False])
+    np.testing.assert_array_equal(unknown_chains(ambient, parents), [False, True, True, True, False, False])
+
+
+def test_default_borrows_only_next_to_a_chain_nowhere_known(horse):
+    """The pipeline's default (``ambient_borrow``) leaves protocol 2's fill as it was, and moves protocol 3's."""
+    from rigmix.weights import fill_weights
+
+    V, F, W, names, positions = character_arrays(horse)
+    index, Wt = welded_truth(V, F, W)
+    skeleton = {"joint_positions": positions, "joint_names": names, "joint_parents": horse.skeleton.parents,
+                "deforming_joints": W.sum(axis=0) > 0}
+    front = protocol_masks(horse, Wt, "similar")["FrontUpperLeg.L|FrontUpperLeg.R"][index]
+    (tail,) = protocol_masks(horse, Wt, "ambient").values()
+    tail = tail[index]
+    for unknown, moved in ((front, False), (tail, True)):
+        hidden = np.where(unknown[:, None], 0.0, W)
+        default = fill_weights(V, F, hidden, unknown, method="dfd", field=False, ambient_borrow=0.5, **skeleton)
+        plain = fill_weights(V, F, hidden, unknown, method="dfd", field=False, **skeleton)
+        np.testing.assert_allclose(default[unknown].sum(axis=1), 1.0, atol=1e-9)
+        assert (np.abs(default - plain).max() > 0.01) == moved

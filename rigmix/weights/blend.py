@@ -379,7 +379,8 @@ def junction_fill_options(params: WeightParams, surface, retargeted, *, diagonal
     ``field_cache`` and ``distill_options`` over :data:`FIELD_DISTILL`, else ``False`` without
     ``params.feature_field``), the skeleton's joint names, rest positions and parents, the
     joints that deform the inputs (``deforming_joints``), ``iterations`` (default
-    :data:`JUNCTION_SMOOTHING`) and the geodesic locality (``params.locality`` x ``diagonal``).
+    :data:`JUNCTION_SMOOTHING`), the geodesic locality (``params.locality`` x ``diagonal``) and
+    ``ambient_borrow``.
 
     Parameters
     ----------
@@ -421,8 +422,10 @@ def junction_fill_options(params: WeightParams, surface, retargeted, *, diagonal
     deforming = np.any([(Wr > 0).any(axis=0) for Wr in retargeted], axis=0)
     locality_options = {} if params.locality <= 0 else {
         "locality": params.locality * diagonal, "locality_power": params.locality_power}
+    # the field's one measured gain: borrowing next to joints nowhere known (ambient_borrow_prior)
+    ambient_options = {"ambient_borrow": params.ambient_borrow} if params.ambient_borrow > 0 else {}
     return {"iterations": JUNCTION_SMOOTHING, **options, **skeleton_options, "deforming_joints": deforming,
-            **locality_options}, lazy
+            **locality_options, **ambient_options}, lazy
 
 
 def copy_preserved_rows(surface, retargeted, num_output_joints, *, max_influences):

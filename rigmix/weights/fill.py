@@ -107,7 +107,13 @@ def fill_weights(V, F, W, unknown, *, method="inpaint", max_influences=4, **opti
         carries keeps its filled weights, its whole surface being hidden; any other joint
         nothing witnesses is removed), ``borrow`` (0: off; with a field and ``joint_parents``,
         the largest confidence of the prior borrowed from feature-similar parts around other
-        joints where the mirror is not painted, :mod:`rigmix.weights.borrow`).
+        joints where the mirror is not painted, :mod:`rigmix.weights.borrow`), ``ambient`` (0:
+        off; with a field, ``joint_parents`` and ``deforming_joints``, the largest confidence of
+        the prior from handles sampled along the bones of deforming joints no known vertex
+        carries, :mod:`rigmix.weights.ambient`), ``ambient_borrow`` (0: off; with
+        ``joint_parents`` and ``deforming_joints``, no field needed: the largest confidence of the
+        borrow prior with the skeleton-relative field next to joints no known vertex carries,
+        :func:`rigmix.weights.ambient.ambient_borrow_prior`; the junction's default, 0.5).
         All: ``uniform`` (1e-3), the weight of the uniform Laplacian regularizer.
 
     Returns

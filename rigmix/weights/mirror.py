@@ -20,6 +20,7 @@ from dfd.mesh import face_areas, surface_samples
 from ..errors import InputError
 from ..geometry import bounding_box_diagonal
 from ..rig import swap_side
+from .ambient import ambient_borrow_prior, ambient_prior
 from .borrow import borrow_prior
 from .locality import geodesic_locality
 from .mesh import (
@@ -465,7 +466,7 @@ def fill_dfd(g: WeldedMesh, W, unk, *, field=None, plane=None, joint_mirror=None
               joint_names=None, joint_positions=None, mirror_tol=0.25, strength=10.0,
               iterations=0, keep=0.8, field_cache=None, distill_options=None,
               joint_parents=None, bone_prior=0.1, locality=0.0, locality_power=1.0,
-              deforming_joints=None, borrow=0.0):
+              deforming_joints=None, borrow=0.0, ambient=0.0, ambient_borrow=0.0):
     """The project's fill: the inpainting energy pulled toward a prior from similar known parts.
 
     Prior: each unknown vertex reflected across the symmetry plane (given, or detected on the
@@ -495,7 +496,8 @@ def fill_dfd(g: WeldedMesh, W, unk, *, field=None, plane=None, joint_mirror=None
                                 joint_names=joint_names, joint_positions=joint_positions, mirror_tol=mirror_tol,
                                 strength=strength, iterations=iterations, keep=keep, field_cache=field_cache,
                                 distill_options=distill_options, joint_parents=joint_parents,
-                                bone_prior=bone_prior, borrow=borrow)
+                                bone_prior=bone_prior, borrow=borrow, ambient=ambient,
+                                ambient_borrow=ambient_borrow, deforming_joints=deforming_joints)
     if locality and locality > 0:
         witness = np.where(c[:, None] >= TRUSTED, P, 0.0) if P is not None else None
         out = geodesic_locality(g.V, g.F, out, unk, radius=locality, power=locality_power, witness=witness,
@@ -505,7 +507,7 @@ def fill_dfd(g: WeldedMesh, W, unk, *, field=None, plane=None, joint_mirror=None
 
 def _fill_dfd_prior(g: WeldedMesh, W, unk, *, field, plane, joint_mirror, joint_names, joint_positions,
                     mirror_tol, strength, iterations, keep, field_cache, distill_options, joint_parents,
-                    bone_prior, borrow=0.0):
+                    bone_prior, borrow=0.0, ambient=0.0, ambient_borrow=0.0, deforming_joints=None):
     """:func:`fill_dfd` before the locality: ``(filled W, prior P or None, confidence c or None)``."""
     J = W.shape[1]
     if plane is None:
@@ -540,6 +542,22 @@ def _fill_dfd_prior(g: WeldedMesh, W, unk, *, field, plane, joint_mirror, joint_
         total = np.maximum(c + cf, 1e-12)
         P = (c[:, None] * P + cf[:, None] * Pf) / total[:, None]
         c = c + cf
+    if bones is not None and field is not None and ambient > 0 and deforming_joints is not None:
+        # joints whose painting is nowhere known: handles sampled along their bones (ambient_prior)
+        Pa, ca = ambient_prior(g, W, unk, _evaluate(field, g.V), lambda X: _evaluate(field, X), joint_positions,
+                               joint_parents, deforming_joints, confidence=ambient)
+        ca = ca * (1.0 - c)
+        total = np.maximum(c + ca, 1e-12)
+        P = (c[:, None] * P + ca[:, None] * Pa) / total[:, None]
+        c = c + ca
+    if bones is not None and ambient_borrow > 0 and deforming_joints is not None:
+        # next to joints nowhere known, borrow with the skeleton-relative field (no distillation)
+        Pa, ca = ambient_borrow_prior(g, W, unk, joint_positions, joint_parents, deforming_joints, mirror,
+                                      confidence=ambient_borrow)
+        ca = ca * (1.0 - c)
+        total = np.maximum(c + ca, 1e-12)
+        P = (c[:, None] * P + ca[:, None] * Pa) / total[:, None]
+        c = c + ca
     if bones is not None and bone_prior > 0:
         Pb, cb = _bone_prior(g, W, unk, joint_positions, joint_parents, confidence=bone_prior)
         cb = cb * (1.0 - c)  # the mirror, where it exists, is the better witness
