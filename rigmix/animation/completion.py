@@ -83,6 +83,7 @@ from .keyframes import (
     map_pose,
     rotation_features,
 )
+from .detached import Follower, follow_tips, source_offsets
 from .sampling import clip_times, sample_clip
 from .transitions import angular_acceleration, blend_seams, choose_frames, discontinuities, segments_next, smooth_seams
 
@@ -361,7 +362,8 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
                    selection: Sequence[tuple[str, str]] | None = None,
                    options: CompletionOptions | None = None,
                    provenance: Sequence[Sequence[tuple[str, int]]] | None = None,
-                   translations: Mapping[str, np.ndarray] | None = None) -> tuple[Clip, ...]:
+                   translations: Mapping[str, np.ndarray] | None = None,
+                   followers: Sequence[Follower] = ()) -> tuple[Clip, ...]:
     """Complete the selected clips of every input on the output skeleton S_R.
 
     Parameters
@@ -383,6 +385,9 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
         Per id, the translation maps of :func:`translation_maps` (the plan's scales and frames);
         without them translation keys are rescaled by a bone-length ratio
         (:func:`rigmix.animation.keyframes.map_pose`).
+    followers : sequence of Follower, optional
+        Detached parts of moved limbs (:func:`rigmix.animation.detached.detached_followers`):
+        in each clip, last, each is placed at its limb tip (:func:`_follow`).
 
     Returns
     -------
@@ -460,8 +465,29 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
             s = np.unique(np.concatenate(seams))
             Rc, Tc = blend_seams(R[:, completed], T[:, completed], s, options.blend_frames)
             R[:, completed], T[:, completed] = smooth_seams(Rc, Tc, s, options.smoothing)
+        T, R, S = _follow(skeleton_out, inputs, cid, clip_name, fx.times[c], T, R, S, followers)
         out.append(_to_clip(out_name, fx.times[c], T, R, S))
     return tuple(out)
+
+
+def _follow(skeleton_out, inputs, cid, clip_name, times, T, R, S, followers):
+    """``T, R, S`` of the clip ``clip_name`` of input ``cid`` with the detached parts placed at
+    their limb tips (:func:`rigmix.animation.detached.follow_tips`).
+
+    A part of the clip's own input keeps the offset to the tip it has in that clip, frame by
+    frame; a part of another input, whose limb plays frames chosen from its clips (or a blend
+    toward rest), keeps its rest offset. Where the part, its limb and the joints between them
+    all come from the clip's asset or its mirrored copy (a self-composition), the clip drives
+    them with one motion (:func:`_own_clip`, :func:`_same_named`): left as it is.
+    """
+    x = inputs[cid]
+    mine = [f for f in followers
+            if not all(same_asset(x, inputs[y]) or _mirrored_copies(x, inputs[y]) for y in (f.source, *f.between))]
+    if not mine:
+        return T, R, S
+    own = [f for f in mine if f.source == cid]
+    offsets = dict(zip(map(id, own), source_offsets(inputs[cid], clip_name, times, own))) if own else {}
+    return follow_tips(skeleton_out, T, R, S, mine, [offsets.get(id(f)) for f in mine])
 
 
 def _completing_inputs(completed, owners, frames):
