@@ -43,6 +43,11 @@ Choices where the method leaves room (all options of :class:`CompletionOptions`)
   reflected clip mixed the two sides along the leg (the fused hip and foot from one side, the
   lower leg from the other) and put the junction stretch ratio at 1.67; following the clip's
   own joints, 1.33, the output band's per-clip figures within 0.04 of the body's own.
+* Detached parts (:attr:`rigmix.limbs.Limb.detached`: an IK foot under the armature root) of
+  a limb moved to another body follow the limb's tip, last, in every clip
+  (:mod:`rigmix.animation.detached`): at their offset to it in their input's own clip where
+  that clip plays, else at their rest offset. A foot keyed root-relative would keep the donor
+  body's motion while its leg hangs from the other body's hip, and stretch the foot's skin.
 * Frame choice: the paper takes the best frame per output frame (``jump_penalty=0``); a
   positive ``jump_penalty`` runs a Viterbi pass where continuing to the next frame of the same
   clip is free and any other jump costs the penalty (fewer seams, smoother completed part).

@@ -4,17 +4,19 @@ A Quaternius rig's IK foot carries the foot's skin but hangs from the armature r
 the leg (:attr:`rigmix.limbs.Limb.detached`); its clip keys it root-relative, where the IK solve
 put it at the end of the leg. Moved with its leg to another body (a ``replace`` of the leg and
 one of the foot), the leg hangs from the other body's hip while the foot keeps the donor's
-root-relative motion: the lower leg to foot distance swings to 0.2-1.3 times its rest length
-(Trex front leg from the Triceratops) or 4.6 times (Wolf from the Apatosaurus), where in the
-donor's own clips it stays near 1.
+root-relative motion: the distance from the lower leg to the foot swings far from its rest
+length (and the foot's skin stretches with it), where in the donor's own clips it stays near it.
 
 :func:`detached_followers` finds, per input, the top joint of each detached part of a limb that
 the composition moved (the S_R path between the part and its limb tip runs through a joint the
 input does not own); :func:`follow_tips` then sets, in each completed clip, the part's world
-transform to the limb tip's times the offset the part has to that tip in the input's own clip at
-the same frame, when the clip playing is the input's own, else its rest offset. A clip of the
-same asset (a self-composition) or of its mirrored copy drives the limb and its part with one
-motion already: nothing changes there.
+transform to the limb tip's times the part's offset to it: S_R's rest offset, moved as the part
+moves about its rest offset in the input's own clip at the same frame when the clip playing is
+the input's own (a rest-relative delta in the part's frame, as :func:`rigmix.animation.keyframes.
+map_pose` carries local rotations), else the rest offset alone. Where the part, the limb and the
+joints between them all come from the clip's asset or its mirrored copy (a self-composition),
+the clip drives them with one motion already: nothing changes there
+(:func:`rigmix.animation.completion._follow`).
 
 Conventions (:mod:`rigmix.character`): 4x4 matrices act on column vectors (``p' = M @ p``), world
 matrices include the roots' anchors; local transforms are a joint's in its parent's frame;
