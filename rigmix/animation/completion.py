@@ -77,6 +77,7 @@ from ..character import Character, Clip, Skeleton, Track
 from ..errors import InputError
 from ..rig import unique_names
 from ..transforms import quat_normalize
+from .detached import Follower, follow_tips, source_offsets
 from .keyframes import (
     KEPT_CONFIDENCE,
     Candidates,
@@ -88,7 +89,6 @@ from .keyframes import (
     map_pose,
     rotation_features,
 )
-from .detached import Follower, follow_tips, source_offsets
 from .sampling import clip_times, sample_clip
 from .transitions import angular_acceleration, blend_seams, choose_frames, discontinuities, segments_next, smooth_seams
 

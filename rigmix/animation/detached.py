@@ -33,7 +33,7 @@ import numpy as np
 from ..character import Character, Skeleton
 from ..transforms import matrix_to_trs, trs_to_matrix
 
-__all__ = ["Follower", "detached_followers", "follow_tips"]
+__all__ = ["Follower", "detached_followers", "follow_tips", "source_offsets"]
 
 
 @dataclass(frozen=True)
