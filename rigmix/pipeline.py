@@ -155,6 +155,7 @@ def completion_stage(composition: Composition, progress: Progress | None = None)
     confidence blend, not measured (``fidelity_blended_joints``).
     """
     from .animation.completion import complete_clips, completion_provenance, selected_clips, translation_maps
+    from .animation.detached import detached_followers
     from .animation.fidelity import clip_fidelity
     from .geometry import bounding_box_diagonal
 
@@ -164,7 +165,9 @@ def completion_stage(composition: Composition, progress: Progress | None = None)
     provenance = completion_provenance(plan, options.rest_mismatch)
     clips = complete_clips(plan.skeleton, composition.inputs, composition.maps, selection=sources,
                            options=options, provenance=provenance,
-                           translations=translation_maps(plan, composition.maps, composition.inputs))
+                           translations=translation_maps(plan, composition.maps, composition.inputs),
+                           followers=detached_followers(plan.skeleton, composition.inputs, composition.maps,
+                                                        plan.provenance, plan.transforms))
     fidelity = clip_fidelity(plan.skeleton, clips, sources, composition.inputs, plan.positioned, plan.transforms,
                              provenance, composition.maps,
                              diagonal=bounding_box_diagonal(composition.surface.V if composition.surface is not None

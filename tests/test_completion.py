@@ -741,3 +741,37 @@ def test_a_mirrored_copy_follows_the_joints_it_replaces():
             got = _rest_relative(S.rotations[joints], Ro[:, joints])
             want = _rest_relative(src.skeleton.rotations[same], Ri[:, same])
             np.testing.assert_allclose(quat_angle(got, want), 0.0, atol=1e-7)
+
+
+def test_a_detached_part_follows_its_tip_at_the_offset_it_is_given():
+    """A root, a two-bone leg under it, and a foot hanging from the root beside the leg's tip
+    (an IK foot): placed by :func:`follow_tips`, the foot's world transform is the tip's times the
+    rest offset (no input offset), or times the input's offset carried through ``B``; the leg is
+    left as it was, and the foot's own rest offset (``D = I``) gives the rest placement back."""
+    from rigmix.animation.detached import Follower, follow_tips
+    from rigmix.transforms import quat_normalize, quat_to_matrix, trs_to_matrix
+
+    rng = np.random.default_rng(7)
+    names = ["root", "hip", "knee", "foot"]
+    parents = np.array([-1, 0, 1, 0])
+    t = np.array([[0.0, 0.0, 0.0], [0.2, 1.0, 0.0], [0.0, -0.5, 0.1], [0.2, 0.5, 0.1]])
+    r = quat_normalize(rng.normal(size=(4, 4)) * [0.2, 0.2, 0.2, 1.0])
+    sk = Skeleton(names, parents, t, r, np.ones((4, 3)), np.tile(np.eye(4), (4, 1, 1)))
+    F = 5
+    T = np.broadcast_to(t, (F, 4, 3)).copy()
+    R = quat_normalize(rng.normal(size=(F, 4, 4)) * [0.3, 0.3, 0.3, 1.0])
+    S = np.ones((F, 4, 3))
+    rest = sk.rest_worlds()
+    B = np.eye(4)
+    B[:3, :3] = 2.0 * quat_to_matrix(quat_normalize(np.array([0.1, -0.2, 0.3, 1.0])))  # input frame: twice as large
+    O_rest = np.linalg.solve(rest[2], rest[3]) @ np.diag([0.5, 0.5, 0.5, 1.0])  # any rest offset in the input
+    f = Follower("donor", 3, 2, 3, 2, O_rest, B, ("body",))
+    D = trs_to_matrix(rng.normal(size=(F, 3)) * 0.1, quat_normalize(rng.normal(size=(F, 4))), np.ones((F, 3)))
+    for off, want_rel in ((None, np.linalg.solve(rest[2], rest[3])[None]),
+                          (np.broadcast_to(O_rest, (F, 4, 4)), np.linalg.solve(rest[2], rest[3])[None]),
+                          (O_rest @ D, np.linalg.solve(rest[2], rest[3]) @ np.linalg.solve(B, D) @ B)):
+        T2, R2, S2 = follow_tips(sk, T, R, S, [f], [off])
+        W = sk.world_matrices(trs_to_matrix(T2, R2, S2))
+        np.testing.assert_allclose(W[:, 3], W[:, 2] @ want_rel, atol=1e-12)
+        for a, b in ((T2, T), (R2, R), (S2, S)):
+            np.testing.assert_array_equal(a[:, :3], b[:, :3])

@@ -84,3 +84,54 @@ def test_a_mirrored_leg_steps_as_the_leg_it_replaces(mirrored_leg):
         np.testing.assert_allclose(quat_angle(got, want), 0.0, atol=1e-6, err_msg=name)
     q = comp.report["quality"]
     assert q["junction_stretch_ratio"] <= MAX_STRETCH_RATIO, q
+
+
+@pytest.fixture(scope="module")
+def ik_foot_swap(tmp_path_factory):
+    """The corpus's leg swap of two Quaternius rigs whose feet are IK bones under the armature
+    root (detached parts of the leg): the Trex's left leg and foot replaced by the Triceratops's
+    front left ones."""
+    from rigmix.pipeline import compose
+
+    cfg = tmp_path_factory.mktemp("ikfoot") / "ikfoot.toml"
+    text = (f'[characters.body]\npath = "{corpus("Trex").as_posix()}"\n'
+            f'[characters.donor]\npath = "{corpus("Triceratops").as_posix()}"\nscale = "auto"\n')
+    for source, target in (("FrontUpLeg.L", "BackUpLeg.L"), ("FrontFoot.L", "BackFoot.L")):
+        text += (f'[[actions]]\nop = "replace"\nsource = "donor"\nsource_joint = "{source}"\n'
+                 f'target = "body"\ntarget_joint = "{target}"\nmode = "blend"\n')
+    cfg.write_text(text)
+    return compose(cfg)
+
+
+def _tip_distance(skeleton, clip, joint, tip):
+    """(F,) distance from ``joint`` to ``tip`` in ``clip`` (30 fps), over the rest distance."""
+    from rigmix.animation import clip_times, sample_clip
+    from rigmix.transforms import trs_to_matrix
+
+    T, R, S = sample_clip(skeleton, clip, clip_times(clip, 30.0))
+    P = skeleton.world_matrices(trs_to_matrix(T, R, S))[..., :3, 3]
+    rest = skeleton.rest_worlds()[:, :3, 3]
+    return np.linalg.norm(P[:, joint] - P[:, tip], axis=-1) / np.linalg.norm(rest[joint] - rest[tip])
+
+
+def test_a_moved_ik_foot_stays_at_its_leg(ik_foot_swap):
+    """The donor's foot hangs from the root, its leg from the body's hip: it follows the leg's tip,
+    at its rest distance where the body's clip plays (the leg plays chosen donor frames), as in
+    the donor's own clip where that plays; the seam then stretches no more than the sources'."""
+    comp = ik_foot_swap
+    S, donor = comp.plan.skeleton, comp.inputs["donor"]
+    foot, tip = S.names.index("BackFoot.L"), S.names.index("donor_FrontLowLeg.L")
+    assert S.parents[foot] != tip  # the foot is a detached part: it does not hang from the leg
+    d_foot, d_tip = donor.skeleton.names.index("FrontFoot.L"), donor.skeleton.names.index("FrontLowLeg.L")
+    sources = comp.report["animation"]["sources"]
+    assert {cid for cid, _ in sources} == {"body", "donor"}
+    for clip, (cid, name) in zip(comp.clips, sources, strict=True):
+        got = _tip_distance(S, clip, foot, tip)
+        if cid == "body":
+            np.testing.assert_allclose(got, 1.0, atol=1e-6, err_msg=clip.name)
+        else:
+            own = _tip_distance(donor.skeleton, donor.clip(name), d_foot, d_tip)
+            # the leg and the foot were placed apart (rest offsets differ a little), so the same
+            # motion of the foot in its own frame changes the distance a little differently
+            np.testing.assert_allclose(got, own, atol=0.15, err_msg=clip.name)
+    assert comp.report["quality"]["junction_stretch_ratio"] <= MAX_STRETCH_RATIO

@@ -43,6 +43,11 @@ Choices where the method leaves room (all options of :class:`CompletionOptions`)
   reflected clip mixed the two sides along the leg (the fused hip and foot from one side, the
   lower leg from the other) and put the junction stretch ratio at 1.67; following the clip's
   own joints, 1.33, the output band's per-clip figures within 0.04 of the body's own.
+* Detached parts (:attr:`rigmix.limbs.Limb.detached`: an IK foot under the armature root) of
+  a limb moved to another body follow the limb's tip, last, in every clip
+  (:mod:`rigmix.animation.detached`): at their offset to it in their input's own clip where
+  that clip plays, else at their rest offset. A foot keyed root-relative would keep the donor
+  body's motion while its leg hangs from the other body's hip, and stretch the foot's skin.
 * Frame choice: the paper takes the best frame per output frame (``jump_penalty=0``); a
   positive ``jump_penalty`` runs a Viterbi pass where continuing to the next frame of the same
   clip is free and any other jump costs the penalty (fewer seams, smoother completed part).
@@ -72,6 +77,7 @@ from ..character import Character, Clip, Skeleton, Track
 from ..errors import InputError
 from ..rig import unique_names
 from ..transforms import quat_normalize
+from .detached import Follower, follow_tips, source_offsets
 from .keyframes import (
     KEPT_CONFIDENCE,
     Candidates,
@@ -361,7 +367,8 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
                    selection: Sequence[tuple[str, str]] | None = None,
                    options: CompletionOptions | None = None,
                    provenance: Sequence[Sequence[tuple[str, int]]] | None = None,
-                   translations: Mapping[str, np.ndarray] | None = None) -> tuple[Clip, ...]:
+                   translations: Mapping[str, np.ndarray] | None = None,
+                   followers: Sequence[Follower] = ()) -> tuple[Clip, ...]:
     """Complete the selected clips of every input on the output skeleton S_R.
 
     Parameters
@@ -383,6 +390,9 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
         Per id, the translation maps of :func:`translation_maps` (the plan's scales and frames);
         without them translation keys are rescaled by a bone-length ratio
         (:func:`rigmix.animation.keyframes.map_pose`).
+    followers : sequence of Follower, optional
+        Detached parts of moved limbs (:func:`rigmix.animation.detached.detached_followers`):
+        in each clip, last, each is placed at its limb tip (:func:`_follow`).
 
     Returns
     -------
@@ -460,8 +470,29 @@ def complete_clips(skeleton_out: Skeleton, inputs: Mapping[str, Character], maps
             s = np.unique(np.concatenate(seams))
             Rc, Tc = blend_seams(R[:, completed], T[:, completed], s, options.blend_frames)
             R[:, completed], T[:, completed] = smooth_seams(Rc, Tc, s, options.smoothing)
+        T, R, S = _follow(skeleton_out, inputs, cid, clip_name, fx.times[c], T, R, S, followers)
         out.append(_to_clip(out_name, fx.times[c], T, R, S))
     return tuple(out)
+
+
+def _follow(skeleton_out, inputs, cid, clip_name, times, T, R, S, followers):
+    """``T, R, S`` of the clip ``clip_name`` of input ``cid`` with the detached parts placed at
+    their limb tips (:func:`rigmix.animation.detached.follow_tips`).
+
+    A part of the clip's own input keeps the offset to the tip it has in that clip, frame by
+    frame; a part of another input, whose limb plays frames chosen from its clips (or a blend
+    toward rest), keeps its rest offset. Where the part, its limb and the joints between them
+    all come from the clip's asset or its mirrored copy (a self-composition), the clip drives
+    them with one motion (:func:`_own_clip`, :func:`_same_named`): left as it is.
+    """
+    x = inputs[cid]
+    mine = [f for f in followers
+            if not all(same_asset(x, inputs[y]) or _mirrored_copies(x, inputs[y]) for y in (f.source, *f.between))]
+    if not mine:
+        return T, R, S
+    own = [f for f in mine if f.source == cid]
+    offsets = dict(zip(map(id, own), source_offsets(inputs[cid], clip_name, times, own))) if own else {}
+    return follow_tips(skeleton_out, T, R, S, mine, [offsets.get(id(f)) for f in mine])
 
 
 def _completing_inputs(completed, owners, frames):
