@@ -870,7 +870,8 @@ PROTOCOL_TEXT = {
         "(`ambient_cases`), every welded vertex carrying any weight on the chain's joints is hidden, so no "
         "known vertex carries them: nearest and inpaint cannot bring them back; `+ambient` evaluates the "
         "field at points sampled along each such joint's bones in rest pose and gives the hidden vertices "
-        "DFD's weights `clamp(1 - ||f(v) - f(h)||, 0, 1)` over those handles and the region's border joints "
+        "weights Gaussian in feature distance, `exp(-(||f(v) - f(h)|| / 0.1)^2)` normalized (DFD's own "
+        "`clamp(1 - d)` is nearly flat over unit features), over those handles and the region's border joints "
         "(`rigmix/weights/ambient.py`, confidence {ambient})."),
 }
 
