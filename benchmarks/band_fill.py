@@ -420,26 +420,33 @@ def summarize_both_hidden(results):
     """Mean over characters of each method's mean and max error, and the decision rule per encoder."""
     done = [r for r in results.values() if r.get("pairs")]
     labels = list(dict.fromkeys(label for r in done for label in r["methods"]))
-    means, maxes, rule = {}, {}, {}
+    means, maxes = {}, {}
     for label in labels:
         have = [r for r in done if label in r["methods"]]
         means[label] = float(np.mean([r["methods"][label]["mean_error"] for r in have]))
         maxes[label] = float(np.mean([r["methods"][label]["max_error"] for r in have]))
-    base = means.get("dfd_no_field")
-    for label in labels:
+    return {"characters": len(done), "mean_error": means, "mean_of_max_error": maxes,
+            "dfd_no_field": means.get("dfd_no_field"), "rule": decision_rule(done, means)}
+
+
+def decision_rule(done, means):
+    """Per field label ``dfd[E]...`` of ``means`` (label -> mean error over the characters that
+    have it): its mean error against ``dfd_no_field``'s on the same characters of ``done`` (per
+    character results), its field's cost there, and whether it passes the decision rule
+    (:data:`RULE_REDUCTION`, :data:`RULE_SECONDS`)."""
+    rule = {}
+    for label in means:
         if not label.startswith("dfd["):
             continue
         enc = label[4:label.index("]")]
         have = [r for r in done if label in r["methods"]]
-        # against dfd_no_field on the same characters
         b = float(np.mean([r["methods"]["dfd_no_field"]["mean_error"] for r in have]))
         seconds = [r["field_seconds"][enc] for r in have]
         reduction = 1.0 - means[label] / b if b > 0 else 0.0
         rule[label] = {"characters": len(have), "relative_reduction": reduction,
-                     "field_seconds_max": float(max(seconds)), "field_seconds_mean": float(np.mean(seconds)),
-                     "passes": bool(reduction >= RULE_REDUCTION and max(seconds) <= RULE_SECONDS)}
-    return {"characters": len(done), "mean_error": means, "mean_of_max_error": maxes,
-            "dfd_no_field": base, "rule": rule}
+                       "field_seconds_max": float(max(seconds)), "field_seconds_mean": float(np.mean(seconds)),
+                       "passes": bool(reduction >= RULE_REDUCTION and max(seconds) <= RULE_SECONDS)}
+    return rule
 
 
 def markdown_both_hidden(results, summary):
@@ -831,28 +838,17 @@ def summarize_protocol(results):
     field (against ``dfd_no_field`` on the same characters, with the field's largest cost there)."""
     done = [r for r in results.values() if r.get("methods")]
     labels = list(dict.fromkeys(label for r in done for label in r["methods"]))
-    means, maxes, skinned, rule = {}, {}, {}, {}
+    means, maxes, skinned = {}, {}, {}
     for label in labels:
         have = [r["methods"][label] for r in done if label in r["methods"]]
         means[label] = float(np.mean([m["mean_error"] for m in have]))
         maxes[label] = float(np.mean([m["max_error"] for m in have]))
         sk = [m["skinned_error"] for m in have if "skinned_error" in m]
         skinned[label] = float(np.mean(sk)) if sk else float("nan")
-    for label in labels:
-        if not label.startswith("dfd["):
-            continue
-        enc = label[4:label.index("]")]
-        have = [r for r in done if label in r["methods"]]
-        b = float(np.mean([r["methods"]["dfd_no_field"]["mean_error"] for r in have]))
-        seconds = [r["field_seconds"][enc] for r in have]
-        reduction = 1.0 - means[label] / b if b > 0 else 0.0
-        rule[label] = {"characters": len(have), "relative_reduction": reduction,
-                       "field_seconds_max": float(max(seconds)), "field_seconds_mean": float(np.mean(seconds)),
-                       "passes": bool(reduction >= RULE_REDUCTION and max(seconds) <= RULE_SECONDS)}
     skin_chars = sum(1 for r in done if "skinned_error" in r["methods"].get("nearest", {}))
     return {"characters": len(done), "skinned_characters": skin_chars, "mean_error": means,
             "mean_of_max_error": maxes, "skinned_error": skinned, "dfd_no_field": means.get("dfd_no_field"),
-            "rule": rule}
+            "rule": decision_rule(done, means)}
 
 
 #: what each protocol hides, for its table's header

@@ -39,10 +39,8 @@ Choices where the method leaves room (all options of :class:`CompletionOptions`)
   the clip's input of the same name reaches (the joint each replaces, on the same side) keep
   the clip's own motion of that joint instead (:func:`_mirrored_copies`, :func:`_same_named`), so
   that a leg replaced by its mirrored partner steps as the leg it replaces, in phase with the
-  body. Measured (Rat, FrontUpLeg.L replaced by the mirrored FrontUpLeg.R): replaying the
-  reflected clip mixed the two sides along the leg (the fused hip and foot from one side, the
-  lower leg from the other) and put the junction stretch ratio at 1.67; following the clip's
-  own joints, 1.33, the output band's per-clip figures within 0.04 of the body's own.
+  body: the reflected clip would mix the two sides along the leg (the fused hip and foot moving
+  with one side, the lower leg with the other) and stretch the junction.
 * Detached parts (:attr:`rigmix.limbs.Limb.detached`: an IK foot under the armature root) of
   a limb moved to another body follow the limb's tip, last, in every clip
   (:mod:`rigmix.animation.detached`): at their offset to it in their input's own clip where
@@ -491,8 +489,8 @@ def _follow(skeleton_out, inputs, cid, clip_name, times, T, R, S, followers):
     if not mine:
         return T, R, S
     own = [f for f in mine if f.source == cid]
-    offsets = dict(zip(map(id, own), source_offsets(inputs[cid], clip_name, times, own))) if own else {}
-    return follow_tips(skeleton_out, T, R, S, mine, [offsets.get(id(f)) for f in mine])
+    sampled = iter(source_offsets(inputs[cid], clip_name, times, own) if own else ())
+    return follow_tips(skeleton_out, T, R, S, mine, [next(sampled) if f.source == cid else None for f in mine])
 
 
 def _completing_inputs(completed, owners, frames):

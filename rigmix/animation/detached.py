@@ -73,10 +73,9 @@ class Follower:
     between: tuple[str, ...] = ()
 
 
-def _tip_of(skeleton: Skeleton, limb_joints: Sequence[int], top: int) -> int:
-    """The limb joint nearest the part's top joint at rest: the tip it hangs at (an IK foot's
-    top joint sits at the ankle, the lower leg's end)."""
-    P = skeleton.rest_worlds()[:, :3, 3]
+def _tip_of(P, limb_joints: Sequence[int], top: int) -> int:
+    """The limb joint nearest the part's top joint at rest (``P`` ``(J, 3)``: rest world
+    positions): the tip it hangs at (an IK foot's top joint sits at the ankle, the lower leg's end)."""
     d = np.linalg.norm(P[list(limb_joints)] - P[top], axis=1)
     return int(limb_joints[int(np.argmin(d))])
 
@@ -136,7 +135,7 @@ def detached_followers(skeleton_out: Skeleton, inputs: Mapping[str, Character], 
                 j = sk.names.index(name)
                 if sk.parents[j] >= 0 and sk.names[sk.parents[j]] in part:
                     continue
-                t = _tip_of(sk, chain, j)
+                t = _tip_of(W_in[:, :3, 3], chain, j)
                 o, ot = int(target[j]), int(target[t])
                 if o < 0 or ot < 0 or cid not in owned[o] or cid not in owned[ot]:
                     continue

@@ -536,40 +536,33 @@ def _fill_dfd_prior(g: WeldedMesh, W, unk, *, field, plane, joint_mirror, joint_
     P, c = mirror_prior(g, W, unk, plane, mirror, tol=mirror_tol, field=field, bones=bones)
     if bones is not None and field is not None and borrow > 0:
         # where the mirror is not painted, the profile of feature-similar parts around other joints
-        Pf, cf = borrow_prior(g, W, unk, _evaluate(field, g.V), joint_positions, joint_parents, mirror,
-                              confidence=borrow)
-        cf = cf * (1.0 - c)
-        total = np.maximum(c + cf, 1e-12)
-        P = (c[:, None] * P + cf[:, None] * Pf) / total[:, None]
-        c = c + cf
+        P, c = _under(P, c, *borrow_prior(g, W, unk, _evaluate(field, g.V), joint_positions, joint_parents,
+                                          mirror, confidence=borrow))
     if bones is not None and field is not None and ambient > 0 and deforming_joints is not None:
         # joints whose painting is nowhere known: handles sampled along their bones (ambient_prior)
-        Pa, ca = ambient_prior(g, W, unk, _evaluate(field, g.V), lambda X: _evaluate(field, X), joint_positions,
-                               joint_parents, deforming_joints, confidence=ambient)
-        ca = ca * (1.0 - c)
-        total = np.maximum(c + ca, 1e-12)
-        P = (c[:, None] * P + ca[:, None] * Pa) / total[:, None]
-        c = c + ca
+        P, c = _under(P, c, *ambient_prior(g, W, unk, _evaluate(field, g.V), lambda X: _evaluate(field, X),
+                                           joint_positions, joint_parents, deforming_joints, confidence=ambient))
     if bones is not None and ambient_borrow > 0 and deforming_joints is not None:
         # next to joints nowhere known, borrow with the skeleton-relative field (no distillation)
-        Pa, ca = ambient_borrow_prior(g, W, unk, joint_positions, joint_parents, deforming_joints, mirror,
-                                      confidence=ambient_borrow)
-        ca = ca * (1.0 - c)
-        total = np.maximum(c + ca, 1e-12)
-        P = (c[:, None] * P + ca[:, None] * Pa) / total[:, None]
-        c = c + ca
+        P, c = _under(P, c, *ambient_borrow_prior(g, W, unk, joint_positions, joint_parents, deforming_joints,
+                                                  mirror, confidence=ambient_borrow))
     if bones is not None and bone_prior > 0:
-        Pb, cb = _bone_prior(g, W, unk, joint_positions, joint_parents, confidence=bone_prior)
-        cb = cb * (1.0 - c)  # the mirror, where it exists, is the better witness
-        total = np.maximum(c + cb, 1e-12)
-        P = (c[:, None] * P + cb[:, None] * Pb) / total[:, None]
-        c = c + cb
+        P, c = _under(P, c, *_bone_prior(g, W, unk, joint_positions, joint_parents, confidence=bone_prior))
     out = _solve_prior(g, W, unk, P, c, strength=strength)
     # where no prior is trusted the fill is the inpainting and gets the inpainting's
     # post-smoothing; a trusted row keeps the painting it borrowed (hidden protocol, the Horse's
     # mirrored legs: mean junction weight error 0.005 as borrowed, 0.07 smoothed)
     smooth = unk & (c < TRUSTED)
     return (smooth_unknown(g, out, smooth, iterations=iterations, keep=keep) if iterations else out), P, c
+
+
+def _under(P, c, Pn, cn):
+    """Prior ``P`` ``(k, J)`` of confidence ``c`` ``(k,)`` with a later prior ``Pn`` of confidence
+    ``cn`` under it: ``Pn`` counts only for the confidence ``P`` leaves (``cn (1 - c)``); the
+    earlier prior, where it exists, is the better witness. Returns the blended ``(P, c)``."""
+    cn = cn * (1.0 - c)
+    total = np.maximum(c + cn, 1e-12)
+    return (c[:, None] * P + cn[:, None] * Pn) / total[:, None], c + cn
 
 
 def _segment_distances(X, a, b):
