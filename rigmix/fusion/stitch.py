@@ -24,6 +24,7 @@ from .junction import (
     clip_mesh,
     isosurface,
     keep_components_touching,
+    loop_distance,
     match_loops,
     orientation_agrees,
     remove_unreferenced,
@@ -405,6 +406,8 @@ class _Bridged:
     unmatched_preserved_loops, unmatched_iso_loops, orientation_warnings : int
         Seam loops left without a partner, isosurface holes closed by a fan, and partners of
         opposite orientation bridged anyway.
+    capped_loops : int
+        Seam loops without a partner closed by a fan (no wider than the matching reach).
     """
 
     V: np.ndarray
@@ -417,6 +420,17 @@ class _Bridged:
     unmatched_preserved_loops: int
     unmatched_iso_loops: int
     orientation_warnings: int
+    capped_loops: int = 0
+
+    @property
+    def without_partner(self) -> int:
+        """Seam loops bridged to nothing, capped or not."""
+        return self.unmatched_preserved_loops + self.capped_loops
+
+
+def _diameter(X):
+    """Largest distance between two of the points ``X`` ``(k, 3)``."""
+    return float(np.sqrt(((X[:, None, :] - X[None, :, :]) ** 2).sum(axis=-1).max())) if len(X) else 0.0
 
 
 def _bridge(Vc, Fc, loops, h, cut_voxels):
@@ -475,6 +489,18 @@ def _bridge(Vc, Fc, loops, h, cut_voxels):
             Fc = np.concatenate([Fc, np.asarray(extra_f, np.int64)])
     else:
         Vc, Fc = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    # a seam loop no partner reaches is a hole the isosurface cannot fill when it is no wider
+    # than that reach (a face or two of a part let go at a conflict) or lies within two voxels of a
+    # bridged loop of its input (a lining the isosurface cannot resolve): closed by a fan, so that the
+    # surface stays closed and the rest of the junction is bridged
+    def beside_bridged(i):
+        return any(loops[j].source == loops[i].source
+                   and loop_distance(loops[i].positions, loops[j].positions) <= 2.0 * h for j in matched_pres)
+
+    capped = [i for i in range(len(loops))
+              if i not in matched_pres and (_diameter(loops[i].positions) <= max_cost or beside_bridged(i))]
+    if capped:
+        Vc = np.concatenate([Vc, np.asarray([loops[i].positions.mean(axis=0) for i in capped])])
     # junction vertex table: isosurface vertices, then preserved loop vertices (fixed)
     keys: dict[tuple[int, int], int] = {}
     fixed_pos = []
@@ -505,12 +531,17 @@ def _bridge(Vc, Fc, loops, h, cut_voxels):
             qid = np.array([fixed_id(Q.source, v, x) for v, x in zip(Q.vertices, Q.positions)]) + nI
         ids = np.concatenate([pid, qid])
         faces.append(ids[T])
+    for c, i in enumerate(capped):
+        P = loops[i]
+        pid = np.array([fixed_id(P.source, v, x) for v, x in zip(P.vertices, P.positions)]) + nI
+        centre = nI - len(capped) + c
+        faces.append(np.array([(pid[k], pid[k - 1], centre) for k in range(len(pid))], np.int64))
     fixed_pos = np.asarray(fixed_pos, dtype=np.float64).reshape(-1, 3)
     JV = np.concatenate([Vc, fixed_pos])
     JF = np.concatenate([Fc] + faces) if (len(Fc) or faces) else np.zeros((0, 3), np.int64)
     return _Bridged(V=JV, F=JF, n_iso=nI, keys=keys, n_bridge=len(JF) - len(Fc), seam_edge=edge, fans=fans,
-                    unmatched_preserved_loops=int(len(loops) - len(matched_pres)),
-                    unmatched_iso_loops=unmatched_iso, orientation_warnings=warnings)
+                    unmatched_preserved_loops=int(len(loops) - len(matched_pres) - len(capped)),
+                    unmatched_iso_loops=unmatched_iso, orientation_warnings=warnings, capped_loops=len(capped))
 
 
 def _bridge_without_crossings(Vc, Fc, loops, h, params):
@@ -557,7 +588,7 @@ def _bridge_without_crossings(Vc, Fc, loops, h, params):
         near = np.isin(_position_keys(Vc), _position_keys(np.asarray(marked)))
         Vc2, Fc2, _ = remove_unreferenced(Vc, Fc[~near[Fc].any(axis=1)])
         again = _bridge(Vc2, Fc2, loops, h, params.cut_voxels)
-        if (len(again.F) == 0 or again.unmatched_preserved_loops > bridge.unmatched_preserved_loops
+        if (len(again.F) == 0 or again.without_partner > bridge.without_partner
                 or not is_edge_manifold(again.F)):
             rejected = True
             break
@@ -878,7 +909,8 @@ def junction_for_cluster(grid, pres, surfaces, preserved, loops, inputs_fields, 
     Vc, Fc = _cut_isosurface(Vi, Fi, pres, preserved, params.cut_voxels * h)
     bridge, recuts, rejected = _bridge_without_crossings(Vc, Fc, loops, h, params)
     info = {"iso_faces": int(len(Fi)), "unmatched_preserved_loops": bridge.unmatched_preserved_loops,
-            "unmatched_iso_loops": bridge.unmatched_iso_loops, "orientation_warnings": bridge.orientation_warnings}
+            "unmatched_iso_loops": bridge.unmatched_iso_loops, "orientation_warnings": bridge.orientation_warnings,
+            "capped_loops": bridge.capped_loops}
     if recuts:
         info["bridge_recuts"] = recuts
     if rejected:
