@@ -11,6 +11,7 @@ from conftest import IN_COMPOSED_GROUP, ROOT, asset
 
 from rigmix.errors import InputError
 from rigmix.fusion import FusedSurface, FusionInput
+from rigmix.fusion.inputs import MAX_DENSE_WEIGHT_ENTRIES
 from rigmix.geometry import weld
 from rigmix.mapping import BoneMap
 from rigmix.sparse_weights import dense_rows
@@ -192,6 +193,25 @@ def test_continue_far_parts_replaces_jumping_far_rows_only():
     assert np.array_equal(continue_far_parts(V, F, [smooth], [d], junction, known, near=0.5)[0], smooth)
     # near everywhere: kept, stripes and all
     assert np.array_equal(continue_far_parts(V, F, [P], [np.zeros_like(d)], junction, known, near=0.5)[0], P)
+
+
+@pytest.mark.parametrize("method", WEIGHT_METHODS)
+def test_output_weights_past_the_dense_limit(method):
+    """The same case on 2**24 // n + 1 output joints (the extra ones unused): the weights are per
+    influence, so ``nearest`` (no fill) gives the same rows; the fill, dense over the surface,
+    is refused by its declared limit with an error naming it."""
+    surf, x, bm = _isolated_junction_case()
+    n = len(surf.V)
+    J = MAX_DENSE_WEIGHT_ENTRIES // n + 1
+    params = WeightParams(method=method)
+    if method == "nearest":
+        small = blend_weights(surf, [x], [bm], 3, params=params)
+        skin = blend_weights(surf, [x], [bm], J, params=params)
+        assert sp.issparse(skin.W) and skin.W.shape == (n, J) and skin.W.nnz <= 4 * n
+        assert skin.W[:, :3].toarray().tobytes() == small.W.toarray().tobytes() and skin.W[:, 3:].nnz == 0
+    else:
+        with pytest.raises(InputError, match=rf"weights: the junction fill .*{n} vertices x {J} joints.*limit"):
+            blend_weights(surf, [x], [bm], J, params=params)
 
 
 @pytest.mark.parametrize("method", WEIGHT_METHODS)
