@@ -10,6 +10,11 @@ The values equal those of the dense matrix (:meth:`rigmix.character.Mesh.dense_w
 bit: duplicate slots of a vertex summed in slot order, zero weights not stored, and any dense
 computation run on :func:`dense_rows` blocks gives each row the same floats as on the whole
 dense matrix.
+
+The output's weights are held the same way, from retargeting to assembly. NumPy sums a dense row
+pairwise, so the floats of a row's sum depend on where its zeros lie: :func:`row_sums` takes them
+over dense row blocks, and :func:`positive_counts`, :func:`column_support` and :func:`set_rows`
+(a band of rows computed densely, put back) need no dense matrix at all.
 """
 
 from __future__ import annotations
