@@ -70,7 +70,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 from rigmix.config import Config  # noqa: E402
 from rigmix.pipeline import assembly_stage, compose, quality_stage  # noqa: E402
 from rigmix.quality import self_composition_errors  # noqa: E402
-from rigmix.sparse_weights import dense_rows  # noqa: E402
+from rigmix.sparse_weights import dense_rows, from_dense  # noqa: E402
 from rigmix.weights import WeightParams, blend_weights  # noqa: E402
 
 #: (label, blend_weights options): every method with its defaults, and dfd without the DFD field.
@@ -216,9 +216,9 @@ def hidden_weights(comp, options):
     skin, _ = _weights(comp, options)
     surface = comp.surface
     junction = np.asarray(surface.junction_vertices, bool)
-    W = fill_weights(surface.V, surface.F, skin.W, junction, method="nearest", max_influences=4)
+    W = fill_weights(surface.V, surface.F, dense_rows(skin.W), junction, method="nearest", max_influences=4)
     W, _ = weld_consistent(surface.V, surface.F, W, junction, 4)
-    skin = replace(skin, W=W, matched=np.zeros_like(junction),
+    skin = replace(skin, W=from_dense(W), matched=np.zeros_like(junction),
                    report={**skin.report, "matched_vertices": 0,
                            "max_influences": int(np.count_nonzero(W > 0, axis=1).max())})
     return skin, round(time.perf_counter() - t0, 3)
@@ -310,7 +310,7 @@ def mirrored_errors(comp, skin, pair, *, fps=30.0, max_frames=None, truth_influe
         src[t[j]] = j
     if np.any(src < 0):
         raise RuntimeError(f"mirrored truth: output joints {np.flatnonzero(src < 0).tolist()} have no original joint")
-    W = np.asarray(skin.W)
+    W = dense_rows(skin.W)
     G = W.copy()  # preserved rows: their input's weights under every method (not measured)
     jall = np.flatnonzero(surface.junction_vertices)
     if tolerance is None:

@@ -48,6 +48,7 @@ __all__ = [
     "SkeletonFeatures",
     "skeleton_features",
     "hop_distances",
+    "HopRows",
     "paper_score",
     "prototype_score",
     "propagate",
@@ -185,20 +186,86 @@ def skeleton_features(parents, positions) -> SkeletonFeatures:
                             float(arc.max()) if J else 0.0, children)
 
 
-def hop_distances(parents) -> np.ndarray:
-    """All-pairs hop counts on the skeleton tree, ``(J, J)`` float64, ``inf`` across trees."""
+def _bone_graph(parents):
+    """The skeleton's bones as a ``(J, J)`` CSR adjacency (child -> parent)."""
     parents = np.asarray(parents, dtype=np.int64)
     J = len(parents)
     c = np.flatnonzero(parents >= 0)
-    A = coo_matrix((np.ones(len(c)), (c, parents[c])), shape=(J, J)).tocsr()  # Floyd-Warshall (small J) needs csr
-    return shortest_path(A, directed=False, unweighted=True)
+    return coo_matrix((np.ones(len(c)), (c, parents[c])), shape=(J, J)).tocsr()  # Floyd-Warshall (small J) needs csr
+
+
+def hop_distances(parents) -> np.ndarray:
+    """All-pairs hop counts on the skeleton tree, ``(J, J)`` float64, ``inf`` across trees."""
+    return shortest_path(_bone_graph(parents), directed=False, unweighted=True)
+
+
+class HopRows:
+    """Rows of :func:`hop_distances` on demand: memory ``O(J)`` a row instead of ``(J, J)``.
+
+    ``rows[j]`` is the ``(J,)`` float64 row of hop counts from joint ``j`` (the same values as
+    ``hop_distances(parents)[j]``). Propagation asks for the rows of neighbouring joints one
+    after the other, so a row is derived from its parent's or a child's row when that one is
+    kept (one hop more or less, by which side of the bone a joint lies on: the subtree is a
+    range of the depth-first order), else found by a breadth-first search. The last
+    :attr:`CACHED` rows asked for are kept.
+    """
+
+    #: Rows kept (160 KiB each on a 20,000-joint skeleton).
+    CACHED = 64
+
+    def __init__(self, parents):
+        self.parents = np.asarray(parents, dtype=np.int64)
+        self.graph = _bone_graph(self.parents)
+        self.rows = {}
+        J = len(self.parents)
+        children = [[] for _ in range(J)]
+        for k in np.flatnonzero(self.parents >= 0):
+            children[self.parents[k]].append(int(k))
+        order, stack = [], [int(r) for r in np.flatnonzero(self.parents < 0)[::-1]]
+        while stack:  # preorder: each subtree is a contiguous range
+            k = stack.pop()
+            order.append(k)
+            stack.extend(reversed(children[k]))
+        self.first = np.zeros(J, np.int64)
+        self.first[order] = np.arange(len(order))
+        self.size = np.ones(J, np.int64)
+        for k in reversed(order):
+            if self.parents[k] >= 0:
+                self.size[self.parents[k]] += self.size[k]
+
+    def _subtree(self, j) -> np.ndarray:
+        """``(J,)`` bool: joint ``j`` and its descendants."""
+        return (self.first >= self.first[j]) & (self.first < self.first[j] + self.size[j])
+
+    def _derived(self, j):
+        """Row ``j`` from a kept row one bone away, or None."""
+        p = int(self.parents[j])
+        if p >= 0 and p in self.rows:  # from the parent: one hop less into j's subtree, one more elsewhere
+            d = self.rows[p]
+            return np.where(self._subtree(j), d - 1.0, d + 1.0)
+        for c, d in self.rows.items():
+            if self.parents[c] == j:  # from a child: one hop more into its subtree, one less elsewhere
+                return np.where(self._subtree(c), d + 1.0, d - 1.0)
+        return None
+
+    def __getitem__(self, j) -> np.ndarray:
+        j = int(j)
+        row = self.rows.pop(j, None)
+        if row is None:
+            row = self._derived(j)
+            if row is None:
+                row = shortest_path(self.graph, directed=False, unweighted=True, indices=j)
+            if len(self.rows) >= self.CACHED:
+                self.rows.pop(next(iter(self.rows)))
+        self.rows[j] = row  # most recent last
+        return row
 
 
 def _cos(u, V):
     """``max(0, cos)`` between a unit vector ``u`` (3,) and rows of ``V`` (n, 3); 1 if both zero."""
     d = V @ u
     uz = not np.any(u)
-    vz = ~np.any(V, axis=1)
+    vz = (V[:, 0] == 0) & (V[:, 1] == 0) & (V[:, 2] == 0)  # ~np.any(V, axis=1), without a reduce per row
     out = np.clip(d, 0.0, 1.0)
     out = np.where(vz & uz, 1.0, out)
     return out
@@ -299,7 +366,7 @@ def propagate(parents_in, positions_in, init_target, parents_out, positions_out,
     parents_out = np.asarray(parents_out, dtype=np.int64)
     fin = skeleton_features(parents_in, positions_in)
     fout = skeleton_features(parents_out, positions_out)
-    hops = hop_distances(parents_out)
+    hops = HopRows(parents_out)  # the rows propagation asks for: a (J_R, J_R) matrix is 3.2 GB at 20,000 joints
     J, JR = len(parents_in), len(parents_out)
     target = np.asarray(init_target, dtype=np.int64).copy()
     conf = np.where(target >= 0, 1.0, 0.0)

@@ -289,8 +289,7 @@ def load_characters(config: Config) -> dict:
     ------
     InputError
         A missing file, an unknown ``builtin:`` name, a file the reader rejects or that cannot be
-        composed (:func:`check_input`, at the config's ``[animation] fps``), or characters too
-        large to compose (:func:`rigmix.fusion.inputs.check_weight_size`).
+        composed (:func:`check_input`, at the config's ``[animation] fps``).
     """
     check_files(config)
     out = {}
@@ -310,9 +309,6 @@ def load_characters(config: Config) -> dict:
             from .operations.mirror import mirror_character
 
             out[cid] = mirror_character(out[cid], axis=None if mirror is True else mirror)
-    from .fusion.inputs import check_weight_size
-
-    check_weight_size(out, f"config {config.source}")  # before any (V, J) weight matrix is allocated
     return out
 
 

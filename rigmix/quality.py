@@ -651,7 +651,7 @@ def self_composition_errors(composition, skin, *, fps=30.0, max_frames=None, tru
     src = np.array([plan.provenance[o][0][1] for o in range(plan.skeleton.num_joints)])
     G = self_composition_truth(composition, truth_influences=truth_influences)
     jrows = np.flatnonzero(surface.junction_vertices)  # measured: every row the weight stage computed
-    W = np.asarray(skin.W)
+    W = dense_rows(skin.W)  # the self-composition measure: dense (V, J), a benchmark's figure
     l1 = np.abs(W[jrows] - G[jrows]).sum(axis=1) if len(jrows) else np.zeros(0)
     V = np.asarray(surface.V)
     diag = float(np.linalg.norm(np.ptp(V, axis=0)))

@@ -6,12 +6,15 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 from conftest import IN_COMPOSED_GROUP, ROOT, asset
 
 from rigmix.errors import InputError
 from rigmix.fusion import FusedSurface, FusionInput
+from rigmix.fusion.inputs import MAX_DENSE_WEIGHT_ENTRIES
 from rigmix.geometry import weld
 from rigmix.mapping import BoneMap
+from rigmix.sparse_weights import dense_rows
 from rigmix.weights import WeightParams, symmetry_plane
 from rigmix.weights.blend import WEIGHT_METHODS, blend_weights
 from rigmix.weights.junction import continue_far_parts, harmonic_blend_factors, match_junction
@@ -48,6 +51,8 @@ def test_retarget_sums_the_weights_of_joints_mapped_to_one_output_joint():
     W = np.array([[0.5, 0.3, 0.2, 0.0], [0.0, 0.0, 0.4, 0.6], [1.0, 0.0, 0.0, 0.0]])
     target = np.array([1, 1, 0, -1])  # joints 0 and 1 -> output 1; joint 3 unmapped
     Wr, c = retarget_weights(W, target, 3, confidence=np.array([1.0, 0.5, 1.0, 0.0]))
+    assert sp.issparse(Wr)  # per influence
+    Wr = Wr.toarray()
     assert np.allclose(Wr, [[0.2, 0.8, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     assert np.allclose(c, [0.5 + 0.15 + 0.2, 0.4, 1.0])
     # a row that already sums to 1 is copied bit-identically
@@ -191,18 +196,38 @@ def test_continue_far_parts_replaces_jumping_far_rows_only():
 
 
 @pytest.mark.parametrize("method", WEIGHT_METHODS)
+def test_output_weights_past_the_dense_limit(method):
+    """The same case on 2**24 // n + 1 output joints (the extra ones unused): the weights are per
+    influence, so ``nearest`` (no fill) gives the same rows; the fill, dense over the surface,
+    is refused by its declared limit with an error naming it."""
+    surf, x, bm = _isolated_junction_case()
+    n = len(surf.V)
+    J = MAX_DENSE_WEIGHT_ENTRIES // n + 1
+    params = WeightParams(method=method)
+    if method == "nearest":
+        small = blend_weights(surf, [x], [bm], 3, params=params)
+        skin = blend_weights(surf, [x], [bm], J, params=params)
+        assert sp.issparse(skin.W) and skin.W.shape == (n, J) and skin.W.nnz <= 4 * n
+        assert skin.W[:, :3].toarray().tobytes() == small.W.toarray().tobytes() and skin.W[:, 3:].nnz == 0
+    else:
+        with pytest.raises(InputError, match=rf"weights: the junction fill .*{n} vertices x {J} joints.*limit"):
+            blend_weights(surf, [x], [bm], J, params=params)
+
+
+@pytest.mark.parametrize("method", WEIGHT_METHODS)
 def test_junction_component_with_no_matched_vertex_gets_finite_normalized_weights(method):
     surf, x, bm = _isolated_junction_case()
     skin = blend_weights(surf, [x], [bm], 3, params=WeightParams(method=method))
     j = skin.junction
     assert j.sum() == len(surf.V) - len(x.V)
     assert not skin.matched[j].any()  # too far from every input: nothing matched
-    W = skin.W[j]
+    assert sp.issparse(skin.W)
+    W = skin.W.toarray()[j]
     assert np.all(np.isfinite(W)) and np.all(W >= 0)
     assert np.allclose(W.sum(axis=1), 1.0)
     assert np.all(np.count_nonzero(W > 0, axis=1) <= 4)
     # preserved rows are the input's, bit-identical
-    assert skin.W[~j].tobytes() == x.W.tobytes()
+    assert skin.W.toarray()[~j].tobytes() == dense_rows(x.W).tobytes()
 
 
 def test_geodesic_locality_keeps_weights_off_a_look_alike_part():
@@ -288,7 +313,8 @@ def test_to_influences_keeps_the_largest_four():
 
 def _check_invariants(comp):
     skin = comp.weights
-    W = skin.W
+    assert sp.issparse(skin.W)
+    W = skin.W.toarray()
     assert np.all(np.isfinite(W)) and np.all(W >= 0)
     assert np.allclose(W.sum(axis=1), 1.0, atol=1e-12)
     assert np.count_nonzero(W > 0, axis=1).max() <= 4
@@ -302,7 +328,7 @@ def _check_invariants(comp):
     surf = comp.surface
     for i, (cid, x) in enumerate(zip(comp.fusion_ids, comp.fusion_inputs)):
         bm = comp.maps[cid]
-        Wr, _ = retarget_weights(x.W, bm.target, comp.skeleton.num_joints)
+        Wr = retarget_weights(x.W, bm.target, comp.skeleton.num_joints)[0].toarray()
         rows = np.flatnonzero((surf.origin_input == i) & ~surf.junction_vertices)
         small = np.count_nonzero(Wr[surf.origin_vertex[rows]] > 0, axis=1) <= 4
         assert np.array_equal(W[rows[small]], Wr[surf.origin_vertex[rows[small]]])
@@ -471,6 +497,7 @@ def test_dfd_with_feature_field_distills_the_field_of_the_fused_surface(tmp_path
     # the field is the fused surface's: the welded junction and preserved vertices, unit features
     f = field.evaluate(comp.surface.V[:100])
     assert np.allclose(np.linalg.norm(f, axis=1), 1.0, atol=1e-5)
+    on, off = (replace(s, W=s.W.toarray()) for s in (on, off))
     for skin in (on, off):
         W = skin.W
         assert np.all(W >= 0) and np.allclose(W.sum(axis=1), 1.0) and np.count_nonzero(W, axis=1).max() <= 4
@@ -691,7 +718,7 @@ def test_hidden_junction_that_swallows_a_whole_part_keeps_its_joint():
         skin, _ = hidden_weights(comp, {"method": method, "feature_field": False} if method == "dfd"
                                  else {"method": method})
         figs[method] = self_composition_errors(comp, skin, max_frames=20)
-    assert truth > 0.3 * junction.sum() and skin.W[junction, head].sum() > 0.5 * truth
+    assert truth > 0.3 * junction.sum() and skin.W.toarray()[junction, head].sum() > 0.5 * truth
     err = {k: f["junction_weight_error_mean"] for k, f in figs.items()}
     assert err["dfd"] < 0.7 and err["dfd"] < 0.5 * err["inpaint"], err
     assert figs["dfd"]["skinned_error_max"] < figs["inpaint"]["skinned_error_max"], figs
@@ -699,7 +726,7 @@ def test_hidden_junction_that_swallows_a_whole_part_keeps_its_joint():
     comp = compose(self_config(asset("Knight"), "UpperLeg.R", fusion=REBUILT), until="fusion")
     junction = np.asarray(comp.surface.junction_vertices, bool)
     skin, _ = hidden_weights(comp, {"method": "dfd", "feature_field": False})
-    assert not skin.W[junction, comp.skeleton.index("Bone")].any()
+    assert not skin.W.toarray()[junction, comp.skeleton.index("Bone")].any()
 
 
 def test_hidden_junction_smoothed_only_where_no_prior_is_trusted():

@@ -10,16 +10,18 @@ from ..errors import InputError
 from ..sparse_weights import influence_matrix
 from .fuse import FusionAction, FusionInput
 
-__all__ = ["MAX_DENSE_WEIGHT_ENTRIES", "check_dense_weights", "check_weight_size", "fusion_input",
-           "fusion_inputs_from_plan"]
+__all__ = ["MAX_DENSE_WEIGHT_ENTRIES", "check_dense_weights", "fusion_input", "fusion_inputs_from_plan"]
 
-#: The most dense skin-weight entries (vertices x joints) compose allocates. The fusion inputs hold
-#: their weights per influence (:mod:`rigmix.sparse_weights`), but the weights stage (retargeted and
-#: blended weights), the assembly and the quality figures keep the output's as dense ``(V, J)``
-#: float64 matrices (8 bytes an entry), several at once: 2**24 entries is 128 MiB a matrix, and keeps
-#: compose's peak memory under 2 GB.
-#: :func:`check_weight_size` checks it on the vertices of all the characters of a composition times all
-#: their joints (which bounds the output's matrix too) before anything is allocated.
+#: The most entries (vertices x joints) of a dense skin-weight matrix compose allocates. Skin
+#: weights are held per influence (:mod:`rigmix.sparse_weights`) from the reader to the written
+#: file, and the junction band's rows are dense only over the band; what still solves over the whole
+#: fused surface with every output joint holds a dense ``(N, J_R)`` float64 matrix (8 bytes an
+#: entry, several copies at once): the junction fill (:func:`rigmix.weights.blend.fill_junction`,
+#: when some junction vertex is not matched), the seam smoothing
+#: (:func:`rigmix.weights.blend.smooth_seam`, ``[weights] smoothing > 0``) and the harmonic
+#: continuation of far, jumping closest-point rows (:func:`rigmix.weights.junction.continue_far_parts`).
+#: Each is checked by :func:`check_dense_weights` before it is allocated: 2**24 entries is 128 MiB
+#: a matrix, and keeps compose's peak memory under 2 GB.
 MAX_DENSE_WEIGHT_ENTRIES = 2**24
 
 
@@ -43,36 +45,6 @@ def check_dense_weights(num_vertices: int, num_joints: int, what: str) -> None:
             f"{what}: {int(num_vertices)} vertices x {int(num_joints)} joints = {n:,} dense skin-weight entries, "
             f"over the limit of {MAX_DENSE_WEIGHT_ENTRIES:,} (128 MiB a weight matrix); remove the joints that "
             "carry no weight, or use fewer vertices")
-
-
-def check_weight_size(characters, where: str = "compose") -> None:
-    """Refuse a composition whose dense skin weights would pass :data:`MAX_DENSE_WEIGHT_ENTRIES`.
-
-    Counted as all the vertices of all the characters (every mesh, as positioning stacks them) times
-    all their joints, an upper bound of each input's and of the output's weight matrix. O(meshes).
-
-    Parameters
-    ----------
-    characters : mapping of str -> rigmix.character.Character
-        By character id (a file used under two ids counts twice: each is positioned on its own).
-    where : str
-        Prefix of the message (e.g. ``"config a.toml"``).
-
-    Raises
-    ------
-    InputError
-        Naming each character (id and file name), its counts, the total and the fix.
-    """
-    counts = {cid: (sum(len(m.positions) for m in c.meshes), c.skeleton.num_joints)
-              for cid, c in characters.items()}
-    V = sum(v for v, _ in counts.values())
-    J = sum(j for _, j in counts.values())
-    if V * J <= MAX_DENSE_WEIGHT_ENTRIES:
-        return
-    names = ", ".join(
-        f"{cid} ({characters[cid].label}: {v} vertices, {j} joints)"
-        for cid, (v, j) in counts.items())
-    check_dense_weights(V, J, f"{where}: characters {names} together have skin weights too large to compose")
 
 
 def fusion_input(character, used, *, name: str = "") -> FusionInput:

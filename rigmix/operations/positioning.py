@@ -52,6 +52,7 @@ from ..config import MAX_SCALE, MIN_SCALE
 from ..errors import InputError
 from ..geometry import check_coordinates
 from ..skinning import check_rig, linear_blend_skinning
+from ..sparse_weights import dense_rows, influence_matrix, row_blocks
 from ..transforms import matrix_to_trs, quat_multiply, quat_to_matrix
 
 __all__ = [
@@ -169,21 +170,28 @@ def rest_world_mesh(character):
     -------
     V : (n, 3) float64
         Every mesh of ``character.meshes`` skinned at the rest pose (unskinned ones as stored).
-    W : (n, J) float64
-        Their dense skin weights (zero rows for unskinned meshes).
+    W : (n, J) scipy.sparse.csr_matrix, float64
+        Their skin weights per influence (:func:`rigmix.sparse_weights.influence_matrix`: the
+        values of :meth:`rigmix.character.Mesh.dense_weights`; empty rows for unskinned meshes).
     """
     sk = character.skeleton
     M = sk.rest_worlds() @ sk.inverse_binds
-    Vs, Ws = [], []
+    Vs, rows, cols, vals, base = [], [], [], [], 0
     for mesh in character.meshes:
         if mesh.skinned:
             Vs.append(linear_blend_skinning(mesh.positions, mesh.joints, mesh.weights, M))
+            rows.append(base + np.repeat(np.arange(len(mesh.positions)), mesh.joints.shape[1]))
+            cols.append(mesh.joints.ravel())
+            vals.append(mesh.weights.ravel())
         else:
             Vs.append(np.asarray(mesh.positions))
-        Ws.append(mesh.dense_weights(sk.num_joints))
+        base += len(mesh.positions)
     if not Vs:
-        return np.zeros((0, 3)), np.zeros((0, sk.num_joints))
-    return np.concatenate(Vs), np.concatenate(Ws)
+        return np.zeros((0, 3)), influence_matrix([], [], [], (0, sk.num_joints))
+    if not rows:  # no skinned mesh
+        return np.concatenate(Vs), influence_matrix([], [], [], (base, sk.num_joints))
+    return np.concatenate(Vs), influence_matrix(np.concatenate(rows), np.concatenate(cols), np.concatenate(vals),
+                                                (base, sk.num_joints))
 
 
 def rest_world_faces(character):
@@ -254,8 +262,8 @@ def cross_section(V, W, position, j, *, min_weight=0.5, min_vertices=3):
     ----------
     V : (n, 3) float array
         Rest positions, world space.
-    W : (n, J) float array
-        Dense skin weights.
+    W : (n, J) float array or scipy.sparse matrix
+        Skin weights.
     position : (3,) float array
         Joint ``j``'s rest world position.
     j : int
@@ -271,7 +279,7 @@ def cross_section(V, W, position, j, *, min_weight=0.5, min_vertices=3):
     """
     if len(V) == 0:
         return None
-    sel = W[:, j] >= min_weight
+    sel = (W[:, [j]].toarray().ravel() if sp.issparse(W) else np.asarray(W)[:, j]) >= min_weight
     if sel.sum() < min_vertices:
         return None
     r = float(np.median(np.linalg.norm(V[sel] - np.asarray(position), axis=1)))
@@ -283,8 +291,8 @@ def part_weights(W, subtree):
 
     Parameters
     ----------
-    W : (n, J) float array
-        Dense skin weights.
+    W : (n, J) float array or scipy.sparse matrix
+        Skin weights (sparse: summed a dense block of rows at a time, the same floats).
     subtree : (J,) bool array
         The joints of the part (:meth:`rigmix.character.Skeleton.subtree`).
 
@@ -292,7 +300,13 @@ def part_weights(W, subtree):
     -------
     (n,) float64
     """
-    return np.asarray(W, np.float64)[:, np.asarray(subtree, bool)].sum(axis=1)
+    subtree = np.asarray(subtree, bool)
+    if not sp.issparse(W):
+        return np.asarray(W, np.float64)[:, subtree].sum(axis=1)
+    out = np.zeros(W.shape[0])
+    for rows in row_blocks(W.shape[0], W.shape[1]):
+        out[rows] = dense_rows(W, rows)[:, subtree].sum(axis=1)
+    return out
 
 
 def cut_section(V, F, W, subtree, *, min_points=12):
@@ -316,8 +330,8 @@ def cut_section(V, F, W, subtree, *, min_points=12):
         Rest positions, world space, in the character's own units (a ratio of two of these is a
         scale between two characters).
     F : (m, 3) int array
-    W : (n, J) float array
-        Dense skin weights.
+    W : (n, J) float array or scipy.sparse matrix
+        Skin weights.
     subtree : (J,) bool array
     min_points : int
 

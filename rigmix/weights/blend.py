@@ -53,12 +53,14 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
+import scipy.sparse as sp
 
 from dfd.mesh import smooth, vertex_normals, welded_graph
 
 from ..errors import InputError, NumericalError
 from ..fusion.inputs import check_dense_weights
 from ..geometry import bounding_box_diagonal, weld
+from ..sparse_weights import column_support, dense_rows, from_dense, positive_counts, row_blocks, row_sums, set_rows
 from .fill import fill_weights
 from .junction import continue_far_parts, harmonic_blend_factors, match_junction
 from .mesh import sparsify
@@ -68,7 +70,8 @@ from .retarget import blend_parts, closest_point_weights, retarget_inputs
 
 __all__ = ["blend_weights", "SkinWeights", "WEIGHT_METHODS", "BLEND_FACTORS", "ON_SURFACE", "JUNCTION_SMOOTHING",
            "FIELD_DISTILL", "blend_factors", "junction_fill_options", "copy_preserved_rows", "JunctionBlend",
-           "blend_junction", "match_junction_rows", "smooth_seam", "weights_report", "smooth_rows", "weld_consistent"]
+           "blend_junction", "match_junction_rows", "smooth_seam", "weights_report", "smooth_rows", "weld_consistent",
+           "fill_junction", "sparsify_rows"]
 
 log = logging.getLogger(__name__)
 
@@ -108,9 +111,9 @@ class SkinWeights:
 
     Attributes
     ----------
-    W : (N, J_R) float64
-        Dense weights on the output joints; rows non-negative, at most ``max_influences``
-        non-zeros, summing to 1.
+    W : (N, J_R) scipy.sparse.csr_matrix, float64
+        Weights on the output joints, held per influence (canonical CSR, zeros not stored);
+        rows non-negative, at most ``max_influences`` non-zeros, summing to 1.
     junction : (N,) bool
         Vertices whose weights were computed (``FusedSurface.junction_vertices``).
     matched : (N,) bool
@@ -143,7 +146,7 @@ def weld_consistent(V, F, W, junction, max_influences=4):
     ----------
     V : (n, 3) float array
     F : (m, 3) int array
-    W : (n, J) float array
+    W : (n, J) float array or scipy.sparse matrix
         Rows summing to 1.
     junction : (n,) bool array
         Rows whose weights were computed (the others are copied from an input).
@@ -151,11 +154,12 @@ def weld_consistent(V, F, W, junction, max_influences=4):
 
     Returns
     -------
-    W : (n, J) float64
+    W : (n, J) float64 array, or a scipy.sparse.csr_matrix for a sparse ``W``
+        (dense only over the rows that share a position with a junction row).
     changed : int
         Junction rows that changed.
     """
-    W = np.asarray(W, np.float64).copy()
+    W = sp.csr_matrix(W, dtype=np.float64) if sp.issparse(W) else np.asarray(W, np.float64).copy()
     junction = np.asarray(junction, bool)
     if not junction.any():
         return W, 0
@@ -174,14 +178,17 @@ def weld_consistent(V, F, W, junction, max_influences=4):
     # rows that vote: the preserved ones where a group has any, else its junction rows
     vote = src[np.where(n_fixed[index[src]] > 0, fixed[src], junction[src])]
     S = np.zeros((len(groups), W.shape[1]))
-    np.add.at(S, pos[index[vote]], W[vote])
+    np.add.at(S, pos[index[vote]], dense_rows(W, vote))
     S /= np.bincount(pos[index[vote]], minlength=len(groups))[:, None]
     new = S[pos[index[rows]]]
     over = np.count_nonzero(new > 0, axis=1) > max_influences
     if over.any():
         new[over] = sparsify(new[over], max_influences)
-    changed = np.abs(new - W[rows]).sum(axis=1) > 0
-    W[rows] = new
+    changed = np.abs(new - dense_rows(W, rows)).sum(axis=1) > 0
+    if sp.issparse(W):
+        W = set_rows(W, rows, new)
+    else:
+        W[rows] = new
     return W, int(changed.sum())
 
 
@@ -333,24 +340,55 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, params: WeightPar
         mix = blend_junction(surface, inputs, retargeted, confidence, blend=blend,
                              tolerance=params.match_distance * diag, diagonal=diag)
         low[jrows] = mix.confidence < params.min_confidence
-        W[jrows] = sparsify(mix.W, params.max_influences)
+        W = set_rows(W, jrows, sparsify(mix.W, params.max_influences))
         if params.method != "nearest":
             matched[jrows] = match_junction_rows(surface, inputs, params, diagonal=diag) & ~low[jrows]
             unknown = junction & ~matched
             if unknown.any() and (~unknown).any():
-                W = fill_weights(surface.V, surface.F, W, unknown, method=params.method,
-                                 max_influences=params.max_influences, **options)
+                W = fill_junction(surface, W, unknown, params, options)
         if params.smoothing > 0:
             W, seam = smooth_seam(surface, W, mix.spread, params)
     W, welded_rows = weld_consistent(surface.V, surface.F, W, junction, params.max_influences)
-    if not np.all(np.isfinite(W)):
+    bad = ~np.isfinite(W.data)
+    if bad.any():
+        rows = np.unique(np.repeat(np.arange(N), np.diff(W.indptr))[bad])
         raise NumericalError(f"weights: method {params.method!r} produced non-finite weights on "
-                             f"{int((~np.isfinite(W)).any(axis=1).sum())} vertices")
+                             f"{len(rows)} vertices")
     report = weights_report(W, params.method, blend, junction=junction, matched=matched, low_confidence=low,
                             seam=seam, welded_rows=welded_rows, feature_field=options.get("field") is not False,
                             lazy=lazy)
     log.debug("weights: %s", report)
     return SkinWeights(W=W, junction=junction, matched=matched, method=params.method, report=report)
+
+
+def fill_junction(surface, W, unknown, params: WeightParams, options):
+    """The unknown junction rows of ``W`` filled (:func:`rigmix.weights.fill_weights`).
+
+    The fill solves on the whole welded surface over every output joint, so it takes the
+    weights as a dense ``(N, J_R)`` matrix: that one is held to
+    :data:`rigmix.fusion.inputs.MAX_DENSE_WEIGHT_ENTRIES` (an :class:`InputError` naming the
+    counts past it).
+
+    Parameters
+    ----------
+    surface : rigmix.fusion.FusedSurface
+    W : (N, J_R) scipy.sparse.csr_matrix
+    unknown : (N,) bool array
+        Rows to fill (some, not all).
+    params : WeightParams
+    options : dict
+        :func:`junction_fill_options`.
+
+    Returns
+    -------
+    (N, J_R) scipy.sparse.csr_matrix
+        ``W`` with the unknown rows filled, the others unchanged.
+    """
+    check_dense_weights(W.shape[0], W.shape[1], "weights: the junction fill (dense over the fused surface)")
+    rows = np.flatnonzero(unknown)
+    filled = fill_weights(surface.V, surface.F, W.toarray(), unknown, method=params.method,
+                          max_influences=params.max_influences, **options)
+    return set_rows(W, rows, filled[rows])
 
 
 def blend_factors(params: WeightParams) -> str:
@@ -386,7 +424,7 @@ def junction_fill_options(params: WeightParams, surface, retargeted, *, diagonal
     ----------
     params : WeightParams
     surface : rigmix.fusion.FusedSurface
-    retargeted : sequence of (n_i, J_R) float arrays
+    retargeted : sequence of (n_i, J_R) scipy.sparse matrices
         Each input's retargeted weights (:func:`retarget_inputs`).
     diagonal : float
         Bounding-box diagonal of the surface.
@@ -419,7 +457,7 @@ def junction_fill_options(params: WeightParams, surface, retargeted, *, diagonal
         "joint_parents": np.asarray(skeleton.parents),
     }
     # what the locality may keep where no known vertex witnesses it
-    deforming = np.any([(Wr > 0).any(axis=0) for Wr in retargeted], axis=0)
+    deforming = np.any([column_support(Wr) for Wr in retargeted], axis=0)
     locality_options = {} if params.locality <= 0 else {
         "locality": params.locality * diagonal, "locality_power": params.locality_power}
     # the field's one measured gain: borrowing next to joints nowhere known (ambient_borrow_prior)
@@ -435,30 +473,40 @@ def copy_preserved_rows(surface, retargeted, num_output_joints, *, max_influence
     ----------
     surface : rigmix.fusion.FusedSurface
         ``origin_input`` and ``origin_vertex`` say where each preserved vertex comes from.
-    retargeted : sequence of (n_i, J_R) float arrays
+    retargeted : sequence of (n_i, J_R) scipy.sparse matrices (or float arrays)
     num_output_joints : int
     max_influences : int
 
     Returns
     -------
-    W : (N, J_R) float64
+    W : (N, J_R) scipy.sparse.csr_matrix, float64
         Preserved rows exactly as retargeted, except those with more than ``max_influences``
-        non-zeros or none (sparsified); junction rows zero.
+        non-zeros or none (sparsified); junction rows empty. Held per influence.
     """
     N = len(surface.V)
-    check_dense_weights(N, num_output_joints, "weights: the fused surface")
-    W = np.zeros((N, num_output_joints))
     junction = np.asarray(surface.junction_vertices, bool)
     pres = np.flatnonzero(~junction)
+    blocks, pick, base = [], np.zeros(N, np.int64), 0
     for i in range(len(retargeted)):
         rows = pres[surface.origin_input[pres] == i]
-        W[rows] = retargeted[i][surface.origin_vertex[rows]]
+        blocks.append(sp.csr_matrix(retargeted[i])[surface.origin_vertex[rows]])
+        pick[rows] = base + np.arange(len(rows))
+        base += len(rows)
+    blocks.append(sp.csr_matrix((1, num_output_joints)))  # the junction rows' empty row
+    pick[junction] = base
+    W = sp.vstack(blocks, format="csr")[pick]
+    W.sort_indices()
     # rows copied from an input are exact; only rows with more influences than allowed change
-    nnz = np.count_nonzero(W > 0, axis=1)
-    bad = ~junction & ((nnz > max_influences) | (W.sum(axis=1) <= 0))
-    if bad.any():
-        W[bad] = sparsify(W[bad], max_influences)
-    return W
+    bad = np.flatnonzero(~junction & ((positive_counts(W) > max_influences) | (row_sums(W) <= 0)))
+    return sparsify_rows(W, bad, max_influences) if len(bad) else W
+
+
+def sparsify_rows(W, rows, max_influences):
+    """``W`` (``(N, J)`` CSR) with ``rows`` (``(q,)`` int) sparsified (:func:`sparsify`), a dense
+    block of rows at a time; a new CSR matrix."""
+    rows = np.asarray(rows, np.int64)
+    parts = [from_dense(sparsify(dense_rows(W, rows[b]), max_influences)) for b in row_blocks(len(rows), W.shape[1])]
+    return set_rows(W, rows, sp.vstack(parts, format="csr") if parts else sp.csr_matrix((0, W.shape[1])))
 
 
 class JunctionBlend(NamedTuple):
@@ -531,7 +579,7 @@ def _harmonic_blend(surface, retargeted, t, parts, *, diagonal):
     graph = welded_graph(surface.V, surface.F)  # built once: at a million faces it is the cost
     t = harmonic_blend_factors(surface.V, surface.F, T, junction, graph=graph)[jrows]
     owned = [pres[surface.origin_input[pres] == i] for i in range(n_inputs)]
-    known = [(r, retargeted[i][surface.origin_vertex[r]]) for i, r in enumerate(owned)]
+    known = [(r, sp.csr_matrix(retargeted[i])[surface.origin_vertex[r]]) for i, r in enumerate(owned)]
     parts = continue_far_parts(surface.V, surface.F, parts, [s["distance"] for s in surface.junction_sources],
                                junction, known, near=ON_SURFACE * diagonal, graph=graph)
     return t, parts
@@ -574,24 +622,32 @@ def smooth_seam(surface, W, spread, params: WeightParams):
     Parameters
     ----------
     surface : rigmix.fusion.FusedSurface
-    W : (N, J_R) float array
+    W : (N, J_R) scipy.sparse.csr_matrix
     spread : (q,) float array
         Of the junction vertices (:class:`JunctionBlend`).
     params : WeightParams
 
     Returns
     -------
-    W : (N, J_R) float64
+    W : (N, J_R) scipy.sparse.csr_matrix
     seam : (N,) bool
         The smoothed vertices.
+
+    Raises
+    ------
+    InputError
+        The smoothing averages over the whole welded surface, densely: past
+        :data:`rigmix.fusion.inputs.MAX_DENSE_WEIGHT_ENTRIES` entries.
     """
     junction = np.asarray(surface.junction_vertices, bool)
     seam = np.zeros(len(surface.V), bool)
     seam[np.flatnonzero(junction)] = spread > params.seam_spread
     seam = _grow(surface.V, surface.F, seam, params.seam_rings) & junction
     if seam.any():
-        W = smooth_rows(surface.V, surface.F, W, seam, iterations=params.smoothing)
-        W[seam] = sparsify(W[seam], params.max_influences)
+        check_dense_weights(W.shape[0], W.shape[1], "weights: the seam smoothing (dense over the fused surface)")
+        rows = np.flatnonzero(seam)
+        smoothed = smooth_rows(surface.V, surface.F, W.toarray(), seam, iterations=params.smoothing)
+        W = set_rows(W, rows, sparsify(smoothed[rows], params.max_influences))
     return W, seam
 
 
@@ -600,7 +656,7 @@ def weights_report(W, method, blend, *, junction, matched, low_confidence, seam,
 
     Parameters
     ----------
-    W : (N, J_R) float array
+    W : (N, J_R) float array or scipy.sparse matrix
         The final weights.
     method, blend : str
     junction, matched, low_confidence, seam : (N,) bool arrays
@@ -614,12 +670,12 @@ def weights_report(W, method, blend, *, junction, matched, low_confidence, seam,
     -------
     dict
     """
-    N = len(W)
-    s = W.sum(axis=1)
+    N = W.shape[0]
+    s = row_sums(W)
     return {
         "method": method,
         "blend": blend,
-        "max_influences": int(np.count_nonzero(W > 0, axis=1).max()) if N else 0,
+        "max_influences": int(positive_counts(W).max()) if N else 0,
         "min_sum": float(s.min()) if N else 1.0,
         "max_sum": float(s.max()) if N else 1.0,
         "junction_vertices": int(junction.sum()),

@@ -14,6 +14,7 @@ from scipy.sparse.linalg import splu
 
 from dfd.mesh import face_normals, welded_graph
 
+from ..fusion.inputs import check_dense_weights
 from ..geometry import neighbour_roughness
 
 __all__ = ["match_junction", "harmonic_blend_factors", "continue_far_parts"]
@@ -170,7 +171,8 @@ def continue_far_parts(V, F, parts, distances, junction, known, *, near, jump=0.
         Per input, the distance from each junction vertex to its closest point (units of ``V``).
     junction : (n,) bool array
     known : sequence of ``(rows, weights)``
-        Per input, the surface rows it preserves ``(r,)`` int and their weights ``(r, J)``.
+        Per input, the surface rows it preserves ``(r,)`` int and their weights ``(r, J)``
+        (float array or scipy.sparse matrix).
     near : float
         Units of ``V``.
     jump : float
@@ -181,6 +183,12 @@ def continue_far_parts(V, F, parts, distances, junction, known, *, near, jump=0.
     -------
     list of (q, J) float64 arrays
         ``parts`` with the jumping far rows replaced; rows non-negative, summing to 1.
+
+    Raises
+    ------
+    InputError
+        The continuation solves over the whole surface, densely: ``(n, J)`` past
+        :data:`rigmix.fusion.inputs.MAX_DENSE_WEIGHT_ENTRIES` entries.
     """
     junction = np.asarray(junction, bool)
     jrows = np.flatnonzero(junction)
@@ -194,8 +202,15 @@ def continue_far_parts(V, F, parts, distances, junction, known, *, near, jump=0.
         if not cont.any():
             out.append(P.copy())
             continue
+        check_dense_weights(len(V), P.shape[1], "weights: the junction's harmonic continuation (dense over the "
+                            "fused surface)")
         X = np.zeros((len(V), P.shape[1]))
-        X[rows] = K
+        if sp.issparse(K):  # scattered per influence: no dense copy of the preserved rows
+            K = sp.coo_matrix(K)
+            K.sum_duplicates()
+            X[np.asarray(rows)[K.row], K.col] = K.data
+        else:
+            X[rows] = K
         X[jrows] = P
         fixed = np.zeros(len(V), bool)
         fixed[rows] = True

@@ -11,8 +11,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..fusion.inputs import check_dense_weights
-from ..sparse_weights import dense_rows, row_blocks
+from ..sparse_weights import dense_rows, row_blocks, row_sums
 
 __all__ = ["retarget_weights", "retarget_inputs", "closest_point_weights", "blend_parts", "to_influences"]
 
@@ -32,9 +31,10 @@ def retarget_weights(W, target, num_output_joints, *, confidence=None):
 
     Returns
     -------
-    Wr : (n, J_R) float64
+    Wr : (n, J_R) scipy.sparse.csr_matrix, float64
         Weights of input joints mapped to the same output joint summed; rows renormalized
-        (mass on unmapped joints dropped); a row left empty stays all zero.
+        (mass on unmapped joints dropped); a row left empty stays all zero. Held per influence:
+        the values (and row sums) are those of the dense product bit for bit.
     c : (n,) float64
         Confidence of each row: ``sum_j W[:, j] confidence[j]`` (1 without ``confidence``).
     """
@@ -43,12 +43,16 @@ def retarget_weights(W, target, num_output_joints, *, confidence=None):
     ok = target >= 0
     B = sp.csr_matrix((np.ones(int(ok.sum())), (np.flatnonzero(ok), target[ok])),
                       shape=(len(target), num_output_joints))
-    Wr = np.asarray((sp.csr_matrix(W) @ B).todense())
-    s = Wr.sum(axis=1)
+    Wr = sp.csr_matrix(sp.csr_matrix(W) @ B)
+    Wr.sum_duplicates()
+    Wr.eliminate_zeros()
+    s = row_sums(Wr)
     nz = s > 0
     # leave rows whose sum is already 1 bit-identical (preserved vertices copy them exactly)
     off = nz & (np.abs(s - 1.0) > 1e-12)
-    Wr[off] /= s[off, None]
+    row = np.repeat(np.arange(Wr.shape[0]), np.diff(Wr.indptr))
+    scaled = off[row]
+    Wr.data[scaled] /= s[row[scaled]]
     n = W.shape[0]
     c = np.ones(n)
     if confidence is not None:  # dense blocks of rows: the same floats as the whole dense product
@@ -71,13 +75,12 @@ def retarget_inputs(inputs, maps, num_output_joints):
 
     Returns
     -------
-    retargeted : list of (n_i, J_R) float64 arrays
+    retargeted : list of (n_i, J_R) scipy.sparse.csr_matrix
     confidence : list of (n_i,) float64 arrays
         Mapping confidence of each row.
     """
     retargeted, confidence = [], []
     for x, bm in zip(inputs, maps):
-        check_dense_weights(x.W.shape[0], num_output_joints, f"weights: input {x.name!r} retargeted")
         Wr, c = retarget_weights(x.W, bm.target, num_output_joints, confidence=bm.confidence)
         retargeted.append(Wr)
         confidence.append(c)
@@ -92,7 +95,7 @@ def closest_point_weights(sources, retargeted, faces, *, tolerance, return_parts
     sources : sequence of dict
         Per input, ``FusedSurface.junction_sources[i]``: ``face`` (q,), ``bary`` (q, 3),
         ``distance`` (q,), ``presence`` (q,).
-    retargeted : sequence of (n_i, J_R) float arrays
+    retargeted : sequence of (n_i, J_R) float arrays or scipy.sparse matrices
         Retargeted weights of each input, per split vertex.
     faces : sequence of (m_i, 3) int arrays
         Faces of each input.
@@ -120,7 +123,7 @@ def closest_point_weights(sources, retargeted, faces, *, tolerance, return_parts
     t /= t.sum(axis=1, keepdims=True)
     parts = np.stack([
         np.einsum("qk,qkj->qj", np.asarray(s["bary"], np.float64),
-                  retargeted[i][np.asarray(faces[i], np.int64)[np.asarray(s["face"], np.int64)]])
+                  dense_rows(retargeted[i], np.asarray(faces[i], np.int64)[np.asarray(s["face"], np.int64)]))
         for i, s in enumerate(sources)])
     out, _ = blend_parts(t, parts)
     return (out, t, parts) if return_parts else (out, t)
@@ -150,11 +153,13 @@ def blend_parts(t, parts):
 
 
 def to_influences(W, k=4):
-    """The ``k`` largest influences of each row of dense weights, largest first.
+    """The ``k`` largest influences of each row of a weight matrix, largest first.
 
     Parameters
     ----------
-    W : (n, J) float array
+    W : (n, J) float array or scipy.sparse matrix
+        (Sparse: taken a dense block of rows at a time, :func:`rigmix.sparse_weights.row_blocks`,
+        with the same result.)
     k : int
         Influences per vertex (at most ``J``).
 
@@ -165,9 +170,12 @@ def to_influences(W, k=4):
     weights : (n, k) float64
         Their weights; 0 in unused slots.
     """
-    W = np.asarray(W, np.float64)
-    k = min(k, W.shape[1]) if W.shape[1] else k
-    idx = np.argsort(-W, axis=1, kind="stable")[:, :k]
-    w = np.take_along_axis(W, idx, axis=1)
-    idx = np.where(w > 0, idx, 0)
-    return idx.astype(np.int64), w
+    n, J = W.shape
+    k = min(k, J)
+    joints, weights = np.zeros((n, k), np.int64), np.zeros((n, k))
+    for rows in row_blocks(n, J):
+        block = dense_rows(W, rows)
+        idx = np.argsort(-block, axis=1, kind="stable")[:, :k]
+        w = np.take_along_axis(block, idx, axis=1)
+        joints[rows], weights[rows] = np.where(w > 0, idx, 0), w
+    return joints, weights
