@@ -297,10 +297,11 @@ def remesh_keeping_features(V, F, fixed, target, iterations, tol, rounds, points
     Remeshing to the neighbouring edge length chords off the corners and thin parts of the
     surface it follows. The remeshed surface is refined first: for at most ``refine_rounds``
     rounds, its faces farther than ``tol`` from the reference are split, the new vertices on the
-    reference (:func:`.remesh.refine_where_stray`, edges down to ``2 min_edge``), and its edges
-    flipped where that raises the angles (:func:`.remesh.flip_to_improve_angles`, never making
-    a ``forbidden`` edge), so that the triangles follow the curvature the target edge missed
-    with the creases of a finer mesh, not of a spike. Then for at most ``rounds`` rounds, the
+    reference (:func:`.remesh.refine_where_stray`, edges down to ``2 min_edge``), then its edges
+    flipped and the free vertices of poor triangles moved along the reference where that raises
+    the angles (:func:`.remesh.flip_to_improve_angles`, never making a ``forbidden`` edge;
+    :func:`.remesh.relocate_poor_vertices`), so that the triangles follow the curvature the
+    target edge missed with the creases of a finer mesh, not of a spike. Then for at most ``rounds`` rounds, the
     vertices of the reference ``(V, F)`` still farther than ``tol`` from the result, farthest
     first, at least half a target edge apart and a quarter from the kept vertices, are inserted
     into it (:func:`.remesh.insert_points`: a nearby free vertex moves onto one, or a face or
@@ -362,6 +363,8 @@ def remesh_keeping_features(V, F, fixed, target, iterations, tol, rounds, points
         U, G, split = refine_where_stray(U, G, (V, F), tol=tol, min_edge=0.2 * target if min_edge is None else min_edge)
         if not split:
             break
+        G = flip_to_improve_angles(U, G, forbidden=forbidden)
+        U = relocate_poor_vertices(U, G, len(fixed), surface=(V, F))
         G = flip_to_improve_angles(U, G, forbidden=forbidden)
     for _ in range(rounds):
         d = np.sqrt(igl.point_mesh_squared_distance(V, U, G)[0])
@@ -701,12 +704,16 @@ def _remesh_choosing_fidelity(job, info):
     5th-percentile minimum angle stays at ``min_angle_p05``, or is no worse than the plain
     remeshing's. Where the plain remeshing loses more of the shape than a looser tolerance
     (``fidelity_relax``) allows, that looser tolerance (fewer kept features) is tried first;
-    keeping less, it may cost little. Folds do not choose: a fold-free plain junction would
-    cost RiggedFigure's legs, replaced by themselves, 1.4% of the diagonal against 0.08%.
-    Creases do: where the kept features crease the junction (the 95th percentile of its dihedral
-    angles) more than ``crease_ratio`` times the replaced input surface does
-    (``job.input_dihedral``), the plain junction is taken if it creases less (``creases_avoided``
-    in ``info``, degrees).
+    keeping less, it may cost little. Folds choose within a bound: a folded shape-keeping
+    junction gives way to a plain one that folds less only where that strays at most
+    ``fold_free_deviation`` times as far (``folds_avoided`` in ``info``; the fold-free plain
+    junction would cost RiggedFigure's left leg, replaced by itself, 1.3% of the diagonal
+    against 0.36%). Creases choose: where the kept features crease the junction (the 95th
+    percentile of its dihedral angles) more than ``crease_ratio`` times the replaced input
+    surface does (``job.input_dihedral``), the plain junction is taken if it creases less
+    (``creases_avoided`` in ``info``, degrees). Neither takes a plain junction that misses
+    ``min_angle_p05`` where the shape-keeping one meets it: that would trade one gate for
+    another.
 
     ``fidelity``, ``fidelity_tolerance`` and, after a miss, ``plain_deviation`` and
     ``fidelity_retries`` are written into ``info`` as each is decided, so that a remeshing
@@ -752,18 +759,22 @@ def _remesh_choosing_fidelity(job, info):
             U, G, nfeat = U0, G0, 0
             info["fidelity"] = False
             info["fidelity_tolerance"] = 0.0
+    def angles_kept(U0, G0):  # the plain junction meets the angle bound, or misses it no more
+        return _angle_p05(U0, G0) >= min(params.min_angle_p05, _angle_p05(U, G))
+
     if info["fidelity"] and params.fold_free_deviation > 0:
         folds = _folds(U, G)
         if folds:
             U0, G0, lost = plain_remeshing()
-            if _folds(U0, G0) < folds and lost <= params.fold_free_deviation * max(_strays(job.V, U, G), tol):
+            if (_folds(U0, G0) < folds and lost <= params.fold_free_deviation * max(_strays(job.V, U, G), tol)
+                    and angles_kept(U0, G0)):
                 U, G, nfeat = U0, G0, 0
                 info.update(fidelity=False, fidelity_tolerance=0.0, folds_avoided=int(folds))
     if info["fidelity"] and params.crease_ratio > 0 and job.input_dihedral is not None:
         creased = _dihedral_p95(U, G)
         if creased > params.crease_ratio * job.input_dihedral:
             U0, G0, lost = plain_remeshing()
-            if _dihedral_p95(U0, G0) < creased:
+            if _dihedral_p95(U0, G0) < creased and angles_kept(U0, G0):
                 U, G, nfeat = U0, G0, 0
                 info.update(fidelity=False, fidelity_tolerance=0.0, creases_avoided=creased)
     return U, G, nfeat
