@@ -274,13 +274,14 @@ def test_collapses_let_the_junction_keep_the_shape_of_a_low_poly_tail():
 
 def test_a_looser_fidelity_tolerance_is_tried_before_none():
     """RiggedFigure's right arm (a box figure, faces 7% of the diagonal), its junction not
-    refined (``refine_rounds = 0``): at the default tolerance the shape-keeping junction misses
-    20 degrees at p05; without a looser try the fusion falls back to the plain remeshing, 2.2%
-    of the diagonal off at a box corner. Four times the tolerance keeps the corners and the
-    triangles. Refined, the default tolerance does."""
+    refined and not held to the inputs' creases (``refine_rounds = 0``, ``crease_ratio = 0``): at
+    the default tolerance the shape-keeping junction misses 20 degrees at p05; without a looser
+    try the fusion falls back to the plain remeshing, 2.2% of the diagonal off at a box corner.
+    Four times the tolerance keeps the corners and the triangles. Refined, the default
+    tolerance does."""
     a, b = _limb_self_composition("RiggedFigure", "arm_joint_R_1")
 
-    unrefined = replace(REMESHED, refine_rounds=0)
+    unrefined = replace(REMESHED, refine_rounds=0, crease_ratio=0.0)
     strict = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=replace(unrefined, fidelity_relax=()))
     out = fuse_surfaces([a, b], [FusionAction("replace", 0, 1)], params=unrefined)
     assert strict.report["fields"]["grids"][0]["fidelity"] is False

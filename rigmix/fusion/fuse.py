@@ -175,10 +175,13 @@ class FusionParams:
         pinned closer than the target edge fold the triangles between them.
     crease_ratio : the shape-keeping junction gives way to the plain one where the 95th
         percentile of its dihedral angles exceeds this many times the replaced input faces' (and
-        the plain one's is lower; 0 disables): the gate ``junction_dihedral_ratio`` allows 1.5
-        against the inputs around the fused joints. The Rat's right foreleg, swapped for its
-        mirrored left, keeps features at the corners of its low-poly paw that crease the
-        junction to 107 degrees, 1.7 times the input's there; plain, 81.
+        the plain one's is lower; 0 disables). The gate ``junction_dihedral_ratio`` allows 1.5
+        against the inputs' faces around the fused joints, kept ones included, which can crease
+        less than the replaced ones (the Deer's neck under EnemyLarge's head: 37 degrees against
+        49). The Rat's right foreleg, swapped for its mirrored left, keeps features at the
+        corners of its low-poly paw that crease the junction to 93 degrees, 1.5 times the
+        input's there; plain, 81. Low-poly inputs crease as much as their shape-keeping
+        junctions: the limb self-compositions keep theirs.
     min_angle_p05 : degrees; the fidelity path is kept only if the junction's 5th percentile of
         triangle minimum angles stays at least this, or above the plain remeshing's.
     min_seam_wedge : degrees; preserved faces around a seam vertex that leaves the junction a
@@ -259,7 +262,7 @@ class FusionParams:
     fidelity_relax: tuple = (4.0,)
     relax_max_angle_loss: float = 5.0
     fold_free_deviation: float = 2.0
-    crease_ratio: float = 1.25
+    crease_ratio: float = 1.0
     keep_input_corners: bool = True
     min_angle_p05: float = 20.0
     min_seam_wedge: float = 60.0

@@ -360,6 +360,8 @@ def remesh_keeping_features(V, F, fixed, target, iterations, tol, rounds, points
     if tol <= 0:
         return U, G, len(keep), (V, F)
     for _ in range(refine_rounds):
+        if len(G) >= 0.5 * len(F):  # finer than the reference, at voxel size, is no closer to it
+            break
         U, G, split = refine_where_stray(U, G, (V, F), tol=tol, min_edge=0.2 * target if min_edge is None else min_edge)
         if not split:
             break
