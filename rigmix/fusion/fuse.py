@@ -154,7 +154,7 @@ class FusionParams:
         rounds, edges down to twice this many target edges. Pinning those vertices in the
         remeshing instead left them three faces standing as spikes over the coarse triangles:
         junction dihedral p95 149 degrees on RiggedFigure's left arm swapped for its mirrored
-        right (90 on the input there; 62 refined).
+        right (90 on the input there; 57 refined).
     fidelity_relax : when the fidelity path misses ``min_angle_p05`` and the plain remeshing
         strays from its reference (the cut isosurface and its bridges) by more than the tolerance
         times one of these, the fidelity path is tried again with that looser tolerance (fewer
