@@ -193,6 +193,42 @@ def test_remeshing_keeps_the_corners_it_would_chord_off():
     assert np.einsum("ij,ij->", N, U1[G1].mean(axis=1)) > 0  # outward
 
 
+def _cap(V, F, z):
+    """The faces of ``(V, F)`` whose centroid is above height ``z``, without the other vertices."""
+    F = F[V[F].mean(axis=1)[:, 2] > z]
+    used = np.unique(F)
+    return V[used], np.searchsorted(used, F)
+
+
+def test_refinement_follows_the_reference_where_the_coarse_mesh_strays():
+    """A coarse cap of a sphere against the fine sphere: its faces chord the sphere by more than
+    the tolerance; refined, the new vertices lie on the sphere, the mesh strays less, the border
+    edges stay as they are, and the surface is still edge-manifold and outward. Edges shorter
+    than twice ``min_edge`` are left alone."""
+    import igl
+
+    from rigmix.fusion.remesh import is_edge_manifold, refine_where_stray
+
+    RV, RF = sphere(5)
+    RV, RF = _cap(RV, RF, 0.5)  # inside the coarse cap
+    V, F = _cap(*sphere(1), 0.2)
+    border = boundary_halfedges(F)
+
+    def stray(U, G):
+        return np.sqrt(igl.point_mesh_squared_distance(RV, U, G)[0]).max()
+
+    tol = 0.25 * stray(V, F)
+    U, G, split = refine_where_stray(V, F, (RV, RF), tol=tol, min_edge=0.01)
+    assert split > 0 and len(U) == len(V) + split and np.array_equal(U[: len(V)], V)
+    assert np.abs(np.linalg.norm(U[len(V):], axis=1) - 1.0).max() < 0.01  # on the fine sphere
+    assert stray(U, G) < stray(V, F)
+    assert is_edge_manifold(G)
+    assert {tuple(e) for e in np.sort(boundary_halfedges(G), axis=1)} == {tuple(e) for e in np.sort(border, axis=1)}
+    N = np.cross(U[G[:, 1]] - U[G[:, 0]], U[G[:, 2]] - U[G[:, 0]])
+    assert np.all(np.einsum("ij,ij->i", N, U[G].mean(axis=1)) > 0)  # every face outward
+    assert refine_where_stray(V, F, (RV, RF), tol=tol, min_edge=10.0)[2] == 0  # too short to split
+
+
 def test_points_inserted_into_a_mesh_become_vertices():
     from rigmix.fusion.remesh import insert_points, is_edge_manifold
 

@@ -13,6 +13,7 @@ from .meshutil import (
     intersecting_face_pairs,
     nondegenerate,
     triangle_corner_angles,
+    undirected_edges,
     vertex_adjacency,
 )
 
@@ -27,6 +28,7 @@ __all__ = [
     "flip_to_improve_angles",
     "insert_points",
     "is_edge_manifold",
+    "refine_where_stray",
     "relocate_poor_vertices",
     "remesh_junction",
     "smooth_interior",
@@ -657,6 +659,105 @@ def insert_points(V, F, fixed, X, *, max_dist, passes=4):
             fixed[v] = True
         X = X[waiting]
     return V, G, np.asarray(placed, np.int64)
+
+
+def _split_faces(G, Mf, U):
+    """Triangles of the faces ``G`` (m, 3) with their split edges' midpoints ``Mf`` (m, 3)
+    (the vertex on the edge from corner ``c`` to ``c + 1``, -1 where unsplit): a face with three
+    splits gives four, one with one split two, and one with two splits a triangle at their
+    shared corner and the rest of it cut along its shorter diagonal (positions ``U``)."""
+    out = [G[(Mf < 0).all(axis=1)]]
+    for f in np.flatnonzero((Mf >= 0).any(axis=1)):
+        t, m = G[f], Mf[f]
+        k = int(np.count_nonzero(m >= 0))
+        if k == 3:
+            a, b, c = t
+            ab, bc, ca = m
+            out.append(np.array([(a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca)]))
+        elif k == 1:
+            r = int(np.flatnonzero(m >= 0)[0])
+            a, b, c = t[r], t[(r + 1) % 3], t[(r + 2) % 3]
+            out.append(np.array([(a, m[r], c), (m[r], b, c)]))
+        else:
+            r = int(np.flatnonzero(m < 0)[0])  # the unsplit edge a -> b
+            a, b, c = t[r], t[(r + 1) % 3], t[(r + 2) % 3]
+            x, y = m[(r + 1) % 3], m[(r + 2) % 3]  # on b -> c and c -> a
+            if np.linalg.norm(U[a] - U[x]) < np.linalg.norm(U[b] - U[y]):
+                out.append(np.array([(x, c, y), (a, b, x), (a, x, y)]))
+            else:
+                out.append(np.array([(x, c, y), (a, b, y), (b, x, y)]))
+    return np.concatenate(out).astype(np.int64)
+
+
+def refine_where_stray(V, F, reference, *, tol, min_edge):
+    """Split the faces of ``(V, F)`` that stray from ``reference`` by more than ``tol``.
+
+    A remeshing to one target edge chords off the curved parts of the surface it follows; a
+    vertex pinned there instead stands as a spike over coarse triangles (and the remesher,
+    which treats pinned vertices as border ones, leaves them three faces). Here the triangles
+    get finer where they miss the shape: a face is marked when a reference vertex's closest
+    point is on it farther than ``tol`` away, or its centroid lies farther than ``tol`` from the
+    reference; the interior edges of marked faces at least ``2 min_edge`` long are split at
+    their midpoints, moved onto the closest reference point, and a face with two split edges
+    gets the third too (red-green closure, so the new triangles keep their parents' angles
+    where they can). Border edges never split: the border stays as it is.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+    F : (m, 3) int array
+        Edge-manifold, consistently oriented.
+    reference : (RV, RF)
+        The surface to follow, ``(r, 3)`` float and ``(s, 3)`` int.
+    tol, min_edge : float
+        Same units as ``V``.
+
+    Returns
+    -------
+    U : (n + k, 3) float64
+        ``U[:n] == V``, then the ``k`` new vertices.
+    G : (q, 3) int64
+        Same orientation as ``F``.
+    k : int
+        Edges split (0: nothing strays, or nothing left to split).
+    """
+    import igl
+
+    V = np.asarray(V, dtype=np.float64)
+    G = np.asarray(F, dtype=np.int64).reshape(-1, 3)
+    RV = np.asarray(reference[0], dtype=np.float64)
+    RF = np.asarray(reference[1], dtype=np.int64)
+    if len(G) == 0 or len(RF) == 0:
+        return V, G, 0
+    d2, fid, _ = igl.point_mesh_squared_distance(RV, V, G)
+    marked = np.zeros(len(G), bool)
+    marked[fid[d2 > tol * tol]] = True
+    c2 = igl.point_mesh_squared_distance(V[G].mean(axis=1), RV, RF)[0]
+    marked |= c2 > tol * tol
+    if not marked.any():
+        return V, G, 0
+    m = len(G)
+    _, uE, emap = undirected_edges(G)
+    emap = emap.reshape(3, m).T  # (m, 3): the edge from corner c to c + 1
+    count = np.bincount(emap.ravel(), minlength=len(uE))
+    length = np.linalg.norm(V[uE[:, 0]] - V[uE[:, 1]], axis=1)
+    can = (count == 2) & (length >= 2.0 * min_edge)
+    split = np.zeros(len(uE), bool)
+    split[emap[marked].ravel()] = True
+    split &= can
+    for _ in range(len(uE)):  # closure; each round splits more edges, so it ends
+        grow = (split[emap].sum(axis=1) == 2)[:, None] & can[emap] & ~split[emap]
+        if not grow.any():
+            break
+        split[emap[grow]] = True
+    es = np.flatnonzero(split)
+    if len(es) == 0:
+        return V, G, 0
+    _, _, P = igl.point_mesh_squared_distance(0.5 * (V[uE[es, 0]] + V[uE[es, 1]]), RV, RF)
+    mid = np.full(len(uE), -1, np.int64)
+    mid[es] = len(V) + np.arange(len(es))
+    U = np.concatenate([V, np.asarray(P, np.float64)])
+    return U, _split_faces(G, mid[emap], U), int(len(es))
 
 
 def untangle(V, F, nfixed, *, rounds=8, step=0.5, max_move=None):

@@ -35,6 +35,7 @@ from .remesh import (
     flip_to_improve_angles,
     insert_points,
     is_edge_manifold,
+    refine_where_stray,
     relocate_poor_vertices,
     remesh_junction,
     smooth_interior,
@@ -165,6 +166,28 @@ def _replaced_input_vertices(pres, inputs, junction_masks, preserved, grid):
     return X[~np.isin(_position_keys(X), _position_keys(K))]
 
 
+def _replaced_dihedral(pres, inputs, junction_masks, grid, percentile=95.0):
+    """How much the inputs' surface the junction replaces creases: the ``percentile`` of the
+    dihedral angles between neighbouring replaced welded faces inside ``grid`` (degrees, pooled
+    over ``inputs``; None without such a pair)."""
+    samples = []
+    for i in inputs:
+        P = pres[i]
+        T = P.welded.F[junction_masks[i]]
+        inside = np.all((P.welded.V >= grid.origin) & (P.welded.V <= grid.upper), axis=1)
+        T = T[inside[T].all(axis=1)]
+        if len(T):
+            samples.append(dihedral_angles(P.welded.V, T))
+    pooled = np.concatenate(samples) if samples else np.zeros(0)
+    return float(np.percentile(pooled, percentile)) if len(pooled) else None
+
+
+def _dihedral_p95(V, F):
+    """95th percentile of the dihedral angles of ``(V, F)`` (degrees; 0 without a face pair)."""
+    a = dihedral_angles(V, F)
+    return float(np.percentile(a, 95)) if len(a) else 0.0
+
+
 def _surface_input_vertices(X, grid, field3, h):
     """The points of ``X`` where the sampled blended field is within a quarter voxel of 0."""
     from scipy.ndimage import map_coordinates
@@ -269,17 +292,23 @@ def _angle_p05(V, F):
 
 
 def remesh_keeping_features(V, F, fixed, target, iterations, tol, rounds, points=None, points_tol=None,
-                            max_insert=None):
-    """Remesh with ``fixed`` kept, then again keeping what the result lost.
+                            max_insert=None, refine_rounds=0, min_edge=None, forbidden=None):
+    """Remesh with ``fixed`` kept, then refine and pin where the result strays.
 
     Remeshing to the neighbouring edge length chords off the corners and thin parts of the
-    surface it follows. After each pass, the vertices of the reference ``(V, F)`` and the
-    ``points`` (exact surface points: input corners) farther than ``tol`` from the result,
-    farthest first, at least half a target edge apart and a quarter from the kept vertices,
-    become fixed vertices of the next pass (points are inserted into the reference first): the
-    remesher then builds its isotropic triangles around them. Before the first pass, the
-    points the reference itself misses by more than ``points_tol`` (default ``tol``) and that
-    lie within ``max_insert`` of it are inserted. At most ``rounds`` more passes.
+    surface it follows. The remeshed surface is refined first: for at most ``refine_rounds``
+    rounds, its faces farther than ``tol`` from the reference are split, the new vertices on the
+    reference (:func:`.remesh.refine_where_stray`, edges down to ``2 min_edge``), then its edges
+    flipped and the free vertices of poor triangles moved along the reference where that raises
+    the angles (:func:`.remesh.flip_to_improve_angles`, never making a ``forbidden`` edge;
+    :func:`.remesh.relocate_poor_vertices`), so that the triangles follow the curvature the
+    target edge missed with the creases of a finer mesh, not of a spike. Then for at most ``rounds`` rounds, the
+    vertices of the reference ``(V, F)`` still farther than ``tol`` from the result, farthest
+    first, at least half a target edge apart and a quarter from the kept vertices, are inserted
+    into it (:func:`.remesh.insert_points`: a nearby free vertex moves onto one, or a face or
+    edge is split) and kept. Before the remeshing, the ``points`` (exact surface points: input
+    corners) the reference itself misses by more than ``points_tol`` (default ``tol``) and that
+    lie within ``max_insert`` of it are inserted into the reference.
 
     Parameters
     ----------
@@ -290,15 +319,22 @@ def remesh_keeping_features(V, F, fixed, target, iterations, tol, rounds, points
     target : float
         Target edge length (same units as ``V``).
     iterations : int
-        Remeshing iterations per pass.
+        Remeshing iterations.
     tol : float
-        Same units as ``V``; 0 gives one plain pass.
+        Same units as ``V``; 0 gives one plain remeshing.
     rounds : int
-        Extra passes at most.
+        Rounds of kept vertices at most.
     points : (p, 3) float array, optional
-        Exact surface points to keep where the result misses them.
+        Exact surface points to keep where the reference misses them.
     points_tol, max_insert : float, optional
         See above; ``max_insert`` defaults to ``4 tol``.
+    refine_rounds : int
+        Rounds of refinement at most.
+    min_edge : float, optional
+        Edges shorter than twice this are not split (default a fifth of ``target``).
+    forbidden : (e, 2) int array, optional
+        Edges between seam vertices, numbered as in the output (the order of ``fixed``), that
+        no flip may make.
 
     Returns
     -------
@@ -312,35 +348,44 @@ def remesh_keeping_features(V, F, fixed, target, iterations, tol, rounds, points
     import igl
 
     fixed = np.asarray(fixed, np.int64)
-    keep = fixed
     points = np.zeros((0, 3)) if points is None else np.asarray(points, np.float64).reshape(-1, 3)
-
-    def add_points(V, F, keep, X, dX):
-        X = X[_spread(X, dX, 0.5 * target, avoid=V[keep], avoid_spacing=0.15 * target)]
-        if len(X) == 0:
-            return V, F, keep
-        V, F, placed = insert_points(V, F, np.isin(np.arange(len(V)), keep), X,
-                                     max_dist=4.0 * tol if max_insert is None else max_insert)
-        return V, F, np.concatenate([keep, placed[~np.isin(placed, keep)]])
-
+    reach = 4.0 * tol if max_insert is None else max_insert
     if tol > 0 and len(points):
         dX = np.sqrt(igl.point_mesh_squared_distance(points, V, F)[0])
         lost = dX > (tol if points_tol is None else points_tol)
-        V, F, keep = add_points(V, F, keep, points[lost], dX[lost])
-    U, G = remesh_junction(V, F, keep, target=target, iterations=iterations)
-    for _ in range(rounds if tol > 0 else 0):
+        X = points[lost][_spread(points[lost], dX[lost], 0.5 * target, avoid=V[fixed], avoid_spacing=0.15 * target)]
+        if len(X):
+            V, F, _ = insert_points(V, F, np.isin(np.arange(len(V)), fixed), X, max_dist=reach)
+    U, G = remesh_junction(V, F, fixed, target=target, iterations=iterations)
+    keep = np.arange(len(fixed))  # remesh_junction puts the fixed vertices first
+    if tol <= 0:
+        return U, G, len(keep), (V, F)
+    for _ in range(refine_rounds):
+        if len(G) >= 0.5 * len(F):  # finer than the reference, at voxel size, is no closer to it
+            break
+        U, G, split = refine_where_stray(U, G, (V, F), tol=tol, min_edge=0.2 * target if min_edge is None else min_edge)
+        if not split:
+            break
+        G = flip_to_improve_angles(U, G, forbidden=forbidden)
+        U = relocate_poor_vertices(U, G, len(fixed), surface=(V, F))
+        G = flip_to_improve_angles(U, G, forbidden=forbidden)
+    for _ in range(rounds):
         d = np.sqrt(igl.point_mesh_squared_distance(V, U, G)[0])
         far = np.flatnonzero(d > tol)
-        far = far[~np.isin(far, keep)]
-        pick = far[_spread(V[far], d[far], 0.5 * target, avoid=V[keep], avoid_spacing=0.25 * target)]
-        n_before = len(keep)
-        keep = np.concatenate([keep, np.asarray(pick, np.int64)])
-        if len(points):
-            dX = np.sqrt(igl.point_mesh_squared_distance(points, U, G)[0])
-            V, F, keep = add_points(V, F, keep, points[dX > tol], dX[dX > tol])
-        if len(keep) == n_before:
+        far = far[~np.isin(far, fixed)]
+        pick = far[_spread(V[far], d[far], 0.5 * target, avoid=U[keep], avoid_spacing=0.25 * target)]
+        if not len(pick):
             break
-        U, G = remesh_junction(V, F, keep, target=target, iterations=iterations)
+        U, G, placed = insert_points(U, G, np.isin(np.arange(len(U)), keep), V[pick], max_dist=np.inf)
+        placed = placed[~np.isin(placed, keep)]
+        if not len(placed):
+            break
+        keep = np.concatenate([keep, placed])
+    order = np.concatenate([keep, np.setdiff1d(np.arange(len(U)), keep)])
+    new = np.empty(len(U), np.int64)
+    new[order] = np.arange(len(U))
+    U, G = U[order], new[G]
+    U[:len(fixed)] = V[fixed]
     return U, G, len(keep), (V, F)
 
 
@@ -624,6 +669,8 @@ class _RemeshJob:
     clear : callable or None
         Points ``(k, 3)`` -> ``(k,) bool``: outside the kept closed parts' clearance
         (:func:`_clear_of_parts`); None where no part is near.
+    input_dihedral : float or None
+        Degrees: how much the replaced input surface creases (:func:`_replaced_dihedral`).
     """
 
     V: np.ndarray
@@ -640,6 +687,7 @@ class _RemeshJob:
     inputs_fields: dict
     params: object
     clear: object = None
+    input_dihedral: float | None = None
 
 
 def _remesh_attempt(job, feature_tol):
@@ -657,7 +705,9 @@ def _remesh_attempt(job, feature_tol):
     pres, surfaces, inputs_fields = job.pres, job.surfaces, job.inputs_fields
     U, G, nfix, (RV, RF) = remesh_keeping_features(job.V, job.F, job.fixed, job.target, params.remesh_iterations,
                                                    feature_tol, params.feature_rounds, points=job.corners,
-                                                   points_tol=0.1 * h, max_insert=3.0 * h)
+                                                   points_tol=0.1 * h, max_insert=3.0 * h,
+                                                   refine_rounds=params.refine_rounds,
+                                                   min_edge=params.refine_min_edge * job.target, forbidden=forb)
     U = smooth_interior(U, G, np.arange(nfix), iterations=params.taubin_iterations)
     U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels, job.clear)
     G = flip_to_improve_angles(U, G, forbidden=forb)
@@ -687,8 +737,16 @@ def _remesh_choosing_fidelity(job, info):
     5th-percentile minimum angle stays at ``min_angle_p05``, or is no worse than the plain
     remeshing's. Where the plain remeshing loses more of the shape than a looser tolerance
     (``fidelity_relax``) allows, that looser tolerance (fewer kept features) is tried first;
-    keeping less, it may cost little. Folds do not choose: a fold-free plain junction would
-    cost RiggedFigure's legs, replaced by themselves, 1.4% of the diagonal against 0.08%.
+    keeping less, it may cost little. Folds choose within a bound: a folded shape-keeping
+    junction gives way to a plain one that folds less only where that strays at most
+    ``fold_free_deviation`` times as far (``folds_avoided`` in ``info``; the fold-free plain
+    junction would cost RiggedFigure's left leg, replaced by itself, 1.3% of the diagonal
+    against 0.36%). Creases choose: where the kept features crease the junction (the 95th
+    percentile of its dihedral angles) more than ``crease_ratio`` times the replaced input
+    surface does (``job.input_dihedral``), the plain junction is taken if it creases less
+    (``creases_avoided`` in ``info``, degrees). Neither takes a plain junction that misses
+    ``min_angle_p05`` where the shape-keeping one meets it: that would trade one gate for
+    another.
 
     ``fidelity``, ``fidelity_tolerance`` and, after a miss, ``plain_deviation`` and
     ``fidelity_retries`` are written into ``info`` as each is decided, so that a remeshing
@@ -734,13 +792,24 @@ def _remesh_choosing_fidelity(job, info):
             U, G, nfeat = U0, G0, 0
             info["fidelity"] = False
             info["fidelity_tolerance"] = 0.0
+    def angles_kept(U0, G0):  # the plain junction meets the angle bound, or misses it no more
+        return _angle_p05(U0, G0) >= min(params.min_angle_p05, _angle_p05(U, G))
+
     if info["fidelity"] and params.fold_free_deviation > 0:
         folds = _folds(U, G)
         if folds:
             U0, G0, lost = plain_remeshing()
-            if _folds(U0, G0) < folds and lost <= params.fold_free_deviation * max(_strays(job.V, U, G), tol):
+            if (_folds(U0, G0) < folds and lost <= params.fold_free_deviation * max(_strays(job.V, U, G), tol)
+                    and angles_kept(U0, G0)):
                 U, G, nfeat = U0, G0, 0
                 info.update(fidelity=False, fidelity_tolerance=0.0, folds_avoided=int(folds))
+    if info["fidelity"] and params.crease_ratio > 0 and job.input_dihedral is not None:
+        creased = _dihedral_p95(U, G)
+        if creased > params.crease_ratio * job.input_dihedral:
+            U0, G0, lost = plain_remeshing()
+            if _dihedral_p95(U0, G0) < creased and angles_kept(U0, G0):
+                U, G, nfeat = U0, G0, 0
+                info.update(fidelity=False, fidelity_tolerance=0.0, creases_avoided=creased)
     return U, G, nfeat
 
 
@@ -809,7 +878,8 @@ def _remesh_bridged(bridge, grid, pres, surfaces, preserved, inputs_fields, acti
                 corners = _input_vertices_on_surface(replaced, pres, surfaces, inputs_fields, actions, band, 0.1 * h)
             job = _RemeshJob(V=JV, F=JF, fixed=fx, target=target, tol=tol, h=h, forbidden=forb, corners=corners,
                              targets=targets, pres=pres, surfaces=surfaces, inputs_fields=inputs_fields,
-                             params=params, clear=clear)
+                             params=params, clear=clear,
+                             input_dihedral=_replaced_dihedral(pres, inputs_fields, junction_masks, grid))
             U, G, nfeat = _remesh_choosing_fidelity(job, info)
             info["self_intersections"] = int(len(intersecting_face_pairs(U, G)))
             info["feature_vertices"] = int(nfeat)
