@@ -369,7 +369,8 @@ def arm_swap_cases(subjects) -> list[Case]:
     return out
 
 
-def _leg_swap(a: Subject, b: Subject, leg: Limb, donor: Limb, what: str) -> Case:
+def leg_swap_case(a: Subject, b: Subject, leg: Limb, donor: Limb, what: str) -> Case:
+    """``a``'s ``leg`` replaced by ``b``'s ``donor`` limb (``what`` names it in the config's comment)."""
     return _case("leg_swap", b.name, f"{a.name}'s {what} replaced by {b.name}'s",
                  {"body": (a, {}), "donor": (b, AUTO)}, limb_actions(a, leg, "donor", b, donor))
 
@@ -380,12 +381,12 @@ def leg_swap_cases(subjects) -> list[Case]:
     out = []
     for i, (w, h) in enumerate((w, h) for w in walkers for h in humanoids):
         a, b = (h, w) if i % 2 == 0 else (w, h)
-        out.append(_leg_swap(a, b, a.limbs("leg", "L")[0], b.limbs("leg", "L")[0], "left leg"))
+        out.append(leg_swap_case(a, b, a.limbs("leg", "L")[0], b.limbs("leg", "L")[0], "left leg"))
     for a, b in combinations(walkers, 2):
-        out.append(_leg_swap(a, b, a.limbs("leg", "L")[0], b.limbs("leg", "L")[0], "left leg"))
+        out.append(leg_swap_case(a, b, a.limbs("leg", "L")[0], b.limbs("leg", "L")[0], "left leg"))
     others = [s for s in subjects if s.limbs("leg") and not (s.humanoid or s.walker)]
     for a, b in zip(others, others[1:] + others[:1]):
-        out.append(_leg_swap(a, b, a.front_leg("L"), b.front_leg("L"), "front left leg"))
+        out.append(leg_swap_case(a, b, a.front_leg("L"), b.front_leg("L"), "front left leg"))
     return out
 
 

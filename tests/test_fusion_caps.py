@@ -1,4 +1,4 @@
-"""Seam loops no isosurface hole matches are capped, not left open (``stitch._bridge``).
+"""Seam loops no isosurface hole matches are capped, not left open (``stitch.bridge_seams``).
 
 A loop is capped when no partner reaches it and it is no wider than that reach (a face or two
 of a donor's foot let go where it meets the body: the Bull's hoof on the Apatosaurus, the
@@ -15,7 +15,7 @@ from conftest import corpus
 
 from rigmix.fusion.junction import Loop
 from rigmix.fusion.meshutil import edge_counts
-from rigmix.fusion.stitch import _bridge
+from rigmix.fusion.stitch import bridge_seams
 
 CASES = ("leg_swap__Apatosaurus__Bull", "leg_swap__Stegosaurus__Trex")
 
@@ -37,7 +37,7 @@ def _closing_faces(bridge, loop_positions):
 def test_a_small_hole_without_partner_is_capped():
     P = _ring(5, 0.1)
     loop = Loop(source=0, vertices=np.arange(5), positions=P)
-    bridge = _bridge(np.zeros((0, 3)), np.zeros((0, 3), np.int64), [loop], h=0.1, cut_voxels=1.0)
+    bridge = bridge_seams(np.zeros((0, 3)), np.zeros((0, 3), np.int64), [loop], h=0.1, cut_voxels=1.0)
     assert bridge.unmatched_preserved_loops == 0 and bridge.capped_loops == 1
     F = _closing_faces(bridge, P)
     assert len(F) == 5
@@ -54,7 +54,7 @@ def test_a_small_hole_without_partner_is_capped():
 
 def test_a_wide_loop_without_partner_stays_unmatched():
     loop = Loop(source=0, vertices=np.arange(12), positions=_ring(12, 5.0))
-    bridge = _bridge(np.zeros((0, 3)), np.zeros((0, 3), np.int64), [loop], h=0.1, cut_voxels=1.0)
+    bridge = bridge_seams(np.zeros((0, 3)), np.zeros((0, 3), np.int64), [loop], h=0.1, cut_voxels=1.0)
     assert bridge.unmatched_preserved_loops == 1 and bridge.capped_loops == 0
 
 
@@ -66,11 +66,11 @@ def test_a_lining_beside_a_matched_loop_is_capped():
     n = 16
     iso_F = np.concatenate([[(k, (k + 1) % n, n + k), ((k + 1) % n, n + (k + 1) % n, n + k)] for k in range(n)])
     loops = [Loop(0, np.arange(16), outer), Loop(0, 16 + np.arange(16), lining)]
-    bridge = _bridge(iso_V, iso_F.astype(np.int64), loops, h=h, cut_voxels=1.0)
+    bridge = bridge_seams(iso_V, iso_F.astype(np.int64), loops, h=h, cut_voxels=1.0)
     assert bridge.unmatched_preserved_loops == 0 and bridge.capped_loops == 1
     # pulled apart, the lining is a loop of its own that nothing matches
     far = [loops[0], Loop(0, 16 + np.arange(16), _ring(16, 0.03, z=-0.1, reverse=True))]
-    bridge = _bridge(iso_V, iso_F.astype(np.int64), far, h=h, cut_voxels=1.0)
+    bridge = bridge_seams(iso_V, iso_F.astype(np.int64), far, h=h, cut_voxels=1.0)
     assert bridge.unmatched_preserved_loops == 1 and bridge.capped_loops == 0
 
 

@@ -46,7 +46,7 @@ from .seams import pinched_faces
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ClusterJunction", "junction_for_cluster", "remesh_keeping_features"]
+__all__ = ["ClusterJunction", "bridge_seams", "junction_for_cluster", "remesh_keeping_features"]
 
 
 def _field_for_cluster(n, inputs_fields, actions, band):
@@ -478,7 +478,7 @@ def _diameter(X):
     return float(np.sqrt(((X[:, None, :] - X[None, :, :]) ** 2).sum(axis=-1).max())) if len(X) else 0.0
 
 
-def _bridge(Vc, Fc, loops, h, cut_voxels):
+def bridge_seams(Vc, Fc, loops, h, cut_voxels):
     """Match the seam loops to the loops of the cut isosurface (or to each other across inputs)
     and bridge them.
 
@@ -590,7 +590,7 @@ def _bridge(Vc, Fc, loops, h, cut_voxels):
 
 
 def _bridge_without_crossings(Vc, Fc, loops, h, params):
-    """Bridge the seams (:func:`_bridge`), cutting the isosurface back where a bridge crosses it.
+    """Bridge the seams (:func:`bridge_seams`), cutting the isosurface back where a bridge crosses it.
 
     A bridge strip must not pass through the isosurface, nor through the fan closing a hole no
     seam claims (where the cut loop recedes far from its seam, or a second hole opens beside
@@ -618,7 +618,7 @@ def _bridge_without_crossings(Vc, Fc, loops, h, params):
     rejected : bool
         Whether a recut was tried and undone.
     """
-    bridge = _bridge(Vc, Fc, loops, h, params.cut_voxels)
+    bridge = bridge_seams(Vc, Fc, loops, h, params.cut_voxels)
     recuts, rejected = 0, False
     for _ in range(params.bridge_recuts):
         JV, JF, nb, fans = bridge.V, bridge.F, bridge.n_bridge, bridge.fans
@@ -632,7 +632,7 @@ def _bridge_without_crossings(Vc, Fc, loops, h, params):
         marked += [P for v in np.unique(JF[crossed].ravel()) if v in fans for P in fans[v]]
         near = np.isin(_position_keys(Vc), _position_keys(np.asarray(marked)))
         Vc2, Fc2, _ = remove_unreferenced(Vc, Fc[~near[Fc].any(axis=1)])
-        again = _bridge(Vc2, Fc2, loops, h, params.cut_voxels)
+        again = bridge_seams(Vc2, Fc2, loops, h, params.cut_voxels)
         if (len(again.F) == 0 or again.without_partner > bridge.without_partner
                 or not is_edge_manifold(again.F)):
             rejected = True
