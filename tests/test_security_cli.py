@@ -239,7 +239,7 @@ def test_sigterm_while_writing_leaves_nothing(tmp_path):
     proc = _start(["compose", tmp_path / "tail.toml", "-o", out / "tail.glb", "--report", out / "tail.json",
                    "--no-progress"], _env(tmp_path, RIGMIX_TEST_HOLD=str(hold)), cwd=tmp_path)
     try:
-        _wait_for(lambda: any(hold.iterdir()) or proc.poll() is not None, what="the write phase")
+        _wait_for(lambda: _held(hold) or proc.poll() is not None, what="the write phase")
         assert proc.poll() is None, proc.communicate()
         staged = Path((hold / str(proc.pid)).read_text())
         assert staged.is_file() and staged.parent.parent == out and staged.parent.name.startswith(".rigmix-")
@@ -251,6 +251,12 @@ def test_sigterm_while_writing_leaves_nothing(tmp_path):
     assert proc.returncode == 128 + signal.SIGTERM, stderr
     assert "interrupted (SIGTERM)" in _one_error_line(stderr)
     assert list(out.iterdir()) == []  # no output, no temporary folder or file
+
+
+def _held(hold):
+    """Process ids holding in the write phase: their markers in ``hold`` (a ``.part`` file is one
+    being written, not yet a marker)."""
+    return sorted(int(p.name) for p in hold.iterdir() if p.name.isdigit())
 
 
 @pytest.mark.slow
@@ -269,10 +275,10 @@ def test_sigterm_stops_the_batch_workers(tmp_path):
     children = []
     try:
         # both workers are in the write phase, their temporary files in the output folder
-        _wait_for(lambda: len(list(hold.iterdir())) >= 2 or proc.poll() is not None, timeout=600,
+        _wait_for(lambda: len(_held(hold)) >= 2 or proc.poll() is not None, timeout=600,
                   what="two workers in the write phase")
         assert proc.poll() is None, proc.communicate()
-        workers = sorted(int(p.name) for p in hold.iterdir() if p.name.isdigit())
+        workers = _held(hold)
         children = [c.pid for c in psutil.Process(proc.pid).children(recursive=True)]
         assert len(workers) == 2 and set(workers) <= set(children)
         assert len(_leftovers(out)) >= 2
