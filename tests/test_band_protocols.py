@@ -22,7 +22,6 @@ from benchmarks.band_fill import (  # noqa: E402
     mask_errors,
     mirror_joint_pairs,
     pair_band,
-    pair_band_errors,
     protocol_masks,
     rest_diagonal,
     similar_part_cases,
@@ -73,15 +72,26 @@ def test_both_bands_hidden(fox):
     assert checked >= 4
 
 
-def test_pair_errors_measure_the_hidden_rows(fox):
+def test_pair_errors_measure_the_hidden_rows_and_their_skinning(fox):
+    """Protocol 1's cases are the joint pairs with a band on both sides, each measured in weights
+    and skinned under the Fox's clips."""
     V, F, W, names, positions = character_arrays(fox)
+    index, Wt = welded_truth(V, F, W)
+    masks = protocol_masks(fox, Wt, "both_hidden")
     pairs, _ = mirror_joint_pairs(fox)
-    errors = pair_band_errors(V, F, W, pairs[:2], "nearest", names=names)
-    assert errors
+    both = [(j, k) for j, k in pairs
+            if ((Wt[:, j] > LOW) & (Wt[:, j] < HIGH)).any() and ((Wt[:, k] > LOW) & (Wt[:, k] < HIGH)).any()]
+    assert sorted(masks) == sorted(f"{names[j]}|{names[k]}" for j, k in both)
+    for j, k in both:
+        assert (masks[f"{names[j]}|{names[k]}"] == pair_band(Wt, j, k)).all()
+    skin = clip_matrices(fox)
+    errors = mask_errors(V, F, W, dict(list(masks.items())[:2]), "nearest", skin=skin,
+                         diagonal=rest_diagonal(fox.skeleton, V, W))
+    assert len(errors) == 2
     for key, e in errors.items():
-        j, k = key.split("|")
-        assert j in names and k in names
-        assert 0 < e["mean"] <= e["max"] <= 1 and e["rows"] > 0
+        assert e["rows"] == masks[key].sum() > 0
+        assert 0 < e["mean"] <= e["max"] <= 1
+        assert 0 < e["skinned"] <= e["skinned_max"] < 1  # a fraction of the diagonal
 
 
 @pytest.fixture(scope="module")
