@@ -20,7 +20,7 @@ reads known rows only.
 
 Issue 27's protocols, on the shared characters and the corpus (``--protocols``: all three in one
 run, each character's fields made once; ``--both-hidden``: protocol 1; ``--similar-ambient``: 2 and 3).
-Protocol 1, both sides hidden (:func:`mirror_pair_masks`): a limb's transition bands hidden together
+Protocol 1, both sides hidden (:func:`mirror_pair_cases`): a limb's transition bands hidden together
 with its mirror partner's (joint pairs from the limb classifier, :func:`mirror_joint_pairs`), so the
 mirror prior has nothing to copy. Protocol 2, similar-part borrowing (:func:`similar_part_cases`): a
 limb pair's bands hidden while the character's other arm or leg pairs stay painted, a wing's outer
@@ -300,19 +300,20 @@ def pair_band(Wt, j, k, *, low=LOW, high=HIGH):
     return ((Wt[:, j] > low) & (Wt[:, j] < high)) | ((Wt[:, k] > low) & (Wt[:, k] < high))
 
 
-def mirror_pair_masks(character, Wt, *, low=LOW, high=HIGH):
-    """Protocol 1's cases: ``"j|k"`` (joint names) -> ``(k,) bool`` welded vertices of the pair's two
-    transition bands (:func:`pair_band`), for every joint pair of :func:`mirror_joint_pairs` where both
-    joints have a band (one side hidden alone is the single-band protocol of :func:`band_errors`)."""
+def mirror_pair_cases(character):
+    """Protocol 1's cases: every joint pair of :func:`mirror_joint_pairs`.
+
+    Returns
+    -------
+    cases : list of dict
+        ``name`` (``"j|k"``, the joint names), ``kind`` (``"joint pair"``) and ``joints`` ((2,) int64).
+        :func:`case_mask` hides a pair only where both joints have a band (one side hidden alone is
+        the single-band protocol of :func:`band_errors`).
+    """
     pairs, _ = mirror_joint_pairs(character)
     names = list(character.skeleton.names)
-    out = {}
-    for j, k in pairs:
-        in_j = (Wt[:, j] > low) & (Wt[:, j] < high)
-        in_k = (Wt[:, k] > low) & (Wt[:, k] < high)
-        if in_j.any() and in_k.any():
-            out[f"{names[j]}|{names[k]}"] = pair_band(Wt, j, k, low=low, high=high)
-    return out
+    return [{"name": f"{names[j]}|{names[k]}", "kind": "joint pair", "joints": np.array([j, k], dtype=np.int64)}
+            for j, k in pairs]
 
 
 def make_encoder(name, V, F, positions, parents):
@@ -474,17 +475,26 @@ def region_mask(Wt, joints):
     return (Wt[:, joints] > 0.0).any(axis=1)
 
 
-def clip_matrices(character, *, frames=SKIN_FRAMES, clips=SKIN_CLIPS):
-    """Skinning matrices ``(f, J, 3, 4)`` (bind space to world) at ``frames`` evenly spaced times of
-    each of the character's first ``clips`` clips; ``None`` for a character without clips."""
+def clip_matrices(character, *, frames=SKIN_FRAMES, clips=SKIN_CLIPS, rest=False):
+    """Skinning matrices ``(f, J, 3, 4)`` at ``frames`` evenly spaced times of each of the
+    character's first ``clips`` clips; ``None`` for a character without clips.
+
+    They map bind-space points to world space (``world @ inverse_bind``), or with ``rest`` points
+    of the skeleton's rest-pose world space, where a composition's fused surface lies
+    (``world @ rest_world^-1``)."""
     from rigmix.animation.sampling import sample_clip
     from rigmix.skinning import skinning_matrices
+    from rigmix.transforms import trs_to_matrix
 
     sk = character.skeleton
     out = []
     for clip in character.clips[:clips]:
         T, R, S = sample_clip(sk, clip, np.linspace(clip.start, clip.end, frames))
-        out.append(skinning_matrices(sk, T, R, S)[..., :3, :])
+        if rest:
+            M = sk.world_matrices(trs_to_matrix(T, R, S)) @ np.linalg.inv(sk.rest_worlds())
+        else:
+            M = skinning_matrices(sk, T, R, S)
+        out.append(M[..., :3, :])
     return np.concatenate(out) if out else None
 
 
@@ -561,16 +571,35 @@ def mask_errors(V, F, W, masks, method, *, skin=None, diagonal=1.0, **options):
     return out
 
 
+#: each protocol's cases (:func:`protocol_cases`)
+CASES = {"both_hidden": mirror_pair_cases, "similar": similar_part_cases, "ambient": ambient_cases}
+
+
+def protocol_cases(character, protocol):
+    """The cases of ``protocol`` (a key of :data:`PROTOCOL_FILES`) on one character: a list of dicts
+    with ``name``, ``kind`` and ``joints`` ((m,) int64 indices into the character's skeleton)."""
+    return CASES[protocol](character)
+
+
+def case_mask(Wt, joints, protocol, *, low=LOW, high=HIGH):
+    """``(k,) bool``: the welded vertices one case of ``protocol`` hides, for ``Wt`` (k, J) weights
+    and the case's ``joints`` (indices into ``Wt``'s columns).
+
+    ``"ambient"``: the joints' whole painted region (:func:`region_mask`); ``"similar"``: their
+    transition bands (:func:`band_mask`); ``"both_hidden"``: their bands, and nothing unless every
+    joint has one (a pair whose one side has no band has nothing the mirror could have copied).
+    """
+    if protocol == "ambient":
+        return region_mask(Wt, joints)
+    if protocol == "both_hidden" and not all(band_mask(Wt, [j], low=low, high=high).any() for j in joints):
+        return np.zeros(len(Wt), dtype=bool)
+    return band_mask(Wt, joints, low=low, high=high)
+
+
 def protocol_masks(character, Wt, protocol):
-    """Case name -> ``(k,) bool`` hidden welded vertices, for ``"both_hidden"`` (protocol 1,
-    :func:`mirror_pair_masks`), ``"similar"`` (protocol 2, the bands of :func:`similar_part_cases`)
-    or ``"ambient"`` (protocol 3, the regions of :func:`ambient_cases`); empty masks dropped."""
-    if protocol == "both_hidden":
-        masks = mirror_pair_masks(character, Wt)
-    elif protocol == "similar":
-        masks = {c["name"]: band_mask(Wt, c["joints"]) for c in similar_part_cases(character)}
-    else:
-        masks = {c["name"]: region_mask(Wt, c["joints"]) for c in ambient_cases(character)}
+    """Case name -> ``(k,) bool`` hidden welded vertices (:func:`case_mask`) of each case of
+    :func:`protocol_cases`; empty masks dropped."""
+    masks = {c["name"]: case_mask(Wt, c["joints"], protocol) for c in protocol_cases(character, protocol)}
     return {k: m for k, m in masks.items() if m.any()}
 
 
@@ -694,7 +723,7 @@ def summarize_protocol(results):
 PROTOCOL_TEXT = {
     "both_hidden": (
         "Band fill, protocol 1 (issue 27), both sides hidden: for each mirrored joint pair of each limb pair "
-        "found by the limb classifier (`mirror_pair_masks`), both joints' transition bands (weights strictly "
+        "found by the limb classifier (`mirror_pair_cases`), both joints' transition bands (weights strictly "
         "in ({low}, {high})) are hidden together and filled back, so the mirror prior has nothing to copy; a "
         "case per joint pair where both joints have a band."),
     "similar": (
@@ -716,14 +745,17 @@ PROTOCOL_TEXT = {
 }
 
 
-def markdown_protocol(results, summary, protocol, distilled):
-    """The protocol's table: means over characters with the decision rule, then per character."""
+def markdown_protocol(results, summary, protocol, distilled, *, header=None):
+    """The protocol's table: means over characters with the decision rule, then per character.
+
+    ``header``: what the protocol hides, opening the text (default :data:`PROTOCOL_TEXT`'s)."""
     labels = list(summary["mean_error"])
     rule = summary["rule"]
     fmt = {"low": LOW, "high": HIGH, "ambient": AMBIENT}
     lines = [
-        PROTOCOL_TEXT[protocol].format(**fmt) + " Error: half-L1 over the hidden welded vertices (0 identical, "
-        "1 disjoint); per character `mean` is the mean over cases, `max` the largest over every hidden vertex. "
+        (header or PROTOCOL_TEXT[protocol].format(**fmt))
+        + " Error: half-L1 over the hidden welded vertices (0 identical, 1 disjoint); per character `mean` is the "
+        "mean over cases, `max` the largest over every hidden vertex. "
         "Skinned error: the hidden vertices skinned (LBS) with the filled weights against the artist's at "
         f"{SKIN_FRAMES} evenly spaced frames of each of the first {SKIN_CLIPS} clips, distance as % of the "
         f"bounding-box diagonal, mean over vertices and frames then over cases ({summary['skinned_characters']} "
@@ -771,8 +803,9 @@ def markdown_protocol(results, summary, protocol, distilled):
 
 
 
-def write_protocol(results, protocol):
-    """Write ``benchmarks/results/<stem>.{json,md}`` for one protocol of :data:`PROTOCOL_FILES`."""
+def write_protocol(results, protocol, *, stem=None, header=None):
+    """Write ``benchmarks/results/<stem>.{json,md}`` for one protocol of :data:`PROTOCOL_FILES`
+    (``stem``: default its band-fill file; ``header``: :func:`markdown_protocol`'s)."""
     summary = summarize_protocol(results)
     distilled = [n for n, r in results.items() if r.get("methods") and any(
         not k.endswith("-direct") for k in r.get("field_seconds", {}))]
@@ -782,9 +815,9 @@ def write_protocol(results, protocol):
                             "skin_clips": SKIN_CLIPS, "distilled_on": distilled},
                "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
                "characters": results, "summary": summary}
-    stem = PROTOCOL_FILES[protocol]
+    stem = stem or PROTOCOL_FILES[protocol]
     (RESULTS / f"{stem}.json").write_text(json.dumps(payload, indent=2) + "\n")
-    (RESULTS / f"{stem}.md").write_text(markdown_protocol(results, summary, protocol, distilled))
+    (RESULTS / f"{stem}.md").write_text(markdown_protocol(results, summary, protocol, distilled, header=header))
     return payload
 
 
