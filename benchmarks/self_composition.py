@@ -462,6 +462,32 @@ def junction_options(comp, method: str) -> dict:
     return options
 
 
+def field_case_rows(comp, case, protocol):
+    """The truth and the hidden rows of one self-composition case of an issue-27 protocol.
+
+    Returns
+    -------
+    G : (n, J_out) float64
+        The truth over the composed surface (:func:`rigmix.quality.self_composition_truth`).
+    hidden : (k,) bool
+        Over the surface's welded vertices (:func:`benchmarks.band_fill.welded_truth`'s order):
+        those :func:`benchmarks.band_fill.case_mask` hides on the welded truth, the case's joints
+        taken to the output joints (empty: the case hides nothing on this surface).
+    junction : (k,) bool
+        The junction's welded vertices, hidden with them.
+    """
+    from benchmarks.band_fill import case_mask, welded_truth
+    from rigmix.quality import self_composition_truth
+
+    surface = comp.surface
+    G = self_composition_truth(comp)
+    index, Gt = welded_truth(np.asarray(surface.V), np.asarray(surface.F), G)
+    junction = np.zeros(len(Gt), bool)
+    junction[index[np.asarray(surface.junction_vertices, bool)]] = True
+    hidden = case_mask(Gt, output_joints(comp)[case["joints"]], protocol)
+    return G, hidden, junction
+
+
 def field_case_errors(comp, case, protocol, methods) -> dict:
     """One self-composition case of an issue-27 protocol, filled by every method.
 
@@ -490,17 +516,11 @@ def field_case_errors(comp, case, protocol, methods) -> dict:
         ``rows`` (hidden welded vertices; 0: the case hides nothing on this surface, no method run),
         ``junction_rows``, and per label ``{"errors": mask_errors' entry, "seconds"}``.
     """
-    from benchmarks.band_fill import case_mask, clip_matrices, mask_errors, welded_truth
-    from rigmix.quality import self_composition_truth
+    from benchmarks.band_fill import clip_matrices, mask_errors
 
     surface = comp.surface
     V, F = np.asarray(surface.V), np.asarray(surface.F)
-    G = self_composition_truth(comp)
-    index, Gt = welded_truth(V, F, G)
-    junction = np.zeros(len(Gt), bool)
-    junction[index[np.asarray(surface.junction_vertices, bool)]] = True
-    t = output_joints(comp)
-    hidden = case_mask(Gt, t[case["joints"]], protocol)
+    G, hidden, junction = field_case_rows(comp, case, protocol)
     out = {"rows": 0, "junction_rows": int(junction.sum()), "methods": {}}
     if not hidden.any():
         return out
