@@ -57,7 +57,7 @@ every encoder's field (:func:`run_field_protocols`); band_fill's figures and dec
 Writes ``benchmarks/results/self_composition.json`` and ``self_composition.md``; with issue 27's
 protocols, ``self_composition_<protocol>.json`` and ``.md``.
 Usage: ``python -m benchmarks.self_composition [--protocol identity|mirrored|hidden|all|both_hidden|similar|
-ambient|issue27] [CHARACTER ...]``.
+ambient|issue27] [--direct-only] [--update] [CHARACTER ...]``.
 """
 
 from __future__ import annotations
@@ -68,6 +68,7 @@ import platform
 import sys
 import time
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -623,7 +624,7 @@ FIELD_PROTOCOL_TEXT = {
 def field_protocol_header(protocol: str) -> str:
     """The opening text of a self-composition table of an issue-27 protocol."""
     return (f"Self-composition, issue 27's {FIELD_PROTOCOL_TEXT[protocol]} (the cases of "
-            f"`benchmarks/band_fill_{protocol}.md`, `field_protocol_cases`). Each case is a self-composition "
+            f"`benchmarks/results/band_fill_{protocol}.md`, `field_protocol_cases`). Each case is a self-composition "
             "at its first joint with the junction rebuilt from the fields; the hidden rows are the junction's "
             "and those the case hides on the composed surface, every other row keeps its truth: the original's "
             "weights at the closest original point (cut to 4 on the junction). Fills with the pipeline's "
@@ -631,15 +632,23 @@ def field_protocol_header(protocol: str) -> str:
             "the original at rest and evaluated at the composed surface.")
 
 
-def main_field_protocols(names, protocols=FIELD_PROTOCOLS) -> dict:
+def main_field_protocols(names, protocols=FIELD_PROTOCOLS, *, direct_only=False, update=False) -> dict:
     """Issue 27's protocols over ``names`` (default: the shared characters and the corpus); writes
-    ``benchmarks/results/self_composition_<protocol>.{json,md}`` after every character."""
+    ``benchmarks/results/self_composition_<protocol>.{json,md}`` after every character.
+
+    ``direct_only``: no distilled encoder (the direct fields and the baselines only); ``update``:
+    keep the characters already in the result files, replacing only those run now (band_fill's
+    ``--direct-only`` and ``--update``)."""
     from conftest import ASSETS, CHARACTERS, CORPUS, CORPUS_CHARACTERS
 
     from benchmarks.band_fill import write_protocol
 
     every = {**{n: ASSETS / p for n, p in CHARACTERS.items()}, **{n: CORPUS / p for n, p in CORPUS_CHARACTERS.items()}}
     results = {p: {} for p in protocols}
+    for p in protocols if update else ():
+        f = RESULTS / f"self_composition_{p}.json"
+        if f.exists():
+            results[p] = json.loads(f.read_text())["characters"]
     RESULTS.mkdir(exist_ok=True)
     for name in names or list(every):
         path = every[name]
@@ -648,7 +657,7 @@ def main_field_protocols(names, protocols=FIELD_PROTOCOLS) -> dict:
             continue
         t0 = time.perf_counter()
         try:
-            res = run_isolated(run_field_protocols, path, protocols)
+            res = run_isolated(partial(run_field_protocols, encoders=() if direct_only else None), path, protocols)
         except Exception as exc:  # a benchmark reports a failing character and goes on
             print(f"self_composition: {name}: {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
             continue
@@ -773,6 +782,9 @@ def main(argv=None) -> int:
     parser.add_argument("--protocol", choices=(*PROTOCOLS, "all", *FIELD_PROTOCOLS, "issue27"), default="all",
                         help="all: identity, mirrored and hidden (self_composition.*); issue27: "
                              f"{', '.join(FIELD_PROTOCOLS)} (self_composition_<protocol>.*)")
+    parser.add_argument("--direct-only", action="store_true", help="issue 27's protocols: no distilled encoder")
+    parser.add_argument("--update", action="store_true",
+                        help="issue 27's protocols: keep the characters already in the result files")
     parser.add_argument("characters", nargs="*", help=f"default: {' '.join(LIMBS)}; issue 27's protocols: "
                                                       "the shared characters and the corpus")
     # argv None (``benchmarks.run`` calls main()): every character, every protocol; the runner's
@@ -780,8 +792,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(list(argv or []))
     logging.basicConfig(level=logging.ERROR)
     if args.protocol in (*FIELD_PROTOCOLS, "issue27"):
-        main_field_protocols(args.characters,
-                             FIELD_PROTOCOLS if args.protocol == "issue27" else (args.protocol,))
+        main_field_protocols(args.characters, FIELD_PROTOCOLS if args.protocol == "issue27" else (args.protocol,),
+                             direct_only=args.direct_only, update=args.update)
         return 0
     names = args.characters or list(LIMBS)
     protocols = PROTOCOLS if args.protocol == "all" else (args.protocol,)
