@@ -18,23 +18,23 @@ positions, names and parents for the joint mirror and the bone prior). Nothing o
 band reaches any method: the weights passed for band vertices are zeros, and every method
 reads known rows only.
 
-Protocol 1 of issue 27 (``--both-hidden``): a limb's transition bands are hidden together with its
-mirror partner's (joint pairs from the limb classifier, :func:`mirror_joint_pairs`), so the mirror
-prior has nothing to copy; ``nearest``, ``inpaint``, ``dfd_no_field`` and ``dfd`` with the field of
-each encoder of :data:`FIELD_ENCODERS` fill them back, over the shared characters and the corpus.
+Issue 27's protocols, on the shared characters and the corpus (``--protocols``: all three in one
+run, each character's fields made once; ``--both-hidden``: protocol 1; ``--similar-ambient``: 2 and 3).
+Protocol 1, both sides hidden (:func:`mirror_pair_cases`): a limb's transition bands hidden together
+with its mirror partner's (joint pairs from the limb classifier, :func:`mirror_joint_pairs`), so the
+mirror prior has nothing to copy. Protocol 2, similar-part borrowing (:func:`similar_part_cases`): a
+limb pair's bands hidden while the character's other arm or leg pairs stay painted, a wing's outer
+joint pair, a tail's middle joint. Protocol 3, ambient handles (:func:`ambient_cases`): a tail chain,
+or a wing pair, whose whole painted region is hidden; ``+ambient`` methods give its joints handles
+sampled along their bones (:mod:`rigmix.weights.ambient`). Each is filled back by ``nearest``,
+``inpaint``, ``dfd_no_field``, the pipeline's default and ``dfd`` with the field of each encoder of
+:data:`FIELD_ENCODERS` and :data:`DIRECT_ENCODERS`, and reports the weight error and the skinned error
+under the character's clips (:func:`skinned_error`).
 
-Protocols 2 and 3 (``--similar-ambient``, one run: they share each character's fields). Protocol 2,
-similar-part borrowing (:func:`similar_part_cases`): a limb pair's bands hidden while the character's
-other arm or leg pairs stay painted, a wing's outer joint pair, a tail's middle joint. Protocol 3,
-ambient handles (:func:`ambient_cases`): a tail chain, or a wing pair, whose whole painted region is
-hidden; ``+ambient`` methods give its joints handles sampled along their bones
-(:mod:`rigmix.weights.ambient`). Both also report the skinned error under the character's clips
-(:func:`skinned_error`).
-
-Writes ``benchmarks/results/band_fill.json`` and ``band_fill.md`` (``band_fill_both_hidden.*``
-with ``--both-hidden``; ``band_fill_similar.*`` and ``band_fill_ambient.*`` with ``--similar-ambient``).
-Usage: ``python -m benchmarks.band_fill [--both-hidden | --similar-ambient [--direct-only] [--update]]
-[CHARACTER ...]``.
+Writes ``benchmarks/results/band_fill.json`` and ``band_fill.md``; ``band_fill_both_hidden.*``,
+``band_fill_similar.*`` and ``band_fill_ambient.*`` for the protocols of issue 27.
+Usage: ``python -m benchmarks.band_fill [--protocols | --both-hidden | --similar-ambient
+[--direct-only] [--update]] [CHARACTER ...]``.
 """
 
 from __future__ import annotations
@@ -300,95 +300,20 @@ def pair_band(Wt, j, k, *, low=LOW, high=HIGH):
     return ((Wt[:, j] > low) & (Wt[:, j] < high)) | ((Wt[:, k] > low) & (Wt[:, k] < high))
 
 
-def pair_band_errors(V, F, W, pairs, method, *, names=None, low=LOW, high=HIGH, **options):
-    """Protocol 1: each joint pair's two bands hidden together and filled back.
-
-    Parameters
-    ----------
-    V, F, W : the character's combined mesh and dense weights (split vertices).
-    pairs : list of (int, int)
-        Joint pairs (:func:`mirror_joint_pairs`). A pair where either joint has an empty band is
-        skipped (one side hidden alone is the existing protocol).
-    method : str
-        ``fill_weights`` method.
-    **options
-        Passed to :func:`fill_weights`.
+def mirror_pair_cases(character):
+    """Protocol 1's cases: every joint pair of :func:`mirror_joint_pairs`.
 
     Returns
     -------
-    errors : dict
-        ``"j|k"`` (names when given) -> ``{"mean", "max", "rows"}``: half-L1 error over the
-        hidden welded vertices (0 identical, 1 disjoint), mean and max, and how many were hidden.
+    cases : list of dict
+        ``name`` (``"j|k"``, the joint names), ``kind`` (``"joint pair"``) and ``joints`` ((2,) int64).
+        :func:`case_mask` hides a pair only where both joints have a band (one side hidden alone is
+        the single-band protocol of :func:`band_errors`).
     """
-    index, Wt = welded_truth(V, F, W)
-    rows = np.zeros(len(Wt), dtype=np.int64)
-    rows[index] = np.arange(len(V))  # one split vertex per welded vertex
-    out = {}
-    for j, k in pairs:
-        in_j = (Wt[:, j] > low) & (Wt[:, j] < high)
-        in_k = (Wt[:, k] > low) & (Wt[:, k] < high)
-        if not (in_j.any() and in_k.any()):
-            continue
-        band = pair_band(Wt, j, k, low=low, high=high)
-        unknown = band[index]
-        hidden = np.where(unknown[:, None], 0.0, W)  # neither band's weights reach the fill
-        filled = fill_weights(V, F, hidden, unknown, method=method, **options)
-        err = 0.5 * np.abs(filled[rows[band]] - Wt[band]).sum(axis=1)
-        key = f"{names[j]}|{names[k]}" if names else f"{j}|{k}"
-        out[key] = {"mean": float(err.mean()), "max": float(err.max()), "rows": int(band.sum())}
-    return out
-
-
-def run_both_hidden(name, path, *, encoders=FIELD_ENCODERS, direct=DIRECT_ENCODERS):
-    """Protocol 1 on one character: every method and every encoder's field.
-
-    Returns a dict with the mesh sizes, the limb pairs, and per method label ``mean_error``
-    (mean over joint pairs of each pair's mean error), ``max_error`` (largest over all hidden
-    vertices), ``seconds`` (the fills) and ``per_pair``; per encoder, ``field_seconds``
-    (distilling, or loading it from the cache).
-    """
-    from rigmix.io import load_character
-
-    character = load_character(path)
-    V, F, W, names, positions = character_arrays(character)
-    parents = character.skeleton.parents
-    pairs, limbs = mirror_joint_pairs(character)
-    result = {"vertices": len(V), "joints": len(names), "limb_pairs": [list(x) for x in limbs],
-              "methods": {}, "field_seconds": {}, "field_errors": {}, "pairs": 0}
-    if not pairs:  # no mirrored limb: nothing to hide, no field to distil
-        return result
-    skeleton = {"joint_positions": positions, "joint_names": names, "joint_parents": parents}
-    from dfd.encoders import point_field
-
-    methods = {label: (m, dict(o)) for label, (m, o) in BOTH_HIDDEN_METHODS.items()}
-    fields = [(enc, False) for enc in encoders] + [(enc, True) for enc in direct]
-    for enc, is_direct in fields:
-        label = f"{enc}-direct" if is_direct else enc
-        t0 = time.perf_counter()
-        try:
-            encoder = make_encoder(enc, V, F, positions, parents)
-            field = (point_field(encoder, V) if is_direct
-                     else feature_field(V, F, cache=field_cache(), encoder=encoder, **DISTILL))
-        except Exception as exc:  # recorded, the other encoders still run
-            result["field_errors"][label] = f"{type(exc).__name__}: {exc}"
-            continue
-        result["field_seconds"][label] = round(time.perf_counter() - t0, 2)
-        methods[f"dfd[{label}]"] = ("dfd", {"field": field})
-        methods[f"dfd[{label}]+borrow"] = ("dfd", {"field": field, "borrow": BORROW})
-    for label, (method, options) in methods.items():
-        if method == "dfd":
-            options = {**options, **skeleton}
-        t0 = time.perf_counter()
-        errors = pair_band_errors(V, F, W, pairs, method, names=names, **options)
-        result["pairs"] = len(errors)
-        result["methods"][label] = {
-            "mean_error": float(np.mean([e["mean"] for e in errors.values()])) if errors else float("nan"),
-            "max_error": float(max(e["max"] for e in errors.values())) if errors else float("nan"),
-            "seconds": round(time.perf_counter() - t0, 3),
-            "per_pair": {k: {"mean": round(e["mean"], 4), "max": round(e["max"], 4), "rows": e["rows"]}
-                         for k, e in errors.items()},
-        }
-    return result
+    pairs, _ = mirror_joint_pairs(character)
+    names = list(character.skeleton.names)
+    return [{"name": f"{names[j]}|{names[k]}", "kind": "joint pair", "joints": np.array([j, k], dtype=np.int64)}
+            for j, k in pairs]
 
 
 def make_encoder(name, V, F, positions, parents):
@@ -416,19 +341,6 @@ RULE_REDUCTION = 0.10
 RULE_SECONDS = 3.0
 
 
-def summarize_both_hidden(results):
-    """Mean over characters of each method's mean and max error, and the decision rule per encoder."""
-    done = [r for r in results.values() if r.get("pairs")]
-    labels = list(dict.fromkeys(label for r in done for label in r["methods"]))
-    means, maxes = {}, {}
-    for label in labels:
-        have = [r for r in done if label in r["methods"]]
-        means[label] = float(np.mean([r["methods"][label]["mean_error"] for r in have]))
-        maxes[label] = float(np.mean([r["methods"][label]["max_error"] for r in have]))
-    return {"characters": len(done), "mean_error": means, "mean_of_max_error": maxes,
-            "dfd_no_field": means.get("dfd_no_field"), "rule": decision_rule(done, means)}
-
-
 def decision_rule(done, means):
     """Per field label ``dfd[E]...`` of ``means`` (label -> mean error over the characters that
     have it): its mean error against ``dfd_no_field``'s on the same characters of ``done`` (per
@@ -449,86 +361,7 @@ def decision_rule(done, means):
     return rule
 
 
-def markdown_both_hidden(results, summary):
-    labels = list(summary["mean_error"])
-    rule = summary["rule"]
-    lines = [
-        "Band fill, protocol 1 (issue 27): for each mirrored joint pair of each limb pair found by the limb "
-        f"classifier, both joints' transition bands (weights strictly in ({LOW}, {HIGH})) are hidden together "
-        "and filled back, so the mirror prior has nothing to copy. Error: half-L1 over hidden vertices "
-        "(0 identical, 1 disjoint); per character, `mean` is the mean over joint pairs, `max` the largest "
-        "over every hidden vertex. Lower is better. No skinned error: the band benchmark has no animation.",
-        "",
-        "`dfd[E]`: the dfd fill with the field of encoder `E` distilled "
-        f"({DISTILL}, 24 views at 224 px), which judges the mirror prior; `E-direct`: the encoder's "
-        "features evaluated at the points, no distillation; `+borrow`: the field also drives the prior "
-        "borrowed from feature-similar parts around other joints (`rigmix/weights/borrow.py`, confidence "
-        f"{BORROW}). `skeleton-relative`: the skeleton encoder without the channels that tell bones apart.",
-        "",
-        f"Mean over {summary['characters']} characters, and the decision rule (a field is a default only where "
-        f"it lowers the mean error by at least {100 * RULE_REDUCTION:.0f}% against `dfd_no_field` and costs at "
-        f"most {RULE_SECONDS:.0f} s per character):",
-        "",
-        "| method | mean error | mean of max error | vs dfd_no_field | field s (mean / max) | rule |",
-        "|---|---:|---:|---:|---|---|",
-    ]
-    for m in labels:
-        d = rule.get(m)
-        vs = f"{-100 * d['relative_reduction']:+.1f}%" if d else "-"
-        fs = f"{d['field_seconds_mean']:.2f} / {d['field_seconds_max']:.2f}" if d else "-"
-        verdict = ("passes" if d["passes"] else "fails") if d else "-"
-        lines.append(f"| {m} | {summary['mean_error'][m]:.3f} | {summary['mean_of_max_error'][m]:.2f} | {vs} | "
-                     f"{fs} | {verdict} |")
-    lines += ["", "Per character, mean / max error:", "",
-              "| character | pairs | " + " | ".join(labels) + " |",
-              "|---|---:|" + "---:|" * len(labels)]
-    for n, r in results.items():
-        if not r.get("pairs"):
-            continue
-        cells = " | ".join(
-            f"{r['methods'][m]['mean_error']:.3f} / {r['methods'][m]['max_error']:.2f}" if m in r["methods"] else "-"
-            for m in labels)
-        lines.append(f"| {n} | {r['pairs']} | {cells} |")
-    return "\n".join(lines) + "\n"
-
-
-def write_both_hidden(results):
-    summary = summarize_both_hidden(results)
-    payload = {"protocol": {"name": "both-hidden", "low": LOW, "high": HIGH, "max_influences": 4,
-                            "distill": DISTILL, "encoders": list(FIELD_ENCODERS),
-                            "direct_encoders": list(DIRECT_ENCODERS), "borrow": BORROW},
-               "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
-               "characters": results, "summary": summary}
-    (RESULTS / "band_fill_both_hidden.json").write_text(json.dumps(payload, indent=2) + "\n")
-    (RESULTS / "band_fill_both_hidden.md").write_text(markdown_both_hidden(results, summary))
-    return payload
-
-
-def main_both_hidden(names):
-    """Protocol 1 over the shared characters and the corpus (``names``: a subset)."""
-    from conftest import ASSETS, CHARACTERS, CORPUS, CORPUS_CHARACTERS
-
-    every = {**{n: ASSETS / p for n, p in CHARACTERS.items()}, **{n: CORPUS / p for n, p in CORPUS_CHARACTERS.items()}}
-    results = {}
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    payload = None
-    for name in names or list(every):
-        path = every[name]
-        if not path.exists():
-            print(f"band_fill: skipping {name}: {path} is missing", flush=True)
-            continue
-        results[name] = run_both_hidden(name, path)
-        means = {m: round(v["mean_error"], 3) for m, v in results[name]["methods"].items()}
-        print(f"band_fill both-hidden: {name} {results[name].get('pairs', 0)} pairs {means} "
-              f"field s {results[name]['field_seconds']}", flush=True)
-        if results[name].get("pairs"):
-            payload = write_both_hidden(results)
-    if payload:
-        print(markdown_both_hidden(results, payload["summary"]))
-    return payload
-
-
-# --- protocols 2 and 3 (issue 27): similar parts painted, and ambient handles -----------------------
+# --- protocols 1 to 3 (issue 27): both sides hidden, similar parts painted, ambient handles -------
 
 #: limb kinds that protocol 2 treats as similar parts of one another: a quadruped's front legs and
 #: back legs, a dinosaur's arms and legs, an insect's three leg pairs; wings only with wings
@@ -536,6 +369,11 @@ SIMILAR_KINDS = {"arm": "limb", "leg": "limb", "wing": "wing"}
 #: the largest confidence of the prior from handles sampled along the bones of joints nowhere
 #: known (``...+ambient`` labels, protocol 3; ``fill_weights``' ``ambient``)
 AMBIENT = 0.5
+#: output file stem of each protocol
+PROTOCOL_FILES = {"both_hidden": "band_fill_both_hidden", "similar": "band_fill_similar",
+                  "ambient": "band_fill_ambient"}
+#: issue 27's protocols, in order: 1 both sides hidden, 2 similar parts painted, 3 ambient handles
+PROTOCOLS = tuple(PROTOCOL_FILES)
 #: frames sampled per clip for the skinned error, and clips used at most (in file order)
 SKIN_FRAMES, SKIN_CLIPS = 8, 6
 
@@ -637,17 +475,26 @@ def region_mask(Wt, joints):
     return (Wt[:, joints] > 0.0).any(axis=1)
 
 
-def clip_matrices(character, *, frames=SKIN_FRAMES, clips=SKIN_CLIPS):
-    """Skinning matrices ``(f, J, 3, 4)`` (bind space to world) at ``frames`` evenly spaced times of
-    each of the character's first ``clips`` clips; ``None`` for a character without clips."""
+def clip_matrices(character, *, frames=SKIN_FRAMES, clips=SKIN_CLIPS, rest=False):
+    """Skinning matrices ``(f, J, 3, 4)`` at ``frames`` evenly spaced times of each of the
+    character's first ``clips`` clips; ``None`` for a character without clips.
+
+    They map bind-space points to world space (``world @ inverse_bind``), or with ``rest`` points
+    of the skeleton's rest-pose world space, where a composition's fused surface lies
+    (``world @ rest_world^-1``)."""
     from rigmix.animation.sampling import sample_clip
     from rigmix.skinning import skinning_matrices
+    from rigmix.transforms import trs_to_matrix
 
     sk = character.skeleton
     out = []
     for clip in character.clips[:clips]:
         T, R, S = sample_clip(sk, clip, np.linspace(clip.start, clip.end, frames))
-        out.append(skinning_matrices(sk, T, R, S)[..., :3, :])
+        if rest:
+            M = sk.world_matrices(trs_to_matrix(T, R, S)) @ np.linalg.inv(sk.rest_worlds())
+        else:
+            M = skinning_matrices(sk, T, R, S)
+        out.append(M[..., :3, :])
     return np.concatenate(out) if out else None
 
 
@@ -724,14 +571,35 @@ def mask_errors(V, F, W, masks, method, *, skin=None, diagonal=1.0, **options):
     return out
 
 
+#: each protocol's cases (:func:`protocol_cases`)
+CASES = {"both_hidden": mirror_pair_cases, "similar": similar_part_cases, "ambient": ambient_cases}
+
+
+def protocol_cases(character, protocol):
+    """The cases of ``protocol`` (a key of :data:`PROTOCOL_FILES`) on one character: a list of dicts
+    with ``name``, ``kind`` and ``joints`` ((m,) int64 indices into the character's skeleton)."""
+    return CASES[protocol](character)
+
+
+def case_mask(Wt, joints, protocol, *, low=LOW, high=HIGH):
+    """``(k,) bool``: the welded vertices one case of ``protocol`` hides, for ``Wt`` (k, J) weights
+    and the case's ``joints`` (indices into ``Wt``'s columns).
+
+    ``"ambient"``: the joints' whole painted region (:func:`region_mask`); ``"similar"``: their
+    transition bands (:func:`band_mask`); ``"both_hidden"``: their bands, and nothing unless every
+    joint has one (a pair whose one side has no band has nothing the mirror could have copied).
+    """
+    if protocol == "ambient":
+        return region_mask(Wt, joints)
+    if protocol == "both_hidden" and not all(band_mask(Wt, [j], low=low, high=high).any() for j in joints):
+        return np.zeros(len(Wt), dtype=bool)
+    return band_mask(Wt, joints, low=low, high=high)
+
+
 def protocol_masks(character, Wt, protocol):
-    """Case name -> ``(k,) bool`` hidden welded vertices, for ``"similar"`` (protocol 2, the bands
-    of :func:`similar_part_cases`) or ``"ambient"`` (protocol 3, the regions of
-    :func:`ambient_cases`); empty masks dropped."""
-    if protocol == "similar":
-        masks = {c["name"]: band_mask(Wt, c["joints"]) for c in similar_part_cases(character)}
-    else:
-        masks = {c["name"]: region_mask(Wt, c["joints"]) for c in ambient_cases(character)}
+    """Case name -> ``(k,) bool`` hidden welded vertices (:func:`case_mask`) of each case of
+    :func:`protocol_cases`; empty masks dropped."""
+    masks = {c["name"]: case_mask(Wt, c["joints"], protocol) for c in protocol_cases(character, protocol)}
     return {k: m for k, m in masks.items() if m.any()}
 
 
@@ -778,8 +646,8 @@ def protocol_methods(fields, protocol):
     return methods
 
 
-def run_protocols(path, *, protocols=("similar", "ambient"), encoders=FIELD_ENCODERS, direct=DIRECT_ENCODERS):
-    """Protocols 2 and 3 on one character, sharing its fields.
+def run_protocols(path, *, protocols=PROTOCOLS, encoders=FIELD_ENCODERS, direct=DIRECT_ENCODERS):
+    """Protocols 1 to 3 (``protocols``: keys of :data:`PROTOCOL_FILES`) on one character, sharing its fields.
 
     Returns
     -------
@@ -853,6 +721,11 @@ def summarize_protocol(results):
 
 #: what each protocol hides, for its table's header
 PROTOCOL_TEXT = {
+    "both_hidden": (
+        "Band fill, protocol 1 (issue 27), both sides hidden: for each mirrored joint pair of each limb pair "
+        "found by the limb classifier (`mirror_pair_cases`), both joints' transition bands (weights strictly "
+        "in ({low}, {high})) are hidden together and filled back, so the mirror prior has nothing to copy; a "
+        "case per joint pair where both joints have a band."),
     "similar": (
         "Band fill, protocol 2 (issue 27), similar-part borrowing: per case from the limb classifier "
         "(`similar_part_cases`), the transition bands (weights strictly in ({low}, {high})) of a limb and its "
@@ -872,14 +745,17 @@ PROTOCOL_TEXT = {
 }
 
 
-def markdown_protocol(results, summary, protocol, distilled):
-    """The protocol's table: means over characters with the decision rule, then per character."""
+def markdown_protocol(results, summary, protocol, distilled, *, header=None):
+    """The protocol's table: means over characters with the decision rule, then per character.
+
+    ``header``: what the protocol hides, opening the text (default :data:`PROTOCOL_TEXT`'s)."""
     labels = list(summary["mean_error"])
     rule = summary["rule"]
     fmt = {"low": LOW, "high": HIGH, "ambient": AMBIENT}
     lines = [
-        PROTOCOL_TEXT[protocol].format(**fmt) + " Error: half-L1 over the hidden welded vertices (0 identical, "
-        "1 disjoint); per character `mean` is the mean over cases, `max` the largest over every hidden vertex. "
+        (header or PROTOCOL_TEXT[protocol].format(**fmt))
+        + " Error: half-L1 over the hidden welded vertices (0 identical, 1 disjoint); per character `mean` is the "
+        "mean over cases, `max` the largest over every hidden vertex. "
         "Skinned error: the hidden vertices skinned (LBS) with the filled weights against the artist's at "
         f"{SKIN_FRAMES} evenly spaced frames of each of the first {SKIN_CLIPS} clips, distance as % of the "
         f"bounding-box diagonal, mean over vertices and frames then over cases ({summary['skinned_characters']} "
@@ -926,12 +802,10 @@ def markdown_protocol(results, summary, protocol, distilled):
     return "\n".join(lines) + "\n"
 
 
-#: output file stem of each protocol
-PROTOCOL_FILES = {"similar": "band_fill_similar", "ambient": "band_fill_ambient"}
 
-
-def write_protocol(results, protocol):
-    """Write ``benchmarks/results/<stem>.{json,md}`` for protocol ``"similar"`` or ``"ambient"``."""
+def write_protocol(results, protocol, *, stem=None, header=None):
+    """Write ``benchmarks/results/<stem>.{json,md}`` for one protocol of :data:`PROTOCOL_FILES`
+    (``stem``: default its band-fill file; ``header``: :func:`markdown_protocol`'s)."""
     summary = summarize_protocol(results)
     distilled = [n for n, r in results.items() if r.get("methods") and any(
         not k.endswith("-direct") for k in r.get("field_seconds", {}))]
@@ -941,14 +815,15 @@ def write_protocol(results, protocol):
                             "skin_clips": SKIN_CLIPS, "distilled_on": distilled},
                "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
                "characters": results, "summary": summary}
-    stem = PROTOCOL_FILES[protocol]
+    stem = stem or PROTOCOL_FILES[protocol]
     (RESULTS / f"{stem}.json").write_text(json.dumps(payload, indent=2) + "\n")
-    (RESULTS / f"{stem}.md").write_text(markdown_protocol(results, summary, protocol, distilled))
+    (RESULTS / f"{stem}.md").write_text(markdown_protocol(results, summary, protocol, distilled, header=header))
     return payload
 
 
-def main_protocols(argv):
-    """Protocols 2 and 3 over the shared characters and the corpus.
+def main_protocols(argv, protocols=PROTOCOLS):
+    """Issue 27's ``protocols`` over the shared characters and the corpus, each character's fields
+    made once for all of them.
 
     ``argv``: ``[--direct-only] [--update] [CHARACTER ...]``. ``--direct-only`` skips the distilled
     encoders; ``--update`` keeps the characters already in the result files and replaces only those
@@ -960,10 +835,10 @@ def main_protocols(argv):
     flags = {a for a in argv if a.startswith("--")}
     names = [a for a in argv if not a.startswith("--")] or list(every)
     encoders = () if "--direct-only" in flags else FIELD_ENCODERS
-    results = {p: {} for p in PROTOCOL_FILES}
+    results = {p: {} for p in protocols}
     if "--update" in flags:
-        for p, stem in PROTOCOL_FILES.items():
-            f = RESULTS / f"{stem}.json"
+        for p in protocols:
+            f = RESULTS / f"{PROTOCOL_FILES[p]}.json"
             if f.exists():
                 results[p] = json.loads(f.read_text())["characters"]
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -973,7 +848,7 @@ def main_protocols(argv):
             print(f"band_fill: skipping {name}: {path} is missing", flush=True)
             continue
         t0 = time.perf_counter()
-        for p, r in run_protocols(path, encoders=encoders).items():
+        for p, r in run_protocols(path, protocols=protocols, encoders=encoders).items():
             results[p][name] = r
             if r["methods"]:
                 write_protocol(results[p], p)  # after every character: a long run leaves partial results
@@ -988,8 +863,10 @@ def main(argv=None):
 
     argv = list(argv or [])
     if argv[:1] == ["--both-hidden"]:
-        return main_both_hidden(argv[1:])
+        return main_protocols(argv[1:], ("both_hidden",))
     if argv[:1] == ["--similar-ambient"]:
+        return main_protocols(argv[1:], ("similar", "ambient"))
+    if argv[:1] == ["--protocols"]:
         return main_protocols(argv[1:])
     # argv None (``benchmarks.run`` calls main(), its own argv names benchmarks): every character
     names = argv or list(CHARACTERS)

@@ -47,8 +47,17 @@ Three protocols (PIPELINE.md section 7):
 ``dfd`` is run with the DFD feature field (``feature_field=True``), ``dfd_no_field`` without it (the
 pipeline's default), to measure what the field does; the other methods with their defaults.
 
-Writes ``benchmarks/results/self_composition.json`` and ``self_composition.md``.
-Usage: ``python -m benchmarks.self_composition [--protocol identity|mirrored|hidden|all] [CHARACTER ...]``.
+Issue 27's three protocols (:data:`FIELD_PROTOCOLS`) on self-compositions: the cases of
+:mod:`benchmarks.band_fill` (1, a limb's root band hidden with its mirror partner's; 2, a part's bands
+hidden while parts of the same kind stay painted; 3, a tail or wing chain whose painting is nowhere
+known), each composed at its joint with the junction rebuilt, and its hidden rows and the junction's
+filled back by ``nearest``, ``inpaint``, ``dfd_no_field``, the pipeline's default and ``dfd`` with
+every encoder's field (:func:`run_field_protocols`); band_fill's figures and decision rule.
+
+Writes ``benchmarks/results/self_composition.json`` and ``self_composition.md``; with issue 27's
+protocols, ``self_composition_<protocol>.json`` and ``.md``.
+Usage: ``python -m benchmarks.self_composition [--protocol identity|mirrored|hidden|all|both_hidden|similar|
+ambient|issue27] [--direct-only] [--update] [CHARACTER ...]``.
 """
 
 from __future__ import annotations
@@ -59,6 +68,7 @@ import platform
 import sys
 import time
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -395,6 +405,272 @@ def run_mirror_case(path: Path, limb_joint: str, opposite_joint: str, *, methods
     return out
 
 
+# --- issue 27's protocols on self-compositions: band_fill's cases, the junction rebuilt ------------
+
+#: issue 27's protocols (1 both sides hidden, 2 similar parts painted, 3 ambient handles), whose
+#: cases, masks, methods and figures are band_fill's (:mod:`benchmarks.band_fill`)
+FIELD_PROTOCOLS = ("both_hidden", "similar", "ambient")
+
+
+def field_protocol_cases(character, protocol):
+    """The self-compositions of one of :data:`FIELD_PROTOCOLS` on a character.
+
+    Each case of :func:`benchmarks.band_fill.protocol_cases` is composed at the first joint of its
+    name (a limb's root, a wing's outer joint, a tail's middle joint): that joint's subtree is
+    replaced by itself, the junction rebuilt. Protocol 1's cases are the joint pairs of the limb
+    roots (a composition at every joint of a limb would hide its bands one junction at a time).
+
+    Returns
+    -------
+    cases : list of dict
+        band_fill's case (``name``, ``kind``, ``joints``: indices into the character's skeleton)
+        with ``joint``, the name of the joint composed at.
+    """
+    from benchmarks.band_fill import mirror_joint_pairs, protocol_cases
+
+    cases = protocol_cases(character, protocol)
+    for c in cases:
+        c["joint"] = c["name"].split("|")[0]
+    if protocol == "both_hidden":
+        roots = {a for a, _ in mirror_joint_pairs(character)[1]}
+        cases = [c for c in cases if c["joint"] in roots]
+    return cases
+
+
+def output_joints(comp) -> np.ndarray:
+    """``(J,) int64``: the output joint of each joint of the original character (the kept copy of
+    either id; -1 where none) of a self-composition."""
+    t = np.full(comp.inputs[comp.fusion_ids[0]].skeleton.num_joints, -1)
+    for cid in comp.fusion_ids:
+        t = np.where(t >= 0, t, np.asarray(comp.plan.image[cid]))
+    return t
+
+
+def junction_options(comp, method: str) -> dict:
+    """The pipeline's fill options of the junction for ``method`` (``rigmix.weights.blend.
+    junction_fill_options``: the output skeleton's joints, the geodesic locality, the junction's
+    smoothing), without a field and without the default's ambient borrowing: each label of
+    :func:`benchmarks.band_fill.protocol_methods` adds its own."""
+    from rigmix.weights.blend import junction_fill_options, retarget_inputs
+
+    surface = comp.surface
+    J = comp.skeleton.num_joints
+    retargeted, _ = retarget_inputs(comp.fusion_inputs, [comp.maps[c] for c in comp.fusion_ids], J)
+    diag = float(np.linalg.norm(np.ptp(np.asarray(surface.V), axis=0)))
+    params = WeightParams(method=method, ambient_borrow=0.0)
+    options, _ = junction_fill_options(params, surface, retargeted, diagonal=diag, skeleton=comp.skeleton,
+                                       field=False if method == "dfd" else None)
+    return options
+
+
+def field_case_rows(comp, case, protocol):
+    """The truth and the hidden rows of one self-composition case of an issue-27 protocol.
+
+    Returns
+    -------
+    G : (n, J_out) float64
+        The truth over the composed surface (:func:`rigmix.quality.self_composition_truth`).
+    hidden : (k,) bool
+        Over the surface's welded vertices (:func:`benchmarks.band_fill.welded_truth`'s order):
+        those :func:`benchmarks.band_fill.case_mask` hides on the welded truth, the case's joints
+        taken to the output joints (empty: the case hides nothing on this surface).
+    junction : (k,) bool
+        The junction's welded vertices, hidden with them.
+    """
+    from benchmarks.band_fill import case_mask, welded_truth
+    from rigmix.quality import self_composition_truth
+
+    surface = comp.surface
+    G = self_composition_truth(comp)
+    index, Gt = welded_truth(np.asarray(surface.V), np.asarray(surface.F), G)
+    junction = np.zeros(len(Gt), bool)
+    junction[index[np.asarray(surface.junction_vertices, bool)]] = True
+    hidden = case_mask(Gt, output_joints(comp)[case["joints"]], protocol)
+    return G, hidden, junction
+
+
+def field_case_errors(comp, case, protocol, methods) -> dict:
+    """One self-composition case of an issue-27 protocol, filled by every method.
+
+    The hidden rows are the rebuilt junction's and those the case hides on the composed surface
+    (:func:`benchmarks.band_fill.case_mask` of the truth, the case's joints taken to the output
+    joints); every other row keeps its truth, the original's weights
+    (:func:`rigmix.quality.self_composition_truth`, cut to 4 on the junction). The fill and the
+    figures are band_fill's :func:`benchmarks.band_fill.mask_errors`, with the pipeline's junction
+    options (:func:`junction_options`) under each method's own, and the skinned error under the
+    original's clips (rest-pose matrices; the surface's bounding-box diagonal).
+
+    Parameters
+    ----------
+    comp : Composition
+        Of :func:`self_config` with :data:`REBUILT`, after the fusion.
+    case : dict
+        Of :func:`field_protocol_cases`.
+    protocol : str
+        One of :data:`FIELD_PROTOCOLS`.
+    methods : dict
+        Label -> ``(fill method, options)`` (:func:`benchmarks.band_fill.protocol_methods`).
+
+    Returns
+    -------
+    dict
+        ``rows`` (hidden welded vertices; 0: the case hides nothing on this surface, no method run),
+        ``junction_rows``, and per label ``{"errors": mask_errors' entry, "seconds"}``.
+    """
+    from benchmarks.band_fill import clip_matrices, mask_errors
+
+    surface = comp.surface
+    V, F = np.asarray(surface.V), np.asarray(surface.F)
+    G, hidden, junction = field_case_rows(comp, case, protocol)
+    out = {"rows": 0, "junction_rows": int(junction.sum()), "methods": {}}
+    if not hidden.any():
+        return out
+    mask = junction | hidden
+    out["rows"] = int(mask.sum())
+    original = comp.inputs[comp.fusion_ids[0]]
+    src = np.array([comp.plan.provenance[o][0][1] for o in range(comp.skeleton.num_joints)])
+    skin = clip_matrices(original, rest=True)
+    skin = None if skin is None else skin[:, src]
+    diag = float(np.linalg.norm(np.ptp(V, axis=0)))
+    base = {m: junction_options(comp, m) for m in {m for m, _ in methods.values()}}
+    for label, (method, options) in methods.items():
+        t0 = time.perf_counter()
+        errors = mask_errors(V, F, G, {case["name"]: mask}, method, skin=skin, diagonal=diag,
+                             **{**base[method], **options})
+        out["methods"][label] = {"errors": errors[case["name"]], "seconds": time.perf_counter() - t0}
+    return out
+
+
+def run_field_protocols(path: Path, protocols=FIELD_PROTOCOLS, *, encoders=None, direct=None) -> dict:
+    """Issue 27's protocols on the self-compositions of one character, its fields made once.
+
+    The fields (:func:`benchmarks.band_fill.encoder_fields`, every encoder by default) are made on
+    the original character in the compositions' space (the body input of the first composition,
+    the whole character at rest, with its rest-pose skeleton), and evaluated at the composed
+    surface's points: a field of the input character, as the pipeline's cache holds it. One
+    composition per joint serves every protocol's cases there.
+
+    Returns
+    -------
+    results : dict
+        Protocol -> band_fill's per-character dict (``cases``: case -> hidden welded rows; per
+        method label :func:`benchmarks.band_fill.method_summary`; ``field_seconds``,
+        ``field_errors``), with ``compositions`` (joint -> fusion seconds, or the error).
+    """
+    from benchmarks.band_fill import (
+        DIRECT_ENCODERS,
+        FIELD_ENCODERS,
+        encoder_fields,
+        method_summary,
+        protocol_methods,
+    )
+    from rigmix.io import load_character
+
+    encoders = FIELD_ENCODERS if encoders is None else encoders
+    direct = DIRECT_ENCODERS if direct is None else direct
+    character = load_character(path)
+    cases = {p: field_protocol_cases(character, p) for p in protocols}
+    results = {p: {"joints": character.skeleton.num_joints, "clips": len(character.clips), "cases": {},
+                   "methods": {}, "compositions": {}} for p in protocols}
+    comps, fused, fields, seconds, errors = {}, {}, None, {}, {}
+    per_case = {p: {} for p in protocols}
+    for p in protocols:
+        for case in cases[p]:
+            joint = case["joint"]
+            if joint not in comps:
+                t0 = time.perf_counter()
+                try:
+                    comps[joint] = compose(self_config(path, joint, fusion=REBUILT), until="completion")
+                    fused[joint] = round(time.perf_counter() - t0, 2)
+                except Exception as exc:  # a benchmark reports a failing composition and goes on
+                    comps[joint] = None
+                    fused[joint] = f"{type(exc).__name__}: {exc}"
+            results[p]["compositions"][joint] = fused[joint]  # fusion seconds, or the error
+            comp = comps[joint]
+            if comp is None:
+                continue
+            if fields is None:
+                body = comp.fusion_inputs[0]
+                sk = comp.inputs[comp.fusion_ids[0]].skeleton
+                fields, seconds, errors = encoder_fields(np.asarray(body.V), np.asarray(body.F),
+                                                         sk.rest_worlds()[:, :3, 3], sk.parents,
+                                                         encoders=encoders, direct=direct)
+            res = field_case_errors(comp, case, p, protocol_methods(fields, p))
+            if not res["rows"]:
+                continue
+            results[p]["cases"][case["name"]] = res["rows"]
+            for label, m in res["methods"].items():
+                per_case[p].setdefault(label, ({}, [0.0]))
+                per_case[p][label][0][case["name"]] = m["errors"]
+                per_case[p][label][1][0] += m["seconds"]
+    for p in protocols:
+        results[p].update(field_seconds=seconds, field_errors=errors)
+        for label, (errs, secs) in per_case[p].items():
+            results[p]["methods"][label] = method_summary(errs, secs[0])
+    return results
+
+
+#: what each of issue 27's protocols hides on a self-composition, for its table's header
+FIELD_PROTOCOL_TEXT = {
+    "both_hidden": "protocol 1, both sides hidden: a limb's root replaced by itself, and its mirror partner's "
+                   "root band hidden too (with the limb root's own)",
+    "similar": "protocol 2, similar-part borrowing: a limb pair's bands hidden with the junction of one of them "
+               "while the other arm or leg pairs stay painted, a wing's outer joint pair, a tail's middle joint",
+    "ambient": "protocol 3, ambient handles: a tail chain, or a wing pair, replaced at its root, its whole "
+               "painted region hidden",
+}
+
+
+def field_protocol_header(protocol: str) -> str:
+    """The opening text of a self-composition table of an issue-27 protocol."""
+    return (f"Self-composition, issue 27's {FIELD_PROTOCOL_TEXT[protocol]} (the cases of "
+            f"`benchmarks/results/band_fill_{protocol}.md`, `field_protocol_cases`). Each case is a self-composition "
+            "at its first joint with the junction rebuilt from the fields; the hidden rows are the junction's "
+            "and those the case hides on the composed surface, every other row keeps its truth: the original's "
+            "weights at the closest original point (cut to 4 on the junction). Fills with the pipeline's "
+            "junction options (locality, smoothing, the output skeleton); fields made once per character on "
+            "the original at rest and evaluated at the composed surface.")
+
+
+def main_field_protocols(names, protocols=FIELD_PROTOCOLS, *, direct_only=False, update=False) -> dict:
+    """Issue 27's protocols over ``names`` (default: the shared characters and the corpus); writes
+    ``benchmarks/results/self_composition_<protocol>.{json,md}`` after every character.
+
+    ``direct_only``: no distilled encoder (the direct fields and the baselines only); ``update``:
+    keep the characters already in the result files, replacing only those run now (band_fill's
+    ``--direct-only`` and ``--update``)."""
+    from conftest import ASSETS, CHARACTERS, CORPUS, CORPUS_CHARACTERS
+
+    from benchmarks.band_fill import write_protocol
+
+    every = {**{n: ASSETS / p for n, p in CHARACTERS.items()}, **{n: CORPUS / p for n, p in CORPUS_CHARACTERS.items()}}
+    results = {p: {} for p in protocols}
+    for p in protocols if update else ():
+        f = RESULTS / f"self_composition_{p}.json"
+        if f.exists():
+            results[p] = json.loads(f.read_text())["characters"]
+    RESULTS.mkdir(exist_ok=True)
+    for name in names or list(every):
+        path = every[name]
+        if not path.exists():
+            print(f"self_composition: missing {path}; skipped", file=sys.stderr)
+            continue
+        t0 = time.perf_counter()
+        try:
+            res = run_isolated(partial(run_field_protocols, encoders=() if direct_only else None), path, protocols)
+        except Exception as exc:  # a benchmark reports a failing character and goes on
+            print(f"self_composition: {name}: {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
+            continue
+        for p, r in res.items():
+            results[p][name] = r
+            if any(x.get("methods") for x in results[p].values()):
+                write_protocol(results[p], p, stem=f"self_composition_{p}", header=field_protocol_header(p))
+            means = {m: round(v["mean_error"], 3) for m, v in r["methods"].items()}
+            print(f"self_composition {p}: {name} cases {r['cases']} {means}", flush=True)
+        print(f"self_composition: {name} done in {time.perf_counter() - t0:.0f} s", flush=True)
+    return results
+
+
 #: Address-space cap of the child process of one case (a runaway native allocation fails the case).
 MEMORY_CAP = 10 * 2**30
 
@@ -503,12 +779,22 @@ def main(argv=None) -> int:
     from conftest import ASSETS, CHARACTERS
 
     parser = argparse.ArgumentParser(prog="python -m benchmarks.self_composition")
-    parser.add_argument("--protocol", choices=(*PROTOCOLS, "all"), default="all")
-    parser.add_argument("characters", nargs="*", help=f"default: {' '.join(LIMBS)}")
+    parser.add_argument("--protocol", choices=(*PROTOCOLS, "all", *FIELD_PROTOCOLS, "issue27"), default="all",
+                        help="all: identity, mirrored and hidden (self_composition.*); issue27: "
+                             f"{', '.join(FIELD_PROTOCOLS)} (self_composition_<protocol>.*)")
+    parser.add_argument("--direct-only", action="store_true", help="issue 27's protocols: no distilled encoder")
+    parser.add_argument("--update", action="store_true",
+                        help="issue 27's protocols: keep the characters already in the result files")
+    parser.add_argument("characters", nargs="*", help=f"default: {' '.join(LIMBS)}; issue 27's protocols: "
+                                                      "the shared characters and the corpus")
     # argv None (``benchmarks.run`` calls main()): every character, every protocol; the runner's
     # own command line names benchmarks, not characters
     args = parser.parse_args(list(argv or []))
     logging.basicConfig(level=logging.ERROR)
+    if args.protocol in (*FIELD_PROTOCOLS, "issue27"):
+        main_field_protocols(args.characters, FIELD_PROTOCOLS if args.protocol == "issue27" else (args.protocol,),
+                             direct_only=args.direct_only, update=args.update)
+        return 0
     names = args.characters or list(LIMBS)
     protocols = PROTOCOLS if args.protocol == "all" else (args.protocol,)
     rows = {p: [] for p in protocols}

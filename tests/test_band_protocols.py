@@ -22,7 +22,6 @@ from benchmarks.band_fill import (  # noqa: E402
     mask_errors,
     mirror_joint_pairs,
     pair_band,
-    pair_band_errors,
     protocol_masks,
     rest_diagonal,
     similar_part_cases,
@@ -73,15 +72,26 @@ def test_both_bands_hidden(fox):
     assert checked >= 4
 
 
-def test_pair_errors_measure_the_hidden_rows(fox):
+def test_pair_errors_measure_the_hidden_rows_and_their_skinning(fox):
+    """Protocol 1's cases are the joint pairs with a band on both sides, each measured in weights
+    and skinned under the Fox's clips."""
     V, F, W, names, positions = character_arrays(fox)
+    index, Wt = welded_truth(V, F, W)
+    masks = protocol_masks(fox, Wt, "both_hidden")
     pairs, _ = mirror_joint_pairs(fox)
-    errors = pair_band_errors(V, F, W, pairs[:2], "nearest", names=names)
-    assert errors
+    both = [(j, k) for j, k in pairs
+            if ((Wt[:, j] > LOW) & (Wt[:, j] < HIGH)).any() and ((Wt[:, k] > LOW) & (Wt[:, k] < HIGH)).any()]
+    assert sorted(masks) == sorted(f"{names[j]}|{names[k]}" for j, k in both)
+    for j, k in both:
+        assert (masks[f"{names[j]}|{names[k]}"] == pair_band(Wt, j, k)).all()
+    skin = clip_matrices(fox)
+    errors = mask_errors(V, F, W, dict(list(masks.items())[:2]), "nearest", skin=skin,
+                         diagonal=rest_diagonal(fox.skeleton, V, W))
+    assert len(errors) == 2
     for key, e in errors.items():
-        j, k = key.split("|")
-        assert j in names and k in names
-        assert 0 < e["mean"] <= e["max"] <= 1 and e["rows"] > 0
+        assert e["rows"] == masks[key].sum() > 0
+        assert 0 < e["mean"] <= e["max"] <= 1
+        assert 0 < e["skinned"] <= e["skinned_max"] < 1  # a fraction of the diagonal
 
 
 @pytest.fixture(scope="module")
@@ -309,3 +319,95 @@ def test_default_borrows_only_next_to_a_chain_nowhere_known(horse):
         plain = fill_weights(V, F, hidden, unknown, method="dfd", field=False, **skeleton)
         np.testing.assert_allclose(default[unknown].sum(axis=1), 1.0, atol=1e-9)
         assert (np.abs(default - plain).max() > 0.01) == moved
+
+
+# --- protocol 1's run: the skinned error beside the weight error ------------------------------------
+
+
+def test_protocol_one_reports_the_skinned_error_of_every_method():
+    """Protocol 1 through the runner every protocol shares: each method has the weight and the
+    skinned error, over the same joint pairs."""
+    from benchmarks.band_fill import run_protocols
+
+    result = run_protocols(asset("Fox"), protocols=("both_hidden",), encoders=(), direct=("skeleton-relative",))
+    r = result["both_hidden"]
+    assert {"nearest", "inpaint", "dfd_no_field", "dfd[skeleton-relative-direct]"} <= set(r["methods"])
+    for label, m in r["methods"].items():
+        assert set(m["per_case"]) == set(r["cases"])
+        assert 0 < m["mean_error"] <= m["max_error"] <= 1
+        assert 0 < m["skinned_error"] <= m["skinned_max"] < 1, label
+    # the fill that reads the skeleton's bones is closer to the painting than the closest known vertex
+    assert r["methods"]["dfd_no_field"]["mean_error"] < r["methods"]["nearest"]["mean_error"]
+
+
+# --- the protocols on self-compositions ---------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def fox_self():
+    """The Fox, its cases of protocols 1 and 3 on self-compositions, each composed once."""
+    from benchmarks.self_composition import REBUILT, field_protocol_cases, self_config
+    from rigmix.pipeline import compose
+
+    fox = load_character(asset("Fox"))
+    cases = {p: field_protocol_cases(fox, p) for p in ("both_hidden", "ambient")}
+    comps = {c["joint"]: compose(self_config(asset("Fox"), c["joint"], fusion=REBUILT), until="completion")
+             for p in ("both_hidden", "ambient") for c in cases[p][:1]}
+    return {"character": fox, "cases": cases, "comps": comps}
+
+
+def test_self_composition_protocol_one_composes_each_limb_root(fox_self):
+    fox = fox_self["character"]
+    _, limbs = mirror_joint_pairs(fox)
+    cases = fox_self["cases"]["both_hidden"]
+    assert [c["joint"] for c in cases] == [a for a, _ in limbs]
+    for c, (a, b) in zip(cases, limbs):
+        assert [fox.skeleton.names[j] for j in c["joints"]] == [a, b]
+
+
+def test_self_composition_protocol_one_hides_the_partner_band_beside_the_junction(fox_self):
+    """The hidden rows are the rebuilt junction's and the partner limb's root band, on the other
+    side of the body: nothing is left for the mirror to copy."""
+    from benchmarks.self_composition import field_case_rows, output_joints
+
+    case = fox_self["cases"]["both_hidden"][0]
+    comp = fox_self["comps"][case["joint"]]
+    G, hidden, junction = field_case_rows(comp, case, "both_hidden")
+    surface = comp.surface
+    index, Gt = welded_truth(surface.V, surface.F, G)
+    partner = output_joints(comp)[case["joints"][1]]
+    in_band = (Gt[:, partner] > LOW) & (Gt[:, partner] < HIGH)
+    assert in_band.any() and hidden[in_band].all()
+    assert (hidden & ~junction).any()  # rows the hidden protocol (the junction alone) would keep
+    # the partner's band and the junction lie on opposite sides of the symmetry plane
+    axis = classify_limbs(fox_self["character"]).symmetry_axis
+    P = np.zeros((len(Gt), 3))
+    P[index] = surface.V
+    mid = np.median(P[:, axis])
+    assert np.sign(np.median(P[junction, axis]) - mid) == -np.sign(np.median(P[in_band, axis]) - mid)
+
+
+def test_self_composition_protocol_three_leaves_the_tail_nowhere_known(fox_self):
+    """Protocol 3 on a self-composition: no row outside the hidden ones carries a tail joint, and the
+    fills are measured in weights and skinned under the Fox's clips."""
+    from benchmarks.band_fill import protocol_methods
+    from benchmarks.self_composition import field_case_errors, field_case_rows, output_joints
+
+    case = fox_self["cases"]["ambient"][0]
+    comp = fox_self["comps"][case["joint"]]
+    G, hidden, junction = field_case_rows(comp, case, "ambient")
+    surface = comp.surface
+    index, Gt = welded_truth(surface.V, surface.F, G)
+    tail = output_joints(comp)[case["joints"]]
+    assert Gt[hidden][:, tail].sum(axis=1).max() > HIGH  # the tail's own rows are hidden ...
+    assert Gt[~(hidden | junction)][:, tail].max() == 0  # ... and no known row carries it
+    methods = {k: v for k, v in protocol_methods({}, "ambient").items() if k in ("nearest", "dfd_no_field")}
+    res = field_case_errors(comp, case, "ambient", methods)
+    assert res["rows"] == (hidden | junction).sum()
+    for label, m in res["methods"].items():
+        e = m["errors"]
+        assert e["rows"] == res["rows"]
+        assert 0 < e["mean"] <= e["max"] <= 1
+        assert 0 < e["skinned"] <= e["skinned_max"] < 1, label
+    # nearest cannot bring back a joint no known row carries; the bone prior can
+    assert res["methods"]["dfd_no_field"]["errors"]["mean"] < res["methods"]["nearest"]["errors"]["mean"]
