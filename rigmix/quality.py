@@ -412,7 +412,9 @@ def outside_area_share(V, F, occluders):
         keep = np.flatnonzero(outside)
         outside[keep[w >= 0.5]] = False
     visible = outside.reshape(-1, 4).mean(axis=1)
-    return float(min(np.dot(area, visible) / total, 1.0))  # the quotient of equal sums can round past 1
+    # the same pairwise sum as ``total``: a surface wholly visible gives exactly 1 (a BLAS dot
+    # rounds differently from it, and by thread count)
+    return float(min((area * visible).sum() / total, 1.0))
 
 
 def face_owners(surface, *, near=1e-3):

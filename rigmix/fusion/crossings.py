@@ -43,9 +43,7 @@ __all__ = ["CrossingRepair", "JunctionRepair", "repair_crossings", "repair_junct
 #: a repair moves vertices by about an edge).
 NEAR_EDGES = 3.0
 
-#: A push sequence stops after this many steps that do no better than the best. Smoothing
-#: has no such stop: a fold opens only once its corners have travelled across it, and the
-#: count of crossing pairs does not fall before that (the least move that does as well is kept).
+#: A smoothing or push sequence stops after this many steps that do no better than the best.
 PATIENCE = 3
 
 #: Halvings of an untangling move in search of the least move that does as well.
@@ -221,7 +219,7 @@ def _near_faces(V, F, query, margin):
 def _smooth_apart(S: _State, pairs, work, *, ring, steps, step, floor):
     """Umbrella-smoothing steps on the movable corners of the faces of the crossing pairs
     ``work`` (of ``pairs``, all of them) and ``ring`` rings of neighbours; the first step with
-    no pair of ``work`` left, or else the one with fewest pairs.
+    no pair of ``work`` left, or else the one with fewest pairs (:data:`PATIENCE`).
 
     Returns
     -------
@@ -245,7 +243,7 @@ def _smooth_apart(S: _State, pairs, work, *, ring, steps, step, floor):
         p = S.pairs(U, pairs, move)
         if S.better(U, p, best[1], floor):
             best = (U.copy(), p, k)
-        if len(S.targets(p)) == 0:
+        if len(S.targets(p)) == 0 or k - best[2] >= PATIENCE:
             break
     return best
 
