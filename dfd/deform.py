@@ -7,9 +7,9 @@ weights are then divided by their total ``max(1, sum_h w_h)``:
     v' = v + sum_h w_h ((A_h - I) v + t_h) / max(1, sum_h w_h)
 
 Written as a displacement, zero motion reproduces the mesh bit for bit. The cost is one pass
-over the dense weights per used entry of the maps, all in one matrix product: for 1M vertices
-and 100 handles the float32 weights are 400 MB, so the product is bound by memory bandwidth
-(``benchmarks/dfd_bench.py``).
+over the dense weights, in one matrix product with a column per used entry of the maps: for 1M
+vertices and 100 handles the float32 weights are 400 MB, so the product is bound by memory
+bandwidth (``benchmarks/dfd_bench.py``).
 """
 
 from __future__ import annotations
@@ -61,20 +61,23 @@ def deform(V, W, transforms):
     D = T.copy()
     D[:, :, :3] -= np.eye(3)  # displacement maps: zero for a handle that does not move
     D = D.reshape(len(T), 12)
-    # Only the entries of (A - I | t) that some handle uses cost a pass over W (translations:
-    # 3 of 12); one more column gives the weight sums. (k, h) @ (h, n) leaves each blended entry
-    # as one contiguous row, which is also the fastest layout for BLAS here.
+    # Only the entries of (A - I | t) that some handle uses cost a column of the product
+    # (translations: 3 of 12); one more column gives the weight sums. (n, h) @ (h, k + 1) reads
+    # W once in its own row-major order, which multithreaded BLAS splits by rows.
     used = np.flatnonzero(np.any(D != 0.0, axis=0))
     Dm = np.concatenate([D[:, used], np.ones((len(T), 1))], axis=1).astype(work)  # (h, k + 1)
-    R = Dm.T @ W.astype(work, copy=False).T  # (k + 1, n)
-    inv_total = 1.0 / np.maximum(R[-1], 1.0)  # the control point takes max(0, 1 - sum w)
-    Vf = V.astype(work, copy=False)
-    disp = np.zeros((3, len(V)), dtype=work)
-    for row, entry in zip(R[:-1], used):
-        r, c = divmod(int(entry), 4)  # row r, column c of the blended (A - I | t)
-        disp[r] += row if c == 3 else row * Vf[:, c]
-    disp *= inv_total
-    return V.astype(out_dtype) + disp.T.astype(out_dtype)
+    R = W.astype(work, copy=False) @ Dm  # (n, k + 1): blended entries, then the weight sum
+    total = np.maximum(R[:, -1:], 1.0)  # the control point takes max(0, 1 - sum w)
+    rows, cols = np.divmod(used, 4)  # row r, column c of the blended (A - I | t)
+    if np.array_equal(rows, np.arange(3)) and np.all(cols == 3):
+        disp = R[:, :3]  # translations only: the blended offsets themselves
+    else:
+        Vw = V.astype(work, copy=False)
+        disp = np.zeros((len(V), 3), dtype=work)
+        for j, (r, c) in enumerate(zip(rows, cols)):
+            disp[:, r] += R[:, j] if c == 3 else R[:, j] * Vw[:, c]
+    disp /= total  # in place: a fresh (n, 3) array costs its page faults
+    return np.add(V, disp, dtype=out_dtype)
 
 
 def deform_reference(V, W, transforms):
