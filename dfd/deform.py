@@ -14,6 +14,9 @@ bandwidth (``benchmarks/dfd_bench.py``).
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from dfd.errors import DfdInputError
@@ -62,22 +65,42 @@ def deform(V, W, transforms):
     D[:, :, :3] -= np.eye(3)  # displacement maps: zero for a handle that does not move
     D = D.reshape(len(T), 12)
     # Only the entries of (A - I | t) that some handle uses cost a column of the product
-    # (translations: 3 of 12); one more column gives the weight sums. (n, h) @ (h, k + 1) reads
-    # W once in its own row-major order, which multithreaded BLAS splits by rows.
+    # (translations: 3 of 12); one more column gives the weight sums.
     used = np.flatnonzero(np.any(D != 0.0, axis=0))
     Dm = np.concatenate([D[:, used], np.ones((len(T), 1))], axis=1).astype(work)  # (h, k + 1)
-    R = W.astype(work, copy=False) @ Dm  # (n, k + 1): blended entries, then the weight sum
+    out = np.empty(V.shape, dtype=out_dtype)
+    # Each row depends on its own row of W only, so blocks of rows run on threads (numpy and
+    # BLAS release the GIL): the result is the same bit for bit whatever the split, and the
+    # memory-bound read of W uses every core even where BLAS runs one thread.
+    starts = range(0, len(V), _ROWS_PER_BLOCK)
+    workers = min(len(starts), os.cpu_count() or 1)
+    if workers <= 1:
+        _deform_rows(V, W, Dm, used, work, out, 0, len(V))
+    else:
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(lambda a: _deform_rows(V, W, Dm, used, work, out, a, a + _ROWS_PER_BLOCK), starts))
+    return out
+
+
+#: Rows of a block of :func:`deform` (its (block, k + 1) product stays in cache).
+_ROWS_PER_BLOCK = 65536
+
+
+def _deform_rows(V, W, Dm, used, work, out, a, b):
+    """Write ``out[a:b]``: rows ``a:b`` of :func:`deform` (``Dm``: the used map entries and a column
+    of ones, ``(h, k + 1)``; ``used``: their flat indices in the (3, 4) maps)."""
+    R = W[a:b].astype(work, copy=False) @ Dm  # (rows, k + 1): blended entries, then the weight sum
     total = np.maximum(R[:, -1:], 1.0)  # the control point takes max(0, 1 - sum w)
     rows, cols = np.divmod(used, 4)  # row r, column c of the blended (A - I | t)
     if np.array_equal(rows, np.arange(3)) and np.all(cols == 3):
         disp = R[:, :3]  # translations only: the blended offsets themselves
     else:
-        Vw = V.astype(work, copy=False)
-        disp = np.zeros((len(V), 3), dtype=work)
+        Vw = V[a:b].astype(work, copy=False)
+        disp = np.zeros((len(R), 3), dtype=work)
         for j, (r, c) in enumerate(zip(rows, cols)):
             disp[:, r] += R[:, j] if c == 3 else R[:, j] * Vw[:, c]
-    disp /= total  # in place: a fresh (n, 3) array costs its page faults
-    return np.add(V, disp, dtype=out_dtype)
+    disp /= total
+    np.add(V[a:b], disp, out=out[a:b], casting="unsafe")
 
 
 def deform_reference(V, W, transforms):
