@@ -36,7 +36,8 @@ def retarget_weights(W, target, num_output_joints, *, confidence=None):
         (mass on unmapped joints dropped); a row left empty stays all zero. Held per influence:
         the values (and row sums) are those of the dense product bit for bit.
     c : (n,) float64
-        Confidence of each row: ``sum_j W[:, j] confidence[j]`` (1 without ``confidence``).
+        Confidence of each row: ``sum_j W[:, j] confidence[j]`` (1 without ``confidence``), the
+        same float for a row whatever the other rows and the thread count.
     """
     W = W if sp.issparse(W) else np.asarray(W, dtype=np.float64)
     target = np.asarray(target, dtype=np.int64)
@@ -55,10 +56,12 @@ def retarget_weights(W, target, num_output_joints, *, confidence=None):
     Wr.data[scaled] /= s[row[scaled]]
     n = W.shape[0]
     c = np.ones(n)
-    if confidence is not None:  # dense blocks of rows: the same floats as the whole dense product
+    if confidence is not None:
         conf = np.asarray(confidence, dtype=np.float64)
+        # numpy's own row sums, not a BLAS product: a BLAS sum depends on the row's place in the
+        # block and on the thread count, and the output must not
         for rows in row_blocks(n, W.shape[1]):
-            c[rows] = dense_rows(W, rows) @ conf
+            c[rows] = (dense_rows(W, rows) * conf).sum(axis=1)
     return Wr, np.clip(c, 0.0, 1.0)
 
 
