@@ -802,7 +802,6 @@ def markdown_protocol(results, summary, protocol, distilled, *, header=None):
     return "\n".join(lines) + "\n"
 
 
-
 def write_protocol(results, protocol, *, stem=None, header=None):
     """Write ``benchmarks/results/<stem>.{json,md}`` for one protocol of :data:`PROTOCOL_FILES`
     (``stem``: default its band-fill file; ``header``: :func:`markdown_protocol`'s)."""
@@ -821,6 +820,25 @@ def write_protocol(results, protocol, *, stem=None, header=None):
     return payload
 
 
+def protocol_characters():
+    """Name -> path of every character issue 27's protocols run on: the shared characters, then
+    the corpus (``tests/conftest.py``'s lists; the paths may be missing)."""
+    from conftest import ASSETS, CHARACTERS, CORPUS, CORPUS_CHARACTERS
+
+    return {**{n: ASSETS / p for n, p in CHARACTERS.items()}, **{n: CORPUS / p for n, p in CORPUS_CHARACTERS.items()}}
+
+
+def stored_protocol_results(protocols, stem):
+    """Protocol -> the per-character results stored in ``benchmarks/results/<stem(protocol)>.json``
+    (empty where there is no file): what ``--update`` keeps."""
+    results = {p: {} for p in protocols}
+    for p in protocols:
+        f = RESULTS / f"{stem(p)}.json"
+        if f.exists():
+            results[p] = json.loads(f.read_text())["characters"]
+    return results
+
+
 def main_protocols(argv, protocols=PROTOCOLS):
     """Issue 27's ``protocols`` over the shared characters and the corpus, each character's fields
     made once for all of them.
@@ -829,18 +847,12 @@ def main_protocols(argv, protocols=PROTOCOLS):
     encoders; ``--update`` keeps the characters already in the result files and replaces only those
     run now (a distilled pass over part of the characters after a direct pass over all).
     """
-    from conftest import ASSETS, CHARACTERS, CORPUS, CORPUS_CHARACTERS
-
-    every = {**{n: ASSETS / p for n, p in CHARACTERS.items()}, **{n: CORPUS / p for n, p in CORPUS_CHARACTERS.items()}}
+    every = protocol_characters()
     flags = {a for a in argv if a.startswith("--")}
     names = [a for a in argv if not a.startswith("--")] or list(every)
     encoders = () if "--direct-only" in flags else FIELD_ENCODERS
-    results = {p: {} for p in protocols}
-    if "--update" in flags:
-        for p in protocols:
-            f = RESULTS / f"{PROTOCOL_FILES[p]}.json"
-            if f.exists():
-                results[p] = json.loads(f.read_text())["characters"]
+    results = (stored_protocol_results(protocols, PROTOCOL_FILES.get) if "--update" in flags
+               else {p: {} for p in protocols})
     RESULTS.mkdir(parents=True, exist_ok=True)
     for name in names:
         path = every[name]

@@ -632,6 +632,11 @@ def field_protocol_header(protocol: str) -> str:
             "the original at rest and evaluated at the composed surface.")
 
 
+def _field_protocol_stem(protocol: str) -> str:
+    """The result files' stem of an issue-27 protocol on self-compositions."""
+    return f"self_composition_{protocol}"
+
+
 def main_field_protocols(names, protocols=FIELD_PROTOCOLS, *, direct_only=False, update=False) -> dict:
     """Issue 27's protocols over ``names`` (default: the shared characters and the corpus); writes
     ``benchmarks/results/self_composition_<protocol>.{json,md}`` after every character.
@@ -639,16 +644,11 @@ def main_field_protocols(names, protocols=FIELD_PROTOCOLS, *, direct_only=False,
     ``direct_only``: no distilled encoder (the direct fields and the baselines only); ``update``:
     keep the characters already in the result files, replacing only those run now (band_fill's
     ``--direct-only`` and ``--update``)."""
-    from conftest import ASSETS, CHARACTERS, CORPUS, CORPUS_CHARACTERS
+    from benchmarks.band_fill import protocol_characters, stored_protocol_results, write_protocol
 
-    from benchmarks.band_fill import write_protocol
-
-    every = {**{n: ASSETS / p for n, p in CHARACTERS.items()}, **{n: CORPUS / p for n, p in CORPUS_CHARACTERS.items()}}
-    results = {p: {} for p in protocols}
-    for p in protocols if update else ():
-        f = RESULTS / f"self_composition_{p}.json"
-        if f.exists():
-            results[p] = json.loads(f.read_text())["characters"]
+    every = protocol_characters()
+    results = (stored_protocol_results(protocols, _field_protocol_stem) if update
+               else {p: {} for p in protocols})
     RESULTS.mkdir(exist_ok=True)
     for name in names or list(every):
         path = every[name]
@@ -664,7 +664,7 @@ def main_field_protocols(names, protocols=FIELD_PROTOCOLS, *, direct_only=False,
         for p, r in res.items():
             results[p][name] = r
             if any(x.get("methods") for x in results[p].values()):
-                write_protocol(results[p], p, stem=f"self_composition_{p}", header=field_protocol_header(p))
+                write_protocol(results[p], p, stem=_field_protocol_stem(p), header=field_protocol_header(p))
             means = {m: round(v["mean_error"], 3) for m, v in r["methods"].items()}
             print(f"self_composition {p}: {name} cases {r['cases']} {means}", flush=True)
         print(f"self_composition: {name} done in {time.perf_counter() - t0:.0f} s", flush=True)

@@ -24,6 +24,10 @@ from dfd.errors import DfdInputError
 __all__ = ["deform", "deform_reference", "translations"]
 
 
+#: Rows of a block of :func:`deform` (its (block, k + 1) product stays in cache).
+ROWS_PER_BLOCK = 65536
+
+
 def _check(V, W, transforms):
     V = np.asarray(V)
     W = np.asarray(W)
@@ -68,36 +72,36 @@ def deform(V, W, transforms):
     # (translations: 3 of 12); one more column gives the weight sums.
     used = np.flatnonzero(np.any(D != 0.0, axis=0))
     Dm = np.concatenate([D[:, used], np.ones((len(T), 1))], axis=1).astype(work)  # (h, k + 1)
+    rows, cols = np.divmod(used, 4)  # row r, column c of the blended (A - I | t)
+    entries = None if np.array_equal(rows, np.arange(3)) and np.all(cols == 3) else list(zip(rows, cols))
     out = np.empty(V.shape, dtype=out_dtype)
     # Each row depends on its own row of W only, so blocks of rows run on threads (numpy and
     # BLAS release the GIL): the result is the same bit for bit whatever the split, and the
     # memory-bound read of W uses every core even where BLAS runs one thread.
-    starts = range(0, len(V), _ROWS_PER_BLOCK)
+    starts = range(0, len(V), ROWS_PER_BLOCK)
     workers = min(len(starts), os.cpu_count() or 1)
     if workers <= 1:
-        _deform_rows(V, W, Dm, used, work, out, 0, len(V))
+        _deform_rows(V, W, Dm, entries, work, out, 0, len(V))
     else:
         with ThreadPoolExecutor(workers) as pool:
-            list(pool.map(lambda a: _deform_rows(V, W, Dm, used, work, out, a, a + _ROWS_PER_BLOCK), starts))
+            list(pool.map(lambda a: _deform_rows(V, W, Dm, entries, work, out, a, a + ROWS_PER_BLOCK), starts))
     return out
 
 
-#: Rows of a block of :func:`deform` (its (block, k + 1) product stays in cache).
-_ROWS_PER_BLOCK = 65536
+def _deform_rows(V, W, Dm, entries, work, out, a, b):
+    """Write ``out[a:b]``: rows ``a:b`` of :func:`deform`.
 
-
-def _deform_rows(V, W, Dm, used, work, out, a, b):
-    """Write ``out[a:b]``: rows ``a:b`` of :func:`deform` (``Dm``: the used map entries and a column
-    of ones, ``(h, k + 1)``; ``used``: their flat indices in the (3, 4) maps)."""
+    ``Dm`` ``(h, k + 1)``: the used entries of the handles' ``(A - I | t)`` and a column of ones;
+    ``entries``: the (row, column) in the (3, 4) map of each of the ``k`` used entries, or None
+    when they are the three translations in order."""
     R = W[a:b].astype(work, copy=False) @ Dm  # (rows, k + 1): blended entries, then the weight sum
     total = np.maximum(R[:, -1:], 1.0)  # the control point takes max(0, 1 - sum w)
-    rows, cols = np.divmod(used, 4)  # row r, column c of the blended (A - I | t)
-    if np.array_equal(rows, np.arange(3)) and np.all(cols == 3):
+    if entries is None:
         disp = R[:, :3]  # translations only: the blended offsets themselves
     else:
         Vw = V[a:b].astype(work, copy=False)
         disp = np.zeros((len(R), 3), dtype=work)
-        for j, (r, c) in enumerate(zip(rows, cols)):
+        for j, (r, c) in enumerate(entries):
             disp[:, r] += R[:, j] if c == 3 else R[:, j] * Vw[:, c]
     disp /= total
     np.add(V[a:b], disp, out=out[a:b], casting="unsafe")

@@ -70,13 +70,13 @@ def test_blocks_of_rows_give_the_same_result_bit_for_bit():
     import dfd.deform as module
 
     rng = np.random.default_rng(3)
-    n = 2 * module._ROWS_PER_BLOCK + 1234  # three blocks, the last one short
+    n = 2 * module.ROWS_PER_BLOCK + 1234  # three blocks, the last one short
     V = rng.normal(size=(n, 3))
     W = rng.random((n, 7), dtype=np.float32)
     T = rng.normal(scale=0.2, size=(7, 3, 4))
     T[:, :, :3] += np.eye(3)
     whole = deform(V, W, T)
-    b = module._ROWS_PER_BLOCK
+    b = module.ROWS_PER_BLOCK
     for a in (0, b, 2 * b):
         np.testing.assert_array_equal(whole[a:a + b], deform(V[a:a + b], W[a:a + b], T))
     np.testing.assert_allclose(whole, deform_reference(V, W, T), atol=1e-5)
