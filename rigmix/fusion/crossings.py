@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .meshutil import edge_counts, intersecting_face_pairs, triangle_min_angles, vertex_adjacency
+from .meshutil import edge_counts, intersecting_face_pairs, triangle_min_angles, unique_rows, vertex_adjacency
 
 log = logging.getLogger(__name__)
 
@@ -143,7 +143,7 @@ def _canonical(P):
     """Pairs ``(p, 2)`` as sorted rows, each once, in order."""
     if len(P) == 0:
         return np.zeros((0, 2), np.int64)
-    return np.unique(np.sort(np.asarray(P, np.int64), axis=1), axis=0)
+    return unique_rows(np.sort(np.asarray(P, np.int64), axis=1))
 
 
 def _box_cells(lo, hi, cell):

@@ -28,6 +28,39 @@ __all__ = [
 ]
 
 
+def unique_ints(a, *, return_inverse=False):
+    """``np.unique`` of an integer array (flattened), by sorting.
+
+    The same values (sorted) and inverse as ``np.unique``; numpy's hash-based path for
+    integers is many times slower than a sort on the edge and pair keys the fusion builds.
+
+    Returns
+    -------
+    u : (k,) sorted distinct values, and with ``return_inverse`` ``inv`` ``(n,)`` int64, ``u[inv] == a``.
+    """
+    a = np.asarray(a).ravel()
+    if not return_inverse:
+        s = np.sort(a)
+        return s[np.r_[True, s[1:] != s[:-1]]] if len(s) else s
+    order = np.argsort(a, kind="stable")
+    s = a[order]
+    first = np.r_[True, s[1:] != s[:-1]] if len(s) else np.zeros(0, bool)
+    inv = np.empty(len(a), np.int64)
+    inv[order] = np.cumsum(first) - 1
+    return s[first], inv
+
+
+def unique_rows(P, *, return_inverse=False):
+    """``np.unique(P, axis=0)`` of non-negative integer pairs ``P`` ``(k, 2)`` (rows sorted
+    lexicographically), by :func:`unique_ints` on one key per row."""
+    P = np.asarray(P, np.int64).reshape(-1, 2)
+    n = np.int64(int(P.max(initial=0)) + 1)
+    out = unique_ints(P[:, 0] * n + P[:, 1], return_inverse=return_inverse)
+    key = out[0] if return_inverse else out
+    rows = np.stack([key // n, key % n], axis=1)
+    return (rows, out[1]) if return_inverse else rows
+
+
 def nondegenerate(F):
     """``(m,)`` bool: faces whose three corners are distinct."""
     F = np.asarray(F, dtype=np.int64).reshape(-1, 3)
@@ -50,7 +83,7 @@ def undirected_edges(F):
     F = np.asarray(F, dtype=np.int64).reshape(-1, 3)
     E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
     S = np.sort(E, axis=1)
-    uE, emap = np.unique(S, axis=0, return_inverse=True)
+    uE, emap = unique_rows(S, return_inverse=True)
     return E, uE.reshape(-1, 2), emap.reshape(-1)
 
 
@@ -183,20 +216,41 @@ def edges_to_loops(B):
     return loops, closed
 
 
+#: Corner indices of the next and the previous corner of a triangle.
+_NEXT_CORNER = np.array([1, 2, 0])
+_PREVIOUS_CORNER = np.array([2, 0, 1])
+
+
 def triangle_corner_angles(P):
     """Interior angle at each corner of triangles ``P`` ``(m, 3, 3)``, ``(m, 3)`` radians.
 
-    Corner ``c`` is at ``P[:, c]``; a corner with a zero-length edge gets 0.
+    Corner ``c`` is at ``P[:, c]``; a corner with a zero-length edge gets 0. The three corners
+    are computed together (the remeshers call this on a few triangles at a time, where numpy's
+    per-call overhead is the cost).
     """
     P = np.asarray(P, dtype=np.float64)
-    out = np.zeros(P.shape[:2])
-    for c in range(3):
-        u = P[:, (c + 1) % 3] - P[:, c]
-        w = P[:, (c + 2) % 3] - P[:, c]
-        nu = np.linalg.norm(u, axis=1)
-        nw = np.linalg.norm(w, axis=1)
-        cos = np.einsum("ij,ij->i", u, w) / np.maximum(nu * nw, 1e-300)
-        out[:, c] = np.where((nu > 0) & (nw > 0), np.arccos(np.clip(cos, -1.0, 1.0)), 0.0)
+    U = P[:, _NEXT_CORNER] - P
+    W = P[:, _PREVIOUS_CORNER] - P
+    nu = np.sqrt(np.add.reduce(U * U, axis=2))
+    nw = np.sqrt(np.add.reduce(W * W, axis=2))
+    cos = np.einsum("ijk,ijk->ij", U, W) / np.maximum(nu * nw, 1e-300)
+    return np.where((nu > 0) & (nw > 0), np.arccos(np.clip(cos, -1.0, 1.0)), 0.0)
+
+
+def cross3(a, b):
+    """Cross products of 3-vectors ``a`` and ``b`` ``(..., 3)`` (broadcast), float64.
+
+    The same floats as ``np.cross``, without its axis handling, which costs more than the
+    product on the few triangles of a vertex's ring.
+    """
+    a = np.asarray(a, np.float64)
+    b = np.asarray(b, np.float64)
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    out[..., 0] = a1 * b2 - a2 * b1
+    out[..., 1] = a2 * b0 - a0 * b2
+    out[..., 2] = a0 * b1 - a1 * b0
     return out
 
 
@@ -276,7 +330,7 @@ def _grid_pairs(lo, hi, in_set, max_cells=64, max_pairs=None):
     keep = (a != b) & (in_set[a] | in_set[b])
     a, b = a[keep], b[keep]
     m = np.int64(len(lo))
-    pair = np.unique(np.minimum(a, b) * m + np.maximum(a, b))  # two boxes share several cells
+    pair = unique_ints(np.minimum(a, b) * m + np.maximum(a, b))  # two boxes share several cells
     a, b = pair // m, pair % m
     swap = ~in_set[a]  # ``a`` from the set
     a[swap], b[swap] = b[swap], a[swap]
@@ -317,7 +371,7 @@ def intersecting_face_pairs(V, F, faces=None, *, tol=1e-9, max_candidates=None):
         return np.zeros((0, 2), np.int64)
     T = V[F]
     lo, hi = T.min(axis=1), T.max(axis=1)
-    faces = np.arange(len(F)) if faces is None else np.unique(np.asarray(faces, np.int64))
+    faces = np.arange(len(F)) if faces is None else unique_ints(np.asarray(faces, np.int64))
     if len(faces) == 0:
         return np.zeros((0, 2), np.int64)
     eps = tol * float(np.ptp(V, axis=0).max() or 1.0)

@@ -9,11 +9,14 @@ import numpy as np
 from .meshutil import (
     TooManyCandidates,
     corner_angles,
+    cross3,
     edge_counts,
     intersecting_face_pairs,
     nondegenerate,
     triangle_corner_angles,
     undirected_edges,
+    unique_ints,
+    unique_rows,
     vertex_adjacency,
 )
 
@@ -49,7 +52,7 @@ def is_edge_manifold(F):
     if not np.all(cnt <= 2):
         return False
     E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    if len(np.unique(E, axis=0)) != len(E):
+    if len(unique_rows(E)) != len(E):
         return False
     import igl
 
@@ -155,7 +158,7 @@ def collapse_to_improve_angles(V, F, nfixed, *, max_deviation, threshold=20.0, p
         banned = {(min(int(a), int(b)), max(int(a), int(b))) for a, b in np.asarray(forbidden).reshape(-1, 2)}
 
     def normals(T):
-        n = np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]])
+        n = cross3(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]])
         ln = np.linalg.norm(n, axis=1)
         return n / np.maximum(ln, 1e-300)[:, None], ln
 
@@ -267,7 +270,7 @@ def _min_angles(A, B, C):
 
 
 def _unit_normals(A, B, C):
-    n = np.cross(B - A, C - A)
+    n = cross3(B - A, C - A)
     ln = np.linalg.norm(n, axis=1, keepdims=True)
     return n / np.maximum(ln, 1e-300), ln[:, 0]
 
@@ -300,7 +303,7 @@ def flip_to_improve_angles(V, F, *, max_passes=10, min_normal_dot=0.7, forbidden
     fkey = np.zeros(0, np.int64)
     if forbidden is not None and len(forbidden):
         fb = np.sort(np.asarray(forbidden, np.int64).reshape(-1, 2), axis=1)
-        fkey = np.unique(fb[:, 0] * n + fb[:, 1])
+        fkey = unique_ints(fb[:, 0] * n + fb[:, 1])
     m = len(G)
     if m == 0:
         return G
@@ -333,7 +336,7 @@ def flip_to_improve_angles(V, F, *, max_passes=10, min_normal_dot=0.7, forbidden
         must = np.isin(abk, fkey)
         ok = ((new > old + 1e-9) | must) & (c[h] != c[t]) & (k0 > 0) & (k1 > 0)
         ok &= (np.einsum("ij,ij->i", m0, navg) >= min_normal_dot) & (np.einsum("ij,ij->i", m1, navg) >= min_normal_dot)
-        ukey = np.unique(np.minimum(a, b) * n + np.maximum(a, b))
+        ukey = unique_ints(np.minimum(a, b) * n + np.maximum(a, b))
         cd = np.minimum(c[h], c[t]) * n + np.maximum(c[h], c[t])
         pos = np.clip(np.searchsorted(ukey, cd), 0, len(ukey) - 1)
         ok &= (ukey[pos] != cd) & ~np.isin(cd, fkey)
@@ -390,7 +393,7 @@ def _ring_candidates(P, at_v, C, n0, min_normal_dot):
     T = np.broadcast_to(P, (k, r, 3, 3)).copy()
     T[:, at_v] = C[:, None, :]
     T = T.reshape(k * r, 3, 3)
-    n1 = np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0])
+    n1 = cross3(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0])
     ln = np.linalg.norm(n1, axis=1)
     dots = np.einsum("ij,ij->i", n1 / np.where(ln == 0, 1.0, ln)[:, None], np.tile(n0, (k, 1)))
     ok = ((ln > 0) & (dots >= min_normal_dot)).reshape(k, r).all(axis=1)
@@ -441,7 +444,7 @@ def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterat
     for _ in range(iterations):
         ang = triangle_min_angles(V, F)
         bad = np.flatnonzero(ang < threshold)
-        verts = np.unique(F[bad].ravel())
+        verts = unique_ints(F[bad])
         verts = verts[verts >= nfixed]
         if len(verts) == 0:
             break
@@ -477,7 +480,7 @@ def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterat
         for v, C in zip(verts, np.split(allC, splits)):
             ring = F[VF[v]]
             P = V[ring]
-            n0 = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+            n0 = cross3(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
             n0 /= np.maximum(np.linalg.norm(n0, axis=1, keepdims=True), 1e-300)
             cur = _ring_min_angle(V, ring)
             ok, a = _ring_candidates(P, ring == v, C, n0, min_normal_dot)
@@ -537,13 +540,13 @@ def snap_to_points(V, F, nfixed, P, *, max_dist, min_angle=15.0, min_normal_dot=
         if len(ring) == 0:
             continue
         Q = V[ring]
-        n0 = np.cross(Q[:, 1] - Q[:, 0], Q[:, 2] - Q[:, 0])
+        n0 = cross3(Q[:, 1] - Q[:, 0], Q[:, 2] - Q[:, 0])
         n0 /= np.maximum(np.linalg.norm(n0, axis=1, keepdims=True), 1e-300)
         before = _ring_min_angle(V, ring)
         old = V[v].copy()
         V[v] = P[k]
         Q = V[ring]
-        n1 = np.cross(Q[:, 1] - Q[:, 0], Q[:, 2] - Q[:, 0])
+        n1 = cross3(Q[:, 1] - Q[:, 0], Q[:, 2] - Q[:, 0])
         ln = np.linalg.norm(n1, axis=1)
         after = _ring_min_angle(V, ring)
         good = np.all(ln > 0) and np.all(
@@ -555,46 +558,111 @@ def snap_to_points(V, F, nfixed, P, *, max_dist, min_angle=15.0, min_normal_dot=
     return V
 
 
-def _insert_point(V, F, f, bary, x, fixed, inner, snap=0.75, edge_bary=0.15):
+class _FaceList:
+    """Triangles that points are inserted into one at a time, in order.
+
+    Removed faces leave a hole and new ones go at the end, so :meth:`faces` lists the survivors
+    in the order ``np.concatenate([F[keep], new])`` after each insertion would have given them.
+    Faces are found through their corners (the input's vertex-face incidence, sorted once, and
+    a dictionary for the added faces), so an insertion costs the size of its neighbourhood, not
+    of the mesh.
+    """
+
+    def __init__(self, F):
+        self.F = np.asarray(F, np.int64).reshape(-1, 3)
+        self.added: list[tuple[int, int, int]] = []
+        self.alive = np.ones(len(self.F), bool)
+        self.alive_added: list[bool] = []
+        corners = self.F.ravel()
+        by_vertex = np.argsort(corners, kind="stable")
+        self.order = by_vertex // 3
+        self.starts = np.searchsorted(corners[by_vertex], np.arange(int(corners.max(initial=-1)) + 2))
+        self.added_at: dict[int, list[int]] = {}
+
+    def row(self, g) -> tuple[int, int, int]:
+        m = len(self.F)
+        return tuple(int(v) for v in self.F[g]) if g < m else self.added[g - m]
+
+    def is_alive(self, g) -> bool:
+        m = len(self.F)
+        return bool(self.alive[g]) if g < m else self.alive_added[g - m]
+
+    def add(self, t):
+        g = len(self.F) + len(self.added)
+        self.added.append(t)
+        self.alive_added.append(True)
+        for v in set(t):
+            self.added_at.setdefault(v, []).append(g)
+
+    def remove(self, g):
+        m = len(self.F)
+        if g < m:
+            self.alive[g] = False
+        else:
+            self.alive_added[g - m] = False
+
+    def _at(self, v) -> list[int]:
+        """Positions, in order, of the live faces with corner ``v``."""
+        out = []
+        if v + 1 < len(self.starts):
+            out = [int(g) for g in np.unique(self.order[self.starts[v]:self.starts[v + 1]]) if self.alive[g]]
+        return out + [g for g in self.added_at.get(v, ()) if self.is_alive(g)]
+
+    def with_corners(self, tri):
+        """Positions of the live faces that have every vertex of ``tri`` as a corner."""
+        key = set(int(v) for v in tri)
+        return [g for g in self._at(int(tri[0])) if key <= set(self.row(g))]
+
+    def on_edge(self, a, b):
+        """Positions, in order, of the live faces with the corners ``a`` and ``b`` and a third one."""
+        return [g for g in self._at(a) if sum(v in (a, b) for v in self.row(g)) == 2 and b in self.row(g)]
+
+    def faces(self):
+        added = np.asarray(self.added, np.int64).reshape(-1, 3)[np.asarray(self.alive_added, bool)]
+        return np.concatenate([self.F[self.alive], added])
+
+
+def _insert_point(V, faces: _FaceList, f, bary, x, fixed, inner, snap=0.75, edge_bary=0.15):
     """Insert point ``x`` into face ``f`` (its projection has barycentric coordinates ``bary``).
 
     Near a free vertex (``bary`` above ``snap``) that vertex moves to ``x``; near an interior
     edge (a coordinate below ``edge_bary``) the edge is split at ``x``; else, and next to a
     fixed vertex or a border edge (neither may change), the face is split in three.
-    ``fixed``: (n0,) bool over the first vertices (later ones, inserted, are free); ``inner``:
-    set of sorted interior edges.
+    ``V``: list of ``(3,)`` positions, appended to and moved in place; ``faces`` is changed in
+    place; ``fixed``: list of bool over the first vertices (later ones, inserted, are free);
+    ``inner(a, b)``: whether ``a``-``b`` is an interior edge.
 
     Returns
     -------
-    V, F, vertex : the new mesh and the vertex now at ``x``.
+    vertex : int, the vertex now at ``x``.
     """
-    tri = F[f]
+    tri = faces.row(f)
     k = int(np.argmax(bary))
-    v = int(tri[k])
+    v = tri[k]
     if bary[k] > snap and not (v < len(fixed) and fixed[v]):
-        V = V.copy()
         V[v] = x
-        return V, F, v
+        return v
     j = int(np.argmin(bary))
     n = len(V)
-    a, b = int(tri[(j + 1) % 3]), int(tri[(j + 2) % 3])
-    V = np.concatenate([V, x[None]])
-    if bary[j] < edge_bary and (min(a, b), max(a, b)) in inner:
-        new, drop = [], []
-        for g in np.flatnonzero(np.isin(F, [a, b]).sum(axis=1) == 2):
-            t = F[g]
+    a, b = tri[(j + 1) % 3], tri[(j + 2) % 3]
+    V.append(x)
+    if bary[j] < edge_bary and inner(a, b):
+        new = []
+        for g in faces.on_edge(a, b):
+            t = faces.row(g)
             for x0, y0, z0 in ((t[0], t[1], t[2]), (t[1], t[2], t[0]), (t[2], t[0], t[1])):
-                if {int(x0), int(y0)} == {a, b}:
+                if {x0, y0} == {a, b}:
                     new += [(x0, n, z0), (n, y0, z0)]
-                    drop.append(g)
+                    faces.remove(g)
                     break
-        keep = np.ones(len(F), bool)
-        keep[drop] = False
-        return V, np.concatenate([F[keep], np.asarray(new, np.int64)]), n
-    a, b, c = (int(t) for t in tri)
-    keep = np.ones(len(F), bool)
-    keep[f] = False
-    return V, np.concatenate([F[keep], np.asarray([(a, b, n), (b, c, n), (c, a, n)], np.int64)]), n
+        for t in new:
+            faces.add(t)
+        return n
+    a, b, c = tri
+    faces.remove(f)
+    for t in ((a, b, n), (b, c, n), (c, a, n)):
+        faces.add(t)
+    return n
 
 
 def insert_points(V, F, fixed, X, *, max_dist, passes=4):
@@ -628,7 +696,7 @@ def insert_points(V, F, fixed, X, *, max_dist, passes=4):
     V = np.asarray(V, dtype=np.float64)
     G = np.asarray(F, dtype=np.int64)
     X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
-    fixed = np.array(fixed, bool)  # a copy: placed vertices join it
+    fixed = [bool(b) for b in np.asarray(fixed, bool)]  # a copy: placed vertices join it
     if len(X) == 0 or len(G) == 0:
         return V, G, np.zeros(0, np.int64)
     placed: list[int] = []
@@ -641,22 +709,33 @@ def insert_points(V, F, fixed, X, *, max_dist, passes=4):
         T = G[fid]
         B = np.nan_to_num(np.asarray(igl.barycentric_coordinates(C, V[T[:, 0]], V[T[:, 1]], V[T[:, 2]])), nan=1 / 3)
         uE, cnt = edge_counts(G)
-        inner = {(int(a), int(b)) for a, b in uE[cnt == 2]}
+        nv = len(V) + len(X) + 1
+        inner_keys = uE[cnt == 2, 0] * nv + uE[cnt == 2, 1]  # sorted: uE is
+
+        def inner(a, b, keys=inner_keys, nv=nv):
+            key = min(a, b) * nv + max(a, b)
+            i = int(np.searchsorted(keys, key))
+            return i < len(keys) and int(keys[i]) == key
+
+        faces = _FaceList(G)
+        U = list(V.copy())
         touched: set[int] = set()
         waiting = np.zeros(len(X), bool)
         for k, (x, tri, bary) in enumerate(zip(X, T, B)):
             if touched.intersection(int(t) for t in tri):
                 waiting[k] = True  # its triangle changed: next pass
                 continue
-            rows = np.flatnonzero((G == tri[0]).any(axis=1) & (G == tri[1]).any(axis=1) & (G == tri[2]).any(axis=1))
+            rows = faces.with_corners(tri)
             if len(rows) != 1:
                 continue
-            V, G, v = _insert_point(V, G, int(rows[0]), bary, x, fixed, inner)
+            v = _insert_point(U, faces, rows[0], bary, x, fixed, inner)
             touched.add(v)
             placed.append(v)
             if v >= len(fixed):
-                fixed = np.concatenate([fixed, np.zeros(v + 1 - len(fixed), bool)])
+                fixed += [False] * (v + 1 - len(fixed))
             fixed[v] = True
+        V = np.asarray(U, np.float64).reshape(-1, 3)
+        G = faces.faces()
         X = X[waiting]
     return V, G, np.asarray(placed, np.int64)
 
