@@ -93,7 +93,7 @@ from .geometry import bounding_box_diagonal, check_transforms, closest_surface_p
 from .skinning import linear_blend_skinning, rest_skinning_matrices, skinning_matrices
 from .sparse_weights import dense_rows
 
-__all__ = ["face_stretch", "vertex_stretch", "band_stretch", "junction_band_radius", "junction_stretch_ratio",
+__all__ = ["face_stretch", "vertex_stretch", "clip_skinning_matrices", "band_stretch", "junction_band_radius", "junction_stretch_ratio",
            "weight_roughness", "junction_weight_roughness", "outside_area_share", "face_owners",
            "grafted_visibility", "junction_dihedral", "self_composition_truth",
            "self_composition_errors", "skinned_surface", "identity_errors", "identity_origins"]
@@ -173,11 +173,24 @@ def _frames(clip, fps, max_frames):
     return t
 
 
-def band_stretch(skeleton, clips, V0, joints, weights, F, vertices, *, rest=None, fps=30.0, max_frames=30):
+def clip_skinning_matrices(skeleton, clips, *, fps=30.0, max_frames=30) -> list:
+    """Skinning matrices of each clip at its stretch frames (at most ``max_frames``, evenly
+    spread over its samples at ``fps``): one ``(k, J, 4, 4)`` array per clip, column vectors."""
+    out = []
+    for clip in clips:
+        T, R, S = sample_clip(skeleton, clip, _frames(clip, fps, max_frames))
+        out.append(skinning_matrices(skeleton, T, R, S))
+    return out
+
+
+def band_stretch(skeleton, clips, V0, joints, weights, F, vertices, *, rest=None, fps=30.0, max_frames=30,
+                 matrices=None):
     """Stretch samples ``(sum_clips frames x q,)`` of the band ``vertices`` of one skinned mesh.
 
     ``V0`` are bind-space positions; ``rest`` the rest-pose positions the gradient starts from
-    (default: ``V0`` skinned by the rest pose).
+    (default: ``V0`` skinned by the rest pose). ``matrices``: the clips' skinning matrices
+    (:func:`clip_skinning_matrices`) when the caller has them already (several meshes or bands
+    under the same clips); sampled here otherwise.
     """
     if len(vertices) == 0 or not clips:
         return np.zeros(0)
@@ -195,10 +208,11 @@ def band_stretch(skeleton, clips, V0, joints, weights, F, vertices, *, rest=None
     else:
         rest = np.asarray(rest)[sub]
     vs = pos[np.asarray(vertices, np.int64)]
+    if matrices is None:
+        matrices = clip_skinning_matrices(skeleton, clips, fps=fps, max_frames=max_frames)
     out = []
-    for clip in clips:
-        T, R, S = sample_clip(skeleton, clip, _frames(clip, fps, max_frames))
-        U = linear_blend_skinning(V0s, Js, Ws, skinning_matrices(skeleton, T, R, S))
+    for M in matrices:
+        U = linear_blend_skinning(V0s, Js, Ws, M)
         out.append(vertex_stretch(rest, U, Fs, vs).ravel())
     return np.concatenate(out)
 
@@ -260,13 +274,17 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
     r = max(r, float(to_joints.min()))  # a coarse mesh: the band holds at least the nearest vertex
     band = np.flatnonzero(to_joints <= r)
     J, W = to_influences(skin.W, 4)
-    s_out = band_stretch(ch.skeleton, ch.clips, V, J, W, surface.F, band, rest=V, fps=fps, max_frames=max_frames)
+    # each skeleton's clips are sampled once, whatever the number of bands and meshes under them
+    matrices = {None: clip_skinning_matrices(ch.skeleton, ch.clips, fps=fps, max_frames=max_frames)}
+    s_out = band_stretch(ch.skeleton, ch.clips, V, J, W, surface.F, band, rest=V, matrices=matrices[None])
     samples, nsrc = {}, 0  # per input: stretch samples of its band, under its own clips
     for p in pairs:
         for cid, j in ((p.target, p.target_joint), (p.source, p.source_joint)):
             src = composition.inputs[cid]
             if not src.clips:
                 continue
+            if cid not in matrices:
+                matrices[cid] = clip_skinning_matrices(src.skeleton, src.clips, fps=fps, max_frames=max_frames)
             scale = float(plan.scales.get(cid, 1.0)) or 1.0
             c = src.skeleton.rest_worlds()[j, :3, 3]
             M0 = rest_skinning_matrices(src.skeleton)
@@ -279,7 +297,7 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
                 nsrc += len(b)
                 samples.setdefault(cid, []).append(
                     band_stretch(src.skeleton, src.clips, m.positions, m.joints, m.weights, m.faces, b,
-                                 rest=rest, fps=fps, max_frames=max_frames))
+                                 rest=rest, matrices=matrices[cid]))
     # an input without clips moves only as completion animates it: its figure is that of its
     # own vertices in the output band, which keep its weights, under the output's clips
     for cid in dict.fromkeys(c for p in pairs for c in (p.target, p.source)):
@@ -289,7 +307,7 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
                    & ~np.asarray(surface.junction_vertices)[band]]
         nsrc += len(own)
         samples.setdefault(cid, []).append(band_stretch(ch.skeleton, ch.clips, V, J, W, surface.F, own, rest=V,
-                                                        fps=fps, max_frames=max_frames))
+                                                        matrices=matrices[None]))
     figures = {cid: float(np.percentile(np.concatenate(x), percentile)) for cid, x in samples.items()
                if sum(len(y) for y in x)}
     out.update(band_radius=r, output_band_vertices=int(len(band)), source_band_vertices=int(nsrc),

@@ -135,3 +135,19 @@ def test_a_moved_ik_foot_stays_at_its_leg(ik_foot_swap):
             # motion of the foot in its own frame changes the distance a little differently
             np.testing.assert_allclose(got, own, atol=0.15, err_msg=clip.name)
     assert comp.report["quality"]["junction_stretch_ratio"] <= MAX_STRETCH_RATIO
+
+
+def test_band_stretch_under_given_matrices_equals_sampling_the_clips():
+    """The stretch ratio samples each skeleton's clips once and hands the matrices to every band
+    under them: the samples are those of sampling the clips for the band itself."""
+    from rigmix.io import load_character
+    from rigmix.quality import band_stretch, clip_skinning_matrices
+
+    c = load_character(asset("CesiumMan"))
+    m = c.meshes[0]
+    band = np.flatnonzero(m.positions[:, 2] > np.median(m.positions[:, 2]))
+    own = band_stretch(c.skeleton, c.clips, m.positions, m.joints, m.weights, m.faces, band)
+    given = band_stretch(c.skeleton, c.clips, m.positions, m.joints, m.weights, m.faces, band,
+                         matrices=clip_skinning_matrices(c.skeleton, c.clips))
+    assert len(own) > len(band)  # several frames
+    assert np.array_equal(own, given) and np.isfinite(own).all() and own.max() > 0
