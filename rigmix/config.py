@@ -342,6 +342,7 @@ FUSION_RANGES: dict[str, dict] = {
     "remesh_iterations": {"ge": 0, "le": MAX_ITERATIONS},
     "target_edge_factor": {"gt": 0},
     "taubin_iterations": {"ge": 0, "le": MAX_ITERATIONS},
+    "plain_taubin_iterations": {"ge": 0, "le": MAX_ITERATIONS},
     "project_voxels": {"ge": 0},
     "fidelity_voxels": {"ge": 0},
     "fidelity_diagonal": {"ge": 0},

@@ -70,7 +70,7 @@ def _field_for_cluster(n, inputs_fields, actions, band):
     return out
 
 
-def _project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels, clear=None):
+def _project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels, clear=None, *, agreeing=False):
     """Pull free junction vertices onto the presence-weighted average of their closest points.
 
     The isosurface is only accurate to a fraction of a voxel at creases; where the inputs agree
@@ -78,6 +78,13 @@ def _project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels, 
     are limited to ``max_voxels`` voxels so that a wide blend between different shapes keeps
     the field's shape. With ``clear`` (points ``(k, 3)`` -> ``(k,) bool``), a vertex whose
     target is not clear stays (the input surface runs under a kept part there).
+
+    With ``agreeing`` (a plain junction, whose shape is the field's), a vertex moves only where
+    the inputs agree and its target is within ``max_voxels`` voxels: not where two present
+    inputs' closest points lie more than a voxel apart (pulling towards surfaces that run under
+    or beside it would put back the crease of their union that the smoothing took away), nor
+    where the target is farther (a move clamped to that length bends the blend between
+    different shapes along the line where the clamp starts).
     """
     import igl
 
@@ -86,6 +93,8 @@ def _project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels, 
     Q = U[nfixed:]
     acc = np.zeros_like(Q)
     wsum = np.zeros(len(Q))
+    lo = np.full(Q.shape, np.inf)  # bounding box of the present inputs' closest points
+    hi = np.full(Q.shape, -np.inf)
     for i in inputs_fields:
         P = pres[i]
         Fs = surfaces[i]
@@ -99,12 +108,18 @@ def _project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels, 
         w = p / (np.sqrt(d2) + h)
         acc += w[:, None] * C
         wsum += w
-    ok = wsum > 0
+        present = p > 0
+        lo[present] = np.minimum(lo[present], C[present])
+        hi[present] = np.maximum(hi[present], C[present])
+    spread = np.linalg.norm(np.where(np.isfinite(hi - lo), hi - lo, 0.0), axis=1)
+    ok = (wsum > 0) & (spread <= h) if agreeing else wsum > 0
     target = np.where(ok[:, None], acc / np.maximum(wsum, 1e-300)[:, None], Q)
     move = target - Q
     n = np.linalg.norm(move, axis=1)
-    lim = max_voxels * h
-    move *= np.minimum(1.0, lim / np.maximum(n, 1e-300))[:, None]
+    if agreeing:
+        move[n > max_voxels * h] = 0.0
+    else:
+        move *= np.minimum(1.0, max_voxels * h / np.maximum(n, 1e-300))[:, None]
     if clear is not None:
         move[~clear(Q + move)] = 0.0
     out = U.copy()
@@ -708,8 +723,10 @@ def _remesh_attempt(job, feature_tol):
                                                    points_tol=0.1 * h, max_insert=3.0 * h,
                                                    refine_rounds=params.refine_rounds,
                                                    min_edge=params.refine_min_edge * job.target, forbidden=forb)
-    U = smooth_interior(U, G, np.arange(nfix), iterations=params.taubin_iterations)
-    U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels, job.clear)
+    smoothing = params.taubin_iterations if feature_tol > 0 else params.plain_taubin_iterations
+    U = smooth_interior(U, G, np.arange(nfix), iterations=smoothing)
+    U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels, job.clear,
+                           agreeing=feature_tol == 0)
     G = flip_to_improve_angles(U, G, forbidden=forb)
     U = relocate_poor_vertices(U, G, nfix, surface=(RV, RF))
     G = flip_to_improve_angles(U, G, forbidden=forb)
