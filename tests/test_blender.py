@@ -35,3 +35,17 @@ def test_example_round_trips_through_blender(cfg, tmp_path, composed):
     r = blender_roundtrip(glb)
     assert r.frames > 1 + len(comp.character.clips)  # rest and several frames of every clip
     assert r.error <= BLENDER_TOLERANCE, (r.rest_error, r.clip_errors)
+
+
+@IN_COMPOSED_GROUP
+@pytest.mark.parametrize("cfg", EXAMPLES, ids=lambda p: p.stem)
+def test_example_shows_its_parts_and_creases_no_more_than_its_inputs(cfg, composed):
+    """Issue 25, acceptance 1 and 3 on the built-in examples (the centaur of ``make demo``
+    among them): every grafted part at least 90% visible, and the junction's dihedral p95 at most
+    1.5 times the inputs' near the same joints (None only where the junction is copied)."""
+    mesh = composed(cfg).report["mesh"]
+    assert mesh["grafted_visible_min"] is None or mesh["grafted_visible_min"] >= 0.9, mesh["grafted_visible"]
+    if mesh["junction_dihedral_ratio"] is None:
+        assert 0 < mesh["copied_faces"] == mesh["junction_faces"]
+    else:
+        assert mesh["junction_dihedral_ratio"] <= 1.5, (mesh["junction_dihedral_p95"], mesh["source_dihedral_p95"])
