@@ -292,8 +292,8 @@ def _run_compose(args) -> int:
     config = config.with_options(weights=weights, fusion=fusion)
     with tqdm(total=len(STAGE_NAMES), desc="compose", unit="stage", disable=args.no_progress, file=sys.stderr,
               leave=False) as bar:
-        def progress(stage, done, total):
-            if isinstance(done, int) and (stage in STAGE_NAMES or stage == "done"):
+        def progress(stage, done, total):  # stage: "fusion", or with its sub-step "fusion: junction 1 of 2"
+            if isinstance(done, int) and (stage.split(":")[0] in STAGE_NAMES or stage == "done"):
                 bar.total = total
                 bar.set_postfix_str(stage)
                 bar.update(done - bar.n)

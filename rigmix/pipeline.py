@@ -39,16 +39,21 @@ if TYPE_CHECKING:  # the annotations of Composition; the stages import their pac
     from .fusion import FusedSurface, FusionInput
     from .weights import SkinWeights
 
-__all__ = ["Composition", "Progress", "STAGE_NAMES", "check_input", "load_characters", "compose", "mapping_table",
+__all__ = ["Composition", "Progress", "Step", "STAGE_NAMES", "check_input", "load_characters", "compose", "mapping_table",
            "fusion_stage", "weights_stage", "completion_stage", "assembly_stage", "quality_stage",
            "builtin_character", "keep_builtin"]
 
 logger = logging.getLogger(__name__)
 
 #: ``progress(stage, done, total)``: called as each stage starts (``stage`` the running one, ``done``
-#: the number finished) and once at the end (``"done"``, ``total``, ``total``); the CLI turns it
-#: into a bar labelled with the running stage.
+#: the number finished), as each sub-step of the fusion and the weights starts (``stage`` is then
+#: ``"fusion: junction 1 of 2"``: the running stage, a colon and the sub-step; ``done`` unchanged)
+#: and once at the end (``"done"``, ``total``, ``total``); the CLI turns it into a bar labelled
+#: with the running stage and sub-step.
 Progress = Callable[[str, int, int], None]
+
+#: ``step(name)``: a stage function reports the sub-step it starts (see :data:`Progress`).
+Step = Callable[[str], None]
 
 
 @dataclass(frozen=True)
@@ -100,7 +105,7 @@ class Composition:
 STAGE_NAMES = ("load", "operations", "mapping", "fusion", "weights", "completion", "assembly", "quality")
 
 
-def fusion_stage(composition: Composition, progress: Progress | None = None) -> Composition:
+def fusion_stage(composition: Composition, step: Step | None = None) -> Composition:
     """M_R: the fused rest surface (options: the config's ``[fusion]`` section).
 
     Returns the composition with ``fusion_inputs``, ``fusion_ids``,
@@ -114,14 +119,14 @@ def fusion_stage(composition: Composition, progress: Progress | None = None) -> 
 
     plan = composition.plan
     inputs, actions, ids = fusion_inputs_from_plan(plan)
-    surface = fuse_surfaces(inputs, actions, params=composition.config.fusion.to_params())
+    surface = fuse_surfaces(inputs, actions, params=composition.config.fusion.to_params(), step=step)
     fused = replace(composition, fusion_inputs=tuple(inputs), fusion_ids=tuple(ids), surface=surface)
     roles = {cid: info["role"] for cid, info in plan.report["characters"].items()}
     mesh = {**surface.report["mesh"], **grafted_visibility(surface, inputs, ids, roles), **junction_dihedral(fused)}
     return replace(fused, report={**composition.report, "mesh": mesh, "fields": surface.report["fields"]})
 
 
-def weights_stage(composition: Composition, progress: Progress | None = None) -> Composition:
+def weights_stage(composition: Composition, step: Step | None = None) -> Composition:
     """W_R on the fused surface (options: the config's ``[weights]`` section).
 
     Returns the composition with ``weights`` (:class:`rigmix.weights.SkinWeights`)
@@ -133,12 +138,12 @@ def weights_stage(composition: Composition, progress: Progress | None = None) ->
     check_coordinates({"fused surface": composition.surface.V}, where=f"weights: config {composition.config.source}",
                       fix="the fusion produced vertices out of range; check the characters' placement and scale")
     skin = blend_weights(composition.surface, composition.fusion_inputs, maps, composition.skeleton.num_joints,
-                         skeleton=composition.skeleton, params=composition.config.weights.to_params())
+                         skeleton=composition.skeleton, params=composition.config.weights.to_params(), step=step)
     return replace(composition, weights=skin,
                    report={**composition.report, "weights": skin.report})
 
 
-def completion_stage(composition: Composition, progress: Progress | None = None) -> Composition:
+def completion_stage(composition: Composition, step: Step | None = None) -> Composition:
     """A_R: the clips of S_R (options: the config's ``[animation]`` section).
 
     Completes the clips of the inputs as loaded (rest-relative deltas carry them onto S_R,
@@ -183,7 +188,7 @@ def completion_stage(composition: Composition, progress: Progress | None = None)
                    report={**composition.report, "animation": report})
 
 
-def assembly_stage(composition: Composition, progress: Progress | None = None) -> Composition:
+def assembly_stage(composition: Composition, step: Step | None = None) -> Composition:
     """The output :class:`Character`: meshes by (input, material), weights, clips, props."""
     from .assemble import assemble_character
 
@@ -192,7 +197,7 @@ def assembly_stage(composition: Composition, progress: Progress | None = None) -
     return replace(composition, character=character, report={**composition.report, "warnings": warnings})
 
 
-def quality_stage(composition: Composition, progress: Progress | None = None) -> Composition:
+def quality_stage(composition: Composition, step: Step | None = None) -> Composition:
     """Figures that need no ground truth: the junction stretch ratio under animation and the
     junction weight roughness (weight spikes)."""
     from .quality import junction_stretch_ratio, junction_weight_roughness
@@ -320,7 +325,8 @@ def compose(config, *, progress: Progress | None = None, until: str | None = Non
     config : Config, str or Path
         A config built in code, or a TOML file (read with :func:`rigmix.config.load_config`).
     progress : callable, optional
-        ``progress(stage, done, total)`` as each stage starts, then ``("done", total, total)``.
+        ``progress(stage, done, total)`` as each stage and sub-step starts, then
+        ``("done", total, total)`` (:data:`Progress`).
     until : str, optional
         Stop after this stage (one of :data:`STAGE_NAMES`), e.g. ``until="mapping"`` for
         ``rigmix map``.
@@ -379,13 +385,18 @@ class _StageClock:
             self._progress("done", self._last + 1, self._last + 1)
         return out
 
-    def stage(self, name: str, fn: Callable[[Composition, Progress | None], Composition],
+    def stage(self, name: str, fn: Callable[[Composition, Step | None], Composition],
               composition: Composition) -> Composition:
-        """``fn(composition, progress)`` timed as stage ``name``; ``composition`` itself when
-        ``name`` comes after the last stage asked for."""
-        if STAGE_NAMES.index(name) > self._last:
+        """``fn(composition, step)`` timed as stage ``name``, its sub-steps reported as
+        ``"name: step"``; ``composition`` itself when ``name`` comes after the last stage asked for."""
+        index = STAGE_NAMES.index(name)
+        if index > self._last:
             return composition
-        return self.run(name, fn, composition, self._progress)
+        step = None
+        if self._progress is not None:
+            def step(sub: str, progress=self._progress, total=self._last + 1) -> None:
+                progress(f"{name}: {sub}", index, total)
+        return self.run(name, fn, composition, step)
 
     def timings(self) -> dict:
         """Seconds per stage run, in order, and ``total`` since the clock started."""

@@ -437,6 +437,15 @@ def test_compose_from_a_file_reports_and_progresses():
                           until="mapping")
     # the running stage is named as it starts (fusion takes minutes on a large junction)
     assert seen == [("load", 0), ("operations", 1), ("mapping", 2), ("done", 3)]
+    # and so are the fusion's and the weights' sub-steps, with the stage's index
+    seen.clear()
+    rigmix.compose(CONFIGS / "limb_swap.toml", progress=lambda s, k, n: seen.append((s, k)), until="weights")
+    fusion = [s for s, k in seen if s.startswith("fusion: ") and k == 3]
+    weights = [s for s, k in seen if s.startswith("weights: ") and k == 4]
+    assert fusion[:2] == ["fusion: presence", "fusion: seams"] and "fusion: junction 1 of 1" in fusion
+    assert fusion[-1] == "fusion: assembly" and weights[0] == "weights: retarget" and weights[-1] == "weights: weld"
+    assert [s for s, _ in seen if ":" not in s] == ["load", "operations", "mapping", "fusion", "weights", "done"]
+    assert seen.index(("fusion", 3)) < seen.index(("fusion: presence", 3)) < seen.index(("weights", 4))
     assert comp.skeleton is comp.plan.skeleton
     assert set(comp.maps) == {"cesium", "figure"}
     rep = comp.report

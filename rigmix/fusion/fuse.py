@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field, replace
-from typing import Literal, Sequence
+from typing import Callable, Literal, Sequence
 
 import numpy as np
 
@@ -1008,7 +1008,7 @@ def _surface_report(surface, part, inputs, infos, h0, backend_name, open_chain_e
 
 
 def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction], *,
-                  params: FusionParams = FusionParams()) -> FusedSurface:
+                  params: FusionParams = FusionParams(), step: Callable[[str], None] | None = None) -> FusedSurface:
     """Fuse the input surfaces into M_R = preserved parts + junction surface.
 
     Parameters
@@ -1019,6 +1019,10 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
         Which inputs meet and how (``replace``: presence-weighted blend of the signed distances;
         ``attach``: union). A junction no action covers (a removed subtree) is capped.
     params : FusionParams
+    step : callable, optional
+        ``step(name)`` as each sub-step starts (progress): ``"presence"``, ``"seams"``,
+        ``"junction 1 of k"`` for each junction, ``"crossing repair"``, ``"around kept parts"``
+        (when it runs), ``"assembly"``.
 
     Returns
     -------
@@ -1037,11 +1041,14 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     _check_inputs(inputs, actions)
     check_coordinates({f"input {i} ({x.name!r})": x.V for i, x in enumerate(inputs)}, where="fusion",
                       fix="position the inputs within range (rigmix.operations)")
+    step = step or (lambda name: None)
     t0 = time.perf_counter()
+    step("presence")
     part = _partition(inputs, actions, params)
     timings = {"presence": time.perf_counter() - t0}
 
     t0 = time.perf_counter()
+    step("seams")
     loops_all, open_chain_edges = _seam_loops(part)
     boxes = junction_clusters(part.pres, part.junction, params.margin_voxels * part.h0)
     backend = get_backend(params.backend)
@@ -1053,17 +1060,21 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     if params.shell_clearance_voxels > 0:
         shells = [kept_shells(P, part.kept[i]) for i, P in enumerate(part.pres)]
     second_pass = shells is not None and any(len(Fs) for Fs in shells)
-    clusters = [_fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params,
-                              keep_input_fields=second_pass)
-                for ci, (lo, hi) in enumerate(boxes)]
+    clusters = []
+    for ci, (lo, hi) in enumerate(boxes):
+        step(f"junction {ci + 1} of {len(boxes)}")
+        clusters.append(_fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params,
+                                      keep_input_fields=second_pass))
     for c in clusters:
         for k, v in c.timings.items():
             timings[k] = timings.get(k, 0.0) + v
     t0 = time.perf_counter()
+    step("crossing repair")
     repaired = _repair_clusters(inputs, part, clusters, params)
     timings["crossings"] = time.perf_counter() - t0
     if second_pass and _made(repaired) > 0:
         t0 = time.perf_counter()
+        step("around kept parts")
         clusters, repaired = _around_kept_parts(inputs, part, boxes, clusters, repaired, shells, surfaces,
                                                 loops_all, backend, actions, params)
         timings["shell_clearance"] = time.perf_counter() - t0
@@ -1073,6 +1084,7 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
             log.warning("fusion: junction %d could not be closed by the isosurface (%d loops left); "
                         "kept the most present input faces instead", ci, c.info["unmatched_preserved_loops"])
     t0 = time.perf_counter()
+    step("assembly")
     surface = _assemble(inputs, repaired.part, repaired.selected, repaired.JV, repaired.JF,
                         [c.field for c in clusters if c.field is not None])
     timings["assembly"] = time.perf_counter() - t0

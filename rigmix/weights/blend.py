@@ -230,7 +230,7 @@ def smooth_rows(V, F, W, rows, *, iterations=10, alpha=0.5):
 
 
 def blend_weights(surface, inputs, maps, num_output_joints, *, params: WeightParams | None = None,
-                  skeleton=None, field=None):
+                  skeleton=None, field=None, step=None):
     """W_R on the fused surface.
 
     The steps, each its own function: retarget every input's weights onto the output joints
@@ -262,6 +262,9 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, params: WeightPar
         A DFD feature field for the ``dfd`` fill (``fill_weights``' ``field``: an object with
         ``evaluate(points) -> (q, C)``, a callable, or ``False`` for none); overrides
         ``params.feature_field``.
+    step : callable, optional
+        ``step(name)`` as each sub-step starts (progress): ``"retarget"``, ``"junction blend"``,
+        ``"junction fill"`` (when rows are filled), ``"seam smoothing"`` (when on), ``"weld"``.
 
     Returns
     -------
@@ -328,6 +331,8 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, params: WeightPar
                          f"{len(surface.preserved)} inputs")
     N, J = len(surface.V), int(num_output_joints)
     diag = bounding_box_diagonal(surface.V) if N else 1.0
+    step = step or (lambda name: None)
+    step("retarget")
     retargeted, confidence = retarget_inputs(inputs, maps, J)
     options, lazy = junction_fill_options(params, surface, retargeted, diagonal=diag, skeleton=skeleton, field=field)
     junction = np.asarray(surface.junction_vertices, bool)
@@ -337,6 +342,7 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, params: WeightPar
     low = np.zeros(N, bool)
     seam = np.zeros(N, bool)
     if len(jrows):
+        step("junction blend")
         mix = blend_junction(surface, inputs, retargeted, confidence, blend=blend,
                              tolerance=params.match_distance * diag, diagonal=diag)
         low[jrows] = mix.confidence < params.min_confidence
@@ -345,9 +351,12 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, params: WeightPar
             matched[jrows] = match_junction_rows(surface, inputs, params, diagonal=diag) & ~low[jrows]
             unknown = junction & ~matched
             if unknown.any() and (~unknown).any():
+                step("junction fill")
                 W = fill_junction(surface, W, unknown, params, options)
         if params.smoothing > 0:
+            step("seam smoothing")
             W, seam = smooth_seam(surface, W, mix.spread, params)
+    step("weld")
     W, welded_rows = weld_consistent(surface.V, surface.F, W, junction, params.max_influences)
     bad = ~np.isfinite(W.data)
     if bad.any():
