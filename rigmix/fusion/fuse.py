@@ -136,9 +136,11 @@ class FusionParams:
         meshes by up to 0.86% of the bounding-box diagonal on CesiumMan self-compositions; 0.5
         keeps them under 0.5%.
     taubin_iterations : smoothing of the remeshed junction interior.
-    plain_taubin_iterations : the same for a plain remeshing, one that keeps no features: its
-        shape is the field's, whose voxel-scale creases 3 iterations leave (the built-in
-        centaur's junction creased 1.56 times as much as its inputs, 1.43 after 8).
+    plain_taubin_iterations : the same for the smoothed plain remeshing, taken where the
+        plain junction creases more than ``crease_ratio`` times the replaced input faces and
+        the smoothed one creases less, keeps the angles and folds no more (its vertices are
+        pulled onto the inputs only where they agree): the built-in centaur's junction creased
+        2.13 times as much as its inputs near the fused joint, 1.40 smoothed.
     project_voxels : junction vertices are then pulled at most this many voxels towards the
         presence-weighted closest input points (0 disables).
     fidelity_voxels, fidelity_diagonal : the junction may stray from the isosurface by at

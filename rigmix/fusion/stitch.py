@@ -70,6 +70,11 @@ def _field_for_cluster(n, inputs_fields, actions, band):
     return out
 
 
+#: :func:`_project_to_inputs` with ``agreeing``: the present inputs agree where the length of
+#: their closest faces' mean unit normal is at least this (cos 15 degrees: two normals within 30)
+AGREEING_NORMALS = float(np.cos(np.radians(15.0)))
+
+
 def _project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels, clear=None, *, agreeing=False):
     """Pull free junction vertices onto the presence-weighted average of their closest points.
 
@@ -95,6 +100,8 @@ def _project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels, 
     wsum = np.zeros(len(Q))
     lo = np.full(Q.shape, np.inf)  # bounding box of the present inputs' closest points
     hi = np.full(Q.shape, -np.inf)
+    nsum = np.zeros_like(Q)  # their faces' unit normals, summed, and how many
+    ncount = np.zeros(len(Q))
     for i in inputs_fields:
         P = pres[i]
         Fs = surfaces[i]
@@ -111,8 +118,19 @@ def _project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels, 
         present = p > 0
         lo[present] = np.minimum(lo[present], C[present])
         hi[present] = np.maximum(hi[present], C[present])
+        if agreeing:
+            Vw = P.welded.V
+            nf = np.cross(Vw[T[:, 1]] - Vw[T[:, 0]], Vw[T[:, 2]] - Vw[T[:, 0]])
+            nf /= np.maximum(np.linalg.norm(nf, axis=1, keepdims=True), 1e-300)
+            nsum[present] += nf[present]
+            ncount += present
     spread = np.linalg.norm(np.where(np.isfinite(hi - lo), hi - lo, 0.0), axis=1)
-    ok = (wsum > 0) & (spread <= h) if agreeing else wsum > 0
+    # two surfaces that meet (the crease of their union) have close closest points but
+    # normals apart: agreement asks for both (mean normal within about 15 degrees of each),
+    # unless the points are one (a crease of one surface, composed with itself)
+    aligned = np.linalg.norm(nsum, axis=1) >= AGREEING_NORMALS * np.maximum(ncount, 1)
+    same_point = spread <= 0.05 * h  # one surface, two copies: a crease of it, not of a union
+    ok = (wsum > 0) & (spread <= h) & (aligned | same_point) if agreeing else wsum > 0
     target = np.where(ok[:, None], acc / np.maximum(wsum, 1e-300)[:, None], Q)
     move = target - Q
     n = np.linalg.norm(move, axis=1)
@@ -705,9 +723,12 @@ class _RemeshJob:
     input_dihedral: float | None = None
 
 
-def _remesh_attempt(job, feature_tol):
+def _remesh_attempt(job, feature_tol, smoothed=False):
     """Remesh (keeping what strays farther than ``feature_tol``; 0: plain), smooth, improve
-    (a collapse never moves the shape by more than ``job.tol``, on either path).
+    (a collapse never moves the shape by more than ``job.tol``, on either path). ``smoothed``
+    (a plain remeshing): smoothed ``plain_taubin_iterations`` times and pulled onto the inputs
+    only where they agree (:func:`_project_to_inputs`), the field's shape without the creases
+    of a union.
 
     Returns
     -------
@@ -723,10 +744,10 @@ def _remesh_attempt(job, feature_tol):
                                                    points_tol=0.1 * h, max_insert=3.0 * h,
                                                    refine_rounds=params.refine_rounds,
                                                    min_edge=params.refine_min_edge * job.target, forbidden=forb)
-    smoothing = params.taubin_iterations if feature_tol > 0 else params.plain_taubin_iterations
+    smoothing = params.plain_taubin_iterations if smoothed else params.taubin_iterations
     U = smooth_interior(U, G, np.arange(nfix), iterations=smoothing)
     U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels, job.clear,
-                           agreeing=feature_tol == 0)
+                           agreeing=smoothed)
     G = flip_to_improve_angles(U, G, forbidden=forb)
     U = relocate_poor_vertices(U, G, nfix, surface=(RV, RF))
     G = flip_to_improve_angles(U, G, forbidden=forb)
@@ -827,6 +848,15 @@ def _remesh_choosing_fidelity(job, info):
             if _dihedral_p95(U0, G0) < creased and angles_kept(U0, G0):
                 U, G, nfeat = U0, G0, 0
                 info.update(fidelity=False, fidelity_tolerance=0.0, creases_avoided=creased)
+    if params.crease_ratio > 0 and job.input_dihedral is not None:
+        # a junction that still creases more than the input: the smoothed plain one, where it
+        # creases less, keeps the angles and folds no more
+        creased = _dihedral_p95(U, G)
+        if creased > params.crease_ratio * job.input_dihedral:
+            U1, G1, _ = _remesh_attempt(job, 0.0, smoothed=True)
+            if _dihedral_p95(U1, G1) < creased and angles_kept(U1, G1) and _folds(U1, G1) <= _folds(U, G):
+                U, G, nfeat = U1, G1, 0
+                info.update(fidelity=False, fidelity_tolerance=0.0, creases_smoothed=creased)
     return U, G, nfeat
 
 
