@@ -360,6 +360,7 @@ FUSION_RANGES: dict[str, dict] = {
     "snap_input_vertices": {},
     "collapse_poor": {},
     "copy_coincident": {},
+    "replaced_present": {},
     "bridge_recuts": {"ge": 0},
     "untangle_move": {"ge": 0},
     "crossing_rounds": {"ge": 0, "le": MAX_ITERATIONS},
@@ -394,6 +395,7 @@ WEIGHT_RANGES: dict[str, dict] = {
     "strength": {"ge": 0},
     "bone_prior": {"ge": 0, "le": 1},
     "ambient_borrow": {"ge": 0, "le": 1},
+    "cut_joint_reach": {"ge": 0},
     "field_cache": {},
     "distill_options": {},
 }

@@ -85,7 +85,8 @@ def fusion_input(character, used, *, name: str = "") -> FusionInput:
     if not meshes:
         z = np.zeros((0, 3))
         return FusionInput(z, np.zeros((0, 3), np.int64), influence_matrix([], [], [], (0, J)), np.asarray(used, bool),
-                           name=name)
+                           name=name, parents=np.asarray(character.skeleton.parents, np.int64),
+                           joint_positions=character.skeleton.rest_worlds()[:, :3, 3])
     W = influence_matrix(np.concatenate(rows), np.concatenate(cols), np.concatenate(vals), (n, J))
 
     def cat(parts):
@@ -97,7 +98,8 @@ def fusion_input(character, used, *, name: str = "") -> FusionInput:
     return FusionInput(
         V=np.concatenate(Vs), F=np.concatenate(Fs), W=W, used=np.asarray(used, bool),
         mesh_of_vertex=np.concatenate(mv), uvs=cat(uvs), normals=cat(nrm), colors=colors,
-        name=name or character.name,
+        name=name or character.name, parents=np.asarray(character.skeleton.parents, np.int64),
+        joint_positions=character.skeleton.rest_worlds()[:, :3, 3],
     )
 
 

@@ -209,7 +209,8 @@ class Presence:
 
 
 def compute_presence(V, F, W, used, *, snap=0.02, iterations=10, alpha=0.8, preserve_threshold=0.999,
-                     morphology_rounds=2, secondary_variance=0.04, replaced=None) -> Presence:
+                     morphology_rounds=2, secondary_variance=0.04, replaced=None,
+                     replaced_present=True) -> Presence:
     """Presence, secondary components and preserved faces of one input.
 
     Parameters
@@ -227,7 +228,12 @@ def compute_presence(V, F, W, used, *, snap=0.02, iterations=10, alpha=0.8, pres
         presence without them is at least 0.5: a piece riding on the replaced joint (a robot's
         thigh plate, a shoulder pad) is part of what is replaced, and the other input brings its
         own; left in place, it covers the new part (a mirrored leg inside the old one's shell).
-        Blended regions keep the joint's weight: the skin around the fused joint is the junction.
+    replaced_present : bool
+        Whether the skin of the ``replaced`` joints counts as present (the default). No: a
+        replace takes the target's whole region of the replaced subtree away, its root joint's
+        skin included, as the presence of the joints the output keeps from it defines it, and
+        the other input's part takes its place (the built-in centaur keeps the quadruped's
+        neck, a stump in front of the rider, when it counts).
 
     Returns
     -------
@@ -235,7 +241,10 @@ def compute_presence(V, F, W, used, *, snap=0.02, iterations=10, alpha=0.8, pres
     """
     wm = weld_mesh(V, F)
     k = len(wm.V)
-    raw = raw_presence(W, used)
+    if not replaced_present and replaced is not None and np.any(replaced):
+        raw = raw_presence(W, np.asarray(used, bool) & ~np.asarray(replaced, bool))
+    else:
+        raw = raw_presence(W, used)
     # a welded vertex takes the mean of its split copies (they normally agree)
     cnt = np.bincount(wm.index, minlength=k).astype(np.float64)
     pw = np.bincount(wm.index, weights=raw, minlength=k) / np.maximum(cnt, 1)

@@ -333,7 +333,7 @@ def blend_weights(surface, inputs, maps, num_output_joints, *, params: WeightPar
     diag = bounding_box_diagonal(surface.V) if N else 1.0
     step = step or (lambda name: None)
     step("retarget")
-    retargeted, confidence = retarget_inputs(inputs, maps, J)
+    retargeted, confidence = retarget_inputs(inputs, maps, J, skeleton=skeleton, cut_reach=params.cut_joint_reach)
     options, lazy = junction_fill_options(params, surface, retargeted, diagonal=diag, skeleton=skeleton, field=field)
     junction = np.asarray(surface.junction_vertices, bool)
     jrows = np.flatnonzero(junction)

@@ -69,6 +69,15 @@ class WeightParams:
         carries (0: off; :func:`rigmix.weights.ambient.ambient_borrow_prior`). On by default:
         issue 27's protocol 3 measured it 10.7% below the fill without a field, the one field
         use that passed the decision rule.
+    cut_joint_reach : float
+        At the junction, an input's weights on a joint it does not keep (one a replace cut off)
+        whose image in the output lies farther than this fraction of the input's bounding-box
+        diagonal from it at rest go to the image of its nearest kept joint instead
+        (:func:`rigmix.weights.retarget.cut_joints_to_nearest_kept`; 0, the default: off). The
+        bone map chose that image for the animation; with ``FusionParams.replaced_present``
+        False, the built-in centaur's junction covers the rider's waist, whose hips map onto the
+        quadruped's hips at the other end of the horse: it stretched 3.2 times as much as the
+        inputs under the walk, 0.63 times with 0.1.
     field_cache : str or None
         Folder caching distilled feature fields (``None``: no cache).
     distill_options : dict or None
@@ -93,6 +102,7 @@ class WeightParams:
     strength: float | None = None
     bone_prior: float | None = None
     ambient_borrow: float = 0.5
+    cut_joint_reach: float = 0.0
     field_cache: str | None = None
     distill_options: dict[str, Any] | None = None
 

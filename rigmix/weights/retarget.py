@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from ..geometry import bounding_box_diagonal
 from ..sparse_weights import dense_rows, row_blocks, row_sums
 
 __all__ = ["retarget_weights", "retarget_inputs", "closest_point_weights", "blend_parts", "to_influences"]
@@ -65,7 +66,60 @@ def retarget_weights(W, target, num_output_joints, *, confidence=None):
     return Wr, np.clip(c, 0.0, 1.0)
 
 
-def retarget_inputs(inputs, maps, num_output_joints):
+def cut_joints_to_nearest_kept(target, confidence, used, parents, positions, output_positions, *, reach):
+    """The bone map with each joint the input does not keep, and whose image lies farther than
+    ``reach`` from it at rest (or that has none), sent to the output joint of its nearest kept
+    joint (fewest bones away in the input skeleton; ties: the lower index), with that joint's
+    confidence.
+
+    Parameters
+    ----------
+    target, confidence : (J,) arrays
+        The bone map (``BoneMap.target``, ``-1`` unmapped, and ``BoneMap.confidence``).
+    used : (J,) bool array
+        Joints the input keeps.
+    parents : (J,) int array
+        The input skeleton's parents (``-1`` for roots).
+    positions : (J, 3) float array
+        The input's joints at rest, composed world space.
+    output_positions : (J_R, 3) float array
+        The output's joints at rest, same space.
+    reach : float
+        Same unit.
+
+    Returns
+    -------
+    target, confidence : new (J,) arrays
+
+    The weights of a cut-off part count only at the junction, where the part was cut: there
+    they follow what it was cut from, not a joint the mapping chose elsewhere for animation (a
+    rider's hips mapped onto a horse's hips, at the other end of the horse).
+    """
+    from scipy.sparse.csgraph import shortest_path
+
+    target = np.array(target, np.int64)
+    confidence = np.array(confidence, np.float64)
+    used = np.asarray(used, bool)
+    parents = np.asarray(parents, np.int64)
+    far = np.zeros(len(target), bool)
+    ok = target >= 0
+    far[ok] = np.linalg.norm(np.asarray(positions)[ok] - np.asarray(output_positions)[target[ok]], axis=1) > reach
+    cut = np.flatnonzero(~used & (far | ~ok))
+    kept = np.flatnonzero(used)
+    if not len(cut) or not len(kept):
+        return target, confidence
+    J = len(parents)
+    child = np.flatnonzero(parents >= 0)
+    A = sp.csr_matrix((np.ones(len(child)), (child, parents[child])), shape=(J, J))
+    hops = shortest_path(A, directed=False, unweighted=True, indices=cut)[:, kept]  # (c, k)
+    reach_ok = np.isfinite(hops).any(axis=1)
+    nearest = kept[np.argmin(np.where(np.isfinite(hops), hops, np.inf), axis=1)]
+    target[cut[reach_ok]] = target[nearest[reach_ok]]
+    confidence[cut[reach_ok]] = confidence[nearest[reach_ok]]
+    return target, confidence
+
+
+def retarget_inputs(inputs, maps, num_output_joints, *, skeleton=None, cut_reach=0.0):
     """Every input's weights retargeted through its bone map (:func:`retarget_weights`).
 
     Parameters
@@ -75,6 +129,12 @@ def retarget_inputs(inputs, maps, num_output_joints):
     maps : sequence of rigmix.mapping.BoneMap
         B_i per input, same order (``target`` and ``confidence``).
     num_output_joints : int
+    skeleton : rigmix.character.Skeleton, optional
+        The output skeleton, rest pose in the inputs' (composed) space.
+    cut_reach : float
+        With ``skeleton``: a joint an input does not keep, whose image lies farther than this
+        fraction of the input's bounding-box diagonal from it, takes its nearest kept joint's
+        image (:func:`cut_joints_to_nearest_kept`; 0: the maps as they are).
 
     Returns
     -------
@@ -84,7 +144,12 @@ def retarget_inputs(inputs, maps, num_output_joints):
     """
     retargeted, confidence = [], []
     for x, bm in zip(inputs, maps):
-        Wr, c = retarget_weights(x.W, bm.target, num_output_joints, confidence=bm.confidence)
+        target, conf = bm.target, bm.confidence
+        if cut_reach > 0 and skeleton is not None and x.parents is not None and len(x.V):
+            target, conf = cut_joints_to_nearest_kept(bm.target, bm.confidence, x.used, x.parents, x.joint_positions,
+                                                      skeleton.rest_worlds()[:, :3, 3],
+                                                      reach=cut_reach * bounding_box_diagonal(x.V))
+        Wr, c = retarget_weights(x.W, target, num_output_joints, confidence=conf)
         retargeted.append(Wr)
         confidence.append(c)
     return retargeted, confidence

@@ -1,0 +1,83 @@
+"""A replace that takes the target's whole region away (issue 25), as options.
+
+``FusionParams.replaced_present = False`` drops the skin of the target's replaced joint, so no
+stump of it stays in front of the new part; the junction then covers the other input's cut
+region, whose weights on joints it does not keep are retargeted through the bone map, which
+chose their images for the animation (the built-in centaur's rider's hips map onto the
+quadruped's hips, at the other end of the horse). ``WeightParams.cut_joint_reach`` sends those
+to the nearest joint the input keeps, where the image lies far from the joint. Both are off by
+default: on the corpus matrix they cost more cases than they win (README, fusion options).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rigmix.weights.retarget import cut_joints_to_nearest_kept
+
+
+def test_a_far_cut_joint_follows_the_nearest_kept_one():
+    # input: 0 root (hips) -> 1 spine (kept, fused) -> 2 chest (kept); 0 -> 3 leg -> 4 foot
+    parents = np.array([-1, 0, 1, 0, 3])
+    used = np.array([False, True, True, False, False])
+    positions = np.array([[0, 1, 0], [0, 1.2, 0], [0, 1.5, 0], [0.1, 0.9, 0], [0.1, 0.1, 0]], float)
+    # output: 0 far hips, 1 fused spine, 2 chest, 3 a leg near the input's leg
+    output = np.array([[0, 1, -1.5], [0, 1.2, 0], [0, 1.5, 0], [0.1, 0.85, 0.02]], float)
+    target = np.array([0, 1, 2, 3, 3])
+    confidence = np.array([0.7, 1.0, 1.0, 0.6, 0.5])
+    t, c = cut_joints_to_nearest_kept(target, confidence, used, parents, positions, output, reach=0.2)
+    assert t[0] == 1 and c[0] == 1.0  # the hips, mapped 1.5 away: onto the spine, one bone away
+    assert t[3] == 3 and c[3] == 0.6  # the leg's image is where the leg is: kept
+    assert t[4] == 1 and c[4] == 1.0  # the foot's image (the leg) is 0.75 away: two bones to the spine
+    assert np.array_equal(t[[1, 2]], [1, 2]) and np.array_equal(c[[1, 2]], [1.0, 1.0])
+    # nothing cut off, or nothing kept: the map as it is
+    t2, c2 = cut_joints_to_nearest_kept(target, confidence, np.ones(5, bool), parents, positions, output, reach=0.2)
+    assert np.array_equal(t2, target) and np.array_equal(c2, confidence)
+
+
+def test_the_built_in_centaurs_rider_hips_follow_its_spine():
+    """The centaur of ``make demo``: the rider's hips and legs, cut off below its spine, map onto
+    the quadruped's hips and back legs; at the junction they follow the fused spine."""
+    from conftest import ROOT
+
+    from rigmix.fusion.inputs import fusion_inputs_from_plan
+    from rigmix.geometry import bounding_box_diagonal
+    from rigmix.pipeline import compose
+
+    comp = compose(ROOT / "examples" / "centaur.toml", until="mapping")
+    inputs, _, ids = fusion_inputs_from_plan(comp.plan)
+    x, bm = inputs[ids.index("rider")], comp.maps["rider"]
+    sk_in = comp.plan.positioned["rider"].skeleton
+    out = comp.skeleton
+    t, _ = cut_joints_to_nearest_kept(bm.target, bm.confidence, x.used, x.parents, x.joint_positions,
+                                      out.rest_worlds()[:, :3, 3], reach=0.1 * bounding_box_diagonal(x.V))
+    hips, spine = sk_in.index("Hips"), sk_in.index("Spine")
+    assert out.names[bm.target[hips]] == "Hips"  # the map's choice, for the animation
+    assert t[hips] == t[spine] == bm.target[spine]
+    for leg in ("UpperLeg.L", "Foot.R"):
+        assert t[sk_in.index(leg)] == bm.target[spine]
+
+
+def test_without_the_replaced_joints_skin_no_stump_of_the_target_is_kept():
+    """``FusionParams.replaced_present = False``: the quadruped's neck (skin on its replaced Neck
+    joint) keeps no face of the built-in centaur, where the default keeps it whole in front of
+    the rider."""
+    from conftest import ROOT
+
+    from rigmix.fusion.inputs import fusion_inputs_from_plan
+    from rigmix.fusion.presence import compute_presence
+    from rigmix.pipeline import compose
+
+    comp = compose(ROOT / "examples" / "centaur.toml", until="mapping")
+    inputs, _, ids = fusion_inputs_from_plan(comp.plan)
+    x = inputs[ids.index("body")]
+    neck = comp.plan.positioned["body"].skeleton.index("Neck")
+    assert x.replaced[neck] and x.used[neck]
+    on_neck = np.asarray(x.W[:, neck].todense()).ravel() > 0.9
+    kept = {}
+    for present in (True, False):
+        P = compute_presence(x.V, x.F, x.W, x.used, replaced=x.replaced, replaced_present=present)
+        faces = P.welded.index[np.asarray(x.F)]  # split faces -> welded faces, same order
+        assert np.array_equal(faces, P.welded.F)
+        kept[present] = int(np.count_nonzero(P.preserved & on_neck[x.F].all(axis=1)))
+    assert kept[True] > 50 and kept[False] == 0
