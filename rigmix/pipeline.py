@@ -39,8 +39,8 @@ if TYPE_CHECKING:  # the annotations of Composition; the stages import their pac
     from .fusion import FusedSurface, FusionInput
     from .weights import SkinWeights
 
-__all__ = ["Composition", "Progress", "Step", "STAGE_NAMES", "check_input", "load_characters", "compose", "mapping_table",
-           "fusion_stage", "weights_stage", "completion_stage", "assembly_stage", "quality_stage",
+__all__ = ["Composition", "Progress", "Step", "STAGE_NAMES", "check_input", "load_characters", "compose",
+           "mapping_table", "fusion_stage", "weights_stage", "completion_stage", "assembly_stage", "quality_stage",
            "builtin_character", "keep_builtin"]
 
 logger = logging.getLogger(__name__)

@@ -93,9 +93,9 @@ from .geometry import bounding_box_diagonal, check_transforms, closest_surface_p
 from .skinning import linear_blend_skinning, rest_skinning_matrices, skinning_matrices
 from .sparse_weights import dense_rows
 
-__all__ = ["face_stretch", "vertex_stretch", "clip_skinning_matrices", "band_stretch", "junction_band_radius", "junction_stretch_ratio",
-           "weight_roughness", "junction_weight_roughness", "outside_area_share", "face_owners",
-           "grafted_visibility", "junction_dihedral", "self_composition_truth",
+__all__ = ["face_stretch", "vertex_stretch", "clip_skinning_matrices", "band_stretch", "junction_band_radius",
+           "junction_stretch_ratio", "weight_roughness", "junction_weight_roughness", "outside_area_share",
+           "face_owners", "grafted_visibility", "junction_dihedral", "self_composition_truth",
            "self_composition_errors", "skinned_surface", "identity_errors", "identity_origins"]
 
 log = logging.getLogger(__name__)
