@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from rigmix.fusion.presence import compute_presence
-from rigmix.fusion.stitch import _project_to_inputs
+from rigmix.fusion.stitch import project_to_inputs
 
 
 def _grid(n, size):
@@ -36,7 +36,7 @@ def _present(V, F):
 def _pulled(points, surfaces, h, agreeing):
     pres = [_present(V, F) for V, F in surfaces]
     U = np.asarray(points, np.float64)
-    out = _project_to_inputs(U, 0, pres, [P.welded.F for P in pres], {0: None, 1: None}, h, 1.0,
+    out = project_to_inputs(U, 0, pres, [P.welded.F for P in pres], {0: None, 1: None}, h, 1.0,
                              agreeing=agreeing)
     return np.linalg.norm(out - U, axis=1)
 

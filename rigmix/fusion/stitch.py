@@ -46,7 +46,7 @@ from .seams import pinched_faces
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ClusterJunction", "bridge_seams", "junction_for_cluster", "remesh_keeping_features"]
+__all__ = ["ClusterJunction", "bridge_seams", "junction_for_cluster", "project_to_inputs", "remesh_keeping_features"]
 
 
 def _field_for_cluster(n, inputs_fields, actions, band):
@@ -70,12 +70,12 @@ def _field_for_cluster(n, inputs_fields, actions, band):
     return out
 
 
-#: :func:`_project_to_inputs` with ``agreeing``: the present inputs agree where the length of
+#: :func:`project_to_inputs` with ``agreeing``: the present inputs agree where the length of
 #: their closest faces' mean unit normal is at least this (cos 15 degrees: two normals within 30)
 AGREEING_NORMALS = float(np.cos(np.radians(15.0)))
 
 
-def _project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels, clear=None, *, agreeing=False):
+def project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels, clear=None, *, agreeing=False):
     """Pull free junction vertices onto the presence-weighted average of their closest points.
 
     The isosurface is only accurate to a fraction of a voxel at creases; where the inputs agree
@@ -727,7 +727,7 @@ def _remesh_attempt(job, feature_tol, smoothed=False):
     """Remesh (keeping what strays farther than ``feature_tol``; 0: plain), smooth, improve
     (a collapse never moves the shape by more than ``job.tol``, on either path). ``smoothed``
     (a plain remeshing): smoothed ``plain_taubin_iterations`` times and pulled onto the inputs
-    only where they agree (:func:`_project_to_inputs`), the field's shape without the creases
+    only where they agree (:func:`project_to_inputs`), the field's shape without the creases
     of a union.
 
     Returns
@@ -746,7 +746,7 @@ def _remesh_attempt(job, feature_tol, smoothed=False):
                                                    min_edge=params.refine_min_edge * job.target, forbidden=forb)
     smoothing = params.plain_taubin_iterations if smoothed else params.taubin_iterations
     U = smooth_interior(U, G, np.arange(nfix), iterations=smoothing)
-    U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels, job.clear,
+    U = project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels, job.clear,
                            agreeing=smoothed)
     G = flip_to_improve_angles(U, G, forbidden=forb)
     U = relocate_poor_vertices(U, G, nfix, surface=(RV, RF))
@@ -762,7 +762,7 @@ def _remesh_attempt(job, feature_tol, smoothed=False):
     if feature_tol > 0:
         # the quality moves above slide vertices along the reference, whose bridge
         # strips chord across a voxel or two: back onto the inputs where they agree
-        U = _project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels, job.clear)
+        U = project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels, job.clear)
     # folds smoothed open only where that keeps the shape-keeping junction's tolerance
     U, _ = untangle(U, G, nfix, max_move=params.untangle_move * feature_tol if feature_tol > 0 else None)
     return _separate_coincident(U, G, len(job.fixed)), G, nfix - len(job.fixed)
