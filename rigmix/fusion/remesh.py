@@ -605,7 +605,7 @@ class _FaceList:
         """Positions, in order, of the live faces with corner ``v``."""
         out = []
         if v + 1 < len(self.starts):
-            out = [int(g) for g in np.unique(self.order[self.starts[v]:self.starts[v + 1]]) if self.alive[g]]
+            out = [int(g) for g in unique_ints(self.order[self.starts[v]:self.starts[v + 1]]) if self.alive[g]]
         return out + [g for g in self.added_at.get(v, ()) if self.is_alive(g)]
 
     def with_corners(self, tri):
@@ -615,7 +615,7 @@ class _FaceList:
 
     def on_edge(self, a, b):
         """Positions, in order, of the live faces with the corners ``a`` and ``b`` and a third one."""
-        return [g for g in self._at(a) if sum(v in (a, b) for v in self.row(g)) == 2 and b in self.row(g)]
+        return [g for g in self._at(a) if b in self.row(g) and len(set(self.row(g)) - {a, b}) == 1]
 
     def faces(self):
         added = np.asarray(self.added, np.int64).reshape(-1, 3)[np.asarray(self.alive_added, bool)]
@@ -710,7 +710,7 @@ def insert_points(V, F, fixed, X, *, max_dist, passes=4):
         B = np.nan_to_num(np.asarray(igl.barycentric_coordinates(C, V[T[:, 0]], V[T[:, 1]], V[T[:, 2]])), nan=1 / 3)
         uE, cnt = edge_counts(G)
         nv = len(V) + len(X) + 1
-        inner_keys = uE[cnt == 2, 0] * nv + uE[cnt == 2, 1]  # sorted: uE is
+        inner_keys = uE[cnt == 2, 0] * nv + uE[cnt == 2, 1]  # sorted, as uE's rows are
 
         def inner(a, b, keys=inner_keys, nv=nv):
             key = min(a, b) * nv + max(a, b)

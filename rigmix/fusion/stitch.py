@@ -29,7 +29,7 @@ from .junction import (
     orientation_agrees,
     remove_unreferenced,
 )
-from .meshutil import dihedral_angles, intersecting_face_pairs, triangle_min_angles
+from .meshutil import cross3, dihedral_angles, intersecting_face_pairs, triangle_min_angles
 from .remesh import (
     collapse_to_improve_angles,
     flip_to_improve_angles,
@@ -98,10 +98,11 @@ def project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels, c
     Q = U[nfixed:]
     acc = np.zeros_like(Q)
     wsum = np.zeros(len(Q))
-    lo = np.full(Q.shape, np.inf)  # bounding box of the present inputs' closest points
-    hi = np.full(Q.shape, -np.inf)
-    nsum = np.zeros_like(Q)  # their faces' unit normals, summed, and how many
-    ncount = np.zeros(len(Q))
+    if agreeing:
+        lo = np.full(Q.shape, np.inf)  # bounding box of the present inputs' closest points
+        hi = np.full(Q.shape, -np.inf)
+        nsum = np.zeros_like(Q)  # their faces' unit normals, summed, and how many
+        ncount = np.zeros(len(Q))
     for i in inputs_fields:
         P = pres[i]
         Fs = surfaces[i]
@@ -115,22 +116,24 @@ def project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels, c
         w = p / (np.sqrt(d2) + h)
         acc += w[:, None] * C
         wsum += w
-        present = p > 0
-        lo[present] = np.minimum(lo[present], C[present])
-        hi[present] = np.maximum(hi[present], C[present])
         if agreeing:
+            present = p > 0
+            lo[present] = np.minimum(lo[present], C[present])
+            hi[present] = np.maximum(hi[present], C[present])
             Vw = P.welded.V
-            nf = np.cross(Vw[T[:, 1]] - Vw[T[:, 0]], Vw[T[:, 2]] - Vw[T[:, 0]])
+            nf = cross3(Vw[T[:, 1]] - Vw[T[:, 0]], Vw[T[:, 2]] - Vw[T[:, 0]])
             nf /= np.maximum(np.linalg.norm(nf, axis=1, keepdims=True), 1e-300)
             nsum[present] += nf[present]
             ncount += present
-    spread = np.linalg.norm(np.where(np.isfinite(hi - lo), hi - lo, 0.0), axis=1)
-    # two surfaces that meet (the crease of their union) have close closest points but
-    # normals apart: agreement asks for both (mean normal within about 15 degrees of each),
-    # unless the points are one (a crease of one surface, composed with itself)
-    aligned = np.linalg.norm(nsum, axis=1) >= AGREEING_NORMALS * np.maximum(ncount, 1)
-    same_point = spread <= 0.05 * h  # one surface, two copies: a crease of it, not of a union
-    ok = (wsum > 0) & (spread <= h) & (aligned | same_point) if agreeing else wsum > 0
+    ok = wsum > 0
+    if agreeing:
+        spread = np.linalg.norm(np.where(np.isfinite(hi - lo), hi - lo, 0.0), axis=1)
+        # two surfaces that meet (the crease of their union) have close closest points but
+        # normals apart: agreement asks for both (mean normal within about 15 degrees of each),
+        # unless the points are one (a crease of one surface, composed with itself)
+        aligned = np.linalg.norm(nsum, axis=1) >= AGREEING_NORMALS * np.maximum(ncount, 1)
+        same_point = spread <= 0.05 * h
+        ok &= (spread <= h) & (aligned | same_point)
     target = np.where(ok[:, None], acc / np.maximum(wsum, 1e-300)[:, None], Q)
     move = target - Q
     n = np.linalg.norm(move, axis=1)
@@ -841,18 +844,19 @@ def _remesh_choosing_fidelity(job, info):
                     and angles_kept(U0, G0)):
                 U, G, nfeat = U0, G0, 0
                 info.update(fidelity=False, fidelity_tolerance=0.0, folds_avoided=int(folds))
-    if info["fidelity"] and params.crease_ratio > 0 and job.input_dihedral is not None:
+    if params.crease_ratio > 0 and job.input_dihedral is not None:
+        bound = params.crease_ratio * job.input_dihedral
         creased = _dihedral_p95(U, G)
-        if creased > params.crease_ratio * job.input_dihedral:
-            U0, G0, lost = plain_remeshing()
-            if _dihedral_p95(U0, G0) < creased and angles_kept(U0, G0):
+        if info["fidelity"] and creased > bound:
+            U0, G0, _ = plain_remeshing()
+            plain_creased = _dihedral_p95(U0, G0)
+            if plain_creased < creased and angles_kept(U0, G0):
                 U, G, nfeat = U0, G0, 0
                 info.update(fidelity=False, fidelity_tolerance=0.0, creases_avoided=creased)
-    if params.crease_ratio > 0 and job.input_dihedral is not None:
+                creased = plain_creased
         # a junction that still creases more than the input: the smoothed plain one, where it
         # creases less, keeps the angles and folds no more
-        creased = _dihedral_p95(U, G)
-        if creased > params.crease_ratio * job.input_dihedral:
+        if creased > bound:
             U1, G1, _ = _remesh_attempt(job, 0.0, smoothed=True)
             if _dihedral_p95(U1, G1) < creased and angles_kept(U1, G1) and _folds(U1, G1) <= _folds(U, G):
                 U, G, nfeat = U1, G1, 0

@@ -143,12 +143,13 @@ def retarget_inputs(inputs, maps, num_output_joints, *, skeleton=None, cut_reach
         Mapping confidence of each row.
     """
     retargeted, confidence = [], []
+    cutting = cut_reach > 0 and skeleton is not None
+    output_positions = skeleton.rest_worlds()[:, :3, 3] if cutting else None
     for x, bm in zip(inputs, maps):
         target, conf = bm.target, bm.confidence
-        if cut_reach > 0 and skeleton is not None and x.parents is not None and len(x.V):
+        if cutting and x.parents is not None and len(x.V):
             target, conf = cut_joints_to_nearest_kept(bm.target, bm.confidence, x.used, x.parents, x.joint_positions,
-                                                      skeleton.rest_worlds()[:, :3, 3],
-                                                      reach=cut_reach * bounding_box_diagonal(x.V))
+                                                      output_positions, reach=cut_reach * bounding_box_diagonal(x.V))
         Wr, c = retarget_weights(x.W, target, num_output_joints, confidence=conf)
         retargeted.append(Wr)
         confidence.append(c)
