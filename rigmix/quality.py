@@ -90,7 +90,13 @@ from dfd.mesh import face_areas, welded_graph
 from .animation.sampling import clip_times, sample_clip
 from .fusion.meshutil import dihedral_angles
 from .geometry import bounding_box_diagonal, check_transforms, closest_surface_points
-from .skinning import linear_blend_skinning, rest_skinning_matrices, skinning_matrices
+from .skinning import (
+    linear_blend_skinning,
+    rest_skinning_matrices,
+    skinning_columns,
+    skinning_matrices,
+    skinning_operator,
+)
 from .sparse_weights import dense_rows
 
 __all__ = ["face_stretch", "vertex_stretch", "clip_skinning_matrices", "band_stretch", "junction_band_radius",
@@ -99,6 +105,10 @@ __all__ = ["face_stretch", "vertex_stretch", "clip_skinning_matrices", "band_str
            "self_composition_errors", "skinned_surface", "identity_errors", "identity_origins"]
 
 log = logging.getLogger(__name__)
+
+#: Floats per temporary of the stretch sampling (edge vectors of the band's faces over a chunk of
+#: frames): about 32 MB each.
+_STRETCH_CHUNK = 1 << 22
 
 
 def face_stretch(V0, U, F):
@@ -128,10 +138,17 @@ def face_stretch(V0, U, F):
                 np.einsum("...i,...i->...", e2, e2))
 
     F = np.asarray(F, np.int64)
-    a0, b0, c0 = forms(np.asarray(V0, np.float64))
+    return _stretch_from_forms(forms(np.asarray(V0, np.float64)), forms(np.asarray(U, np.float64)))
+
+
+def _stretch_from_forms(rest, posed):
+    """``||log s||`` from the first fundamental forms ``(a, b, c)`` (``e1.e1``, ``e1.e2``,
+    ``e2.e2``) of the rest and posed triangles, any broadcastable shapes (see
+    :func:`face_stretch`); degenerate rest triangles get 0."""
+    a0, b0, c0 = rest
+    a1, b1, c1 = posed
     det0 = a0 * c0 - b0 * b0
     ok = det0 > 1e-12 * np.maximum(a0 * c0, 1e-300)
-    a1, b1, c1 = forms(np.asarray(U, np.float64))
     # M = g0^-1 g1; eigenvalues from its trace and determinant
     inv = np.where(ok, 1.0 / np.where(ok, det0, 1.0), 0.0)
     tr = (c0 * a1 - 2.0 * b0 * b1 + a0 * c1) * inv
@@ -139,31 +156,35 @@ def face_stretch(V0, U, F):
     disc = np.sqrt(np.maximum(tr * tr / 4.0 - det, 0.0))
     l1 = np.maximum(tr / 2.0 + disc, 1e-24)
     l2 = np.maximum(tr / 2.0 - disc, 1e-24)
-    out = 0.5 * np.sqrt(np.log(l1) ** 2 + np.log(l2) ** 2)
-    out[..., ~ok] = 0.0
-    return out
+    return np.where(ok, 0.5 * np.sqrt(np.log(l1) ** 2 + np.log(l2) ** 2), 0.0)
+
+
+def _vertex_means(V0, F, vertices):
+    """The rest-area-weighted mean over the faces around each of ``vertices`` ``(q,)``, as a
+    matrix: ``(faces, A)``, ``faces`` ``(mb,)`` the faces of ``F`` with a corner among
+    ``vertices``, ``A`` ``(q, mb)`` sparse with rows summing to 1 (a face counts once per
+    corner it has among them)."""
+    import scipy.sparse as sp
+
+    F = np.asarray(F, np.int64)
+    vertices = np.asarray(vertices, np.int64)
+    pos = np.full(len(V0), -1)
+    pos[vertices] = np.arange(len(vertices))
+    faces = np.flatnonzero((pos[F] >= 0).any(axis=1))
+    Fb = F[faces]
+    area = face_areas(V0, Fb)
+    rows, cols = pos[Fb].T.ravel(), np.tile(np.arange(len(Fb)), 3)
+    sel = rows >= 0
+    A = sp.csr_matrix((np.tile(area, 3)[sel], (rows[sel], cols[sel])), shape=(len(vertices), len(Fb)))
+    den = np.maximum(np.asarray(A.sum(axis=1)).ravel(), 1e-30)
+    return faces, sp.diags(1.0 / den) @ A
 
 
 def vertex_stretch(V0, U, F, vertices):
     """Rest-area-weighted mean face stretch at ``vertices`` ``(q,)``: returns ``(k, q)``."""
-    F = np.asarray(F, np.int64)
-    vertices = np.asarray(vertices, np.int64)
-    mark = np.zeros(len(V0), bool)
-    mark[vertices] = True
-    faces = np.flatnonzero(mark[F].any(axis=1))
-    Fb = F[faces]
-    s = face_stretch(V0, U, Fb)  # (k, mb)
-    area = face_areas(V0, Fb)
-    pos = np.full(len(V0), -1)
-    pos[vertices] = np.arange(len(vertices))
-    num = np.zeros((len(U), len(vertices)))
-    den = np.zeros(len(vertices))
-    for c in range(3):
-        p = pos[Fb[:, c]]
-        sel = p >= 0
-        np.add.at(num.T, p[sel], (s[:, sel] * area[sel]).T)
-        np.add.at(den, p[sel], area[sel])
-    return num / np.maximum(den, 1e-30)
+    faces, A = _vertex_means(V0, F, vertices)
+    s = face_stretch(V0, U, np.asarray(F, np.int64)[faces])  # (k, mb)
+    return (A @ s.T).T
 
 
 def _frames(clip, fps, max_frames):
@@ -210,11 +231,26 @@ def band_stretch(skeleton, clips, V0, joints, weights, F, vertices, *, rest=None
     vs = pos[np.asarray(vertices, np.int64)]
     if matrices is None:
         matrices = clip_skinning_matrices(skeleton, clips, fps=fps, max_frames=max_frames)
+    M = np.concatenate([np.asarray(m, np.float64) for m in matrices])  # (k, J, 4, 4), the clips' frames
+    faces, A = _vertex_means(rest, Fs, vs)
+    Fb = Fs[faces]
+    if not len(Fb):  # vertices on no face: 0, as the mean over no face
+        return np.zeros(len(M) * len(vs))
+    # the posed edge vectors are linear in the skinning matrices: no posed positions needed
+    B = skinning_operator(V0s, Js, Ws, M.shape[1])
+    E1, E2 = (B[Fb[:, 1]] - B[Fb[:, 0]]).tocsr(), (B[Fb[:, 2]] - B[Fb[:, 0]]).tocsr()
+    r1, r2 = rest[Fb[:, 1]] - rest[Fb[:, 0]], rest[Fb[:, 2]] - rest[Fb[:, 0]]
+    rest_forms = tuple(np.einsum("mi,mi->m", x, y)[:, None] for x, y in ((r1, r1), (r1, r2), (r2, r2)))
     out = []
-    for M in matrices:
-        U = linear_blend_skinning(V0s, Js, Ws, M)
-        out.append(vertex_stretch(rest, U, Fs, vs).ravel())
-    return np.concatenate(out)
+    step = max(1, _STRETCH_CHUNK // (3 * len(Fb)))
+    for start in range(0, len(M), step):
+        C = skinning_columns(M[start:start + step])
+        e1 = (E1 @ C).reshape(len(Fb), -1, 3)
+        e2 = (E2 @ C).reshape(len(Fb), -1, 3)
+        posed = (np.einsum("mki,mki->mk", e1, e1), np.einsum("mki,mki->mk", e1, e2),
+                 np.einsum("mki,mki->mk", e2, e2))
+        out.append((A @ _stretch_from_forms(rest_forms, posed)).T)  # (frames, q)
+    return np.concatenate(out).ravel()
 
 
 def junction_band_radius(V, junction_vertices, centres) -> float:

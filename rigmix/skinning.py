@@ -24,6 +24,8 @@ __all__ = [
     "skinning_matrices",
     "rest_skinning_matrices",
     "linear_blend_skinning",
+    "skinning_operator",
+    "skinning_columns",
     "dual_quaternion_skinning",
     "skin_character",
     "rest_pose",
@@ -125,6 +127,52 @@ def linear_blend_skinning(V, joints, weights, M):
         A = np.einsum("nk,fnkij->fnij", weights, Mf[sl][:, joints], optimize=True)  # (f, n, 3, 4)
         out[sl] = np.einsum("fnij,nj->fni", A[..., :3], V) + A[..., 3]
     return out.reshape(lead + (n, 3))
+
+
+def skinning_operator(V, joints, weights, num_joints):
+    """Linear blend skinning as one sparse matrix: posed positions are
+    ``skinning_operator(...) @ skinning_columns(M)``.
+
+    Row ``i`` holds ``weights[i, k] * [V[i], 1]`` in the four columns of joint ``joints[i, k]``,
+    so that the product with a pose's matrix rows gives ``sum_k w_k M[joint_k] @ [v, 1]`` (the
+    same sums as :func:`linear_blend_skinning`, added in another order). Linear maps of the
+    positions (edge vectors, differences) are rows of it: ``B[F[:, 1]] - B[F[:, 0]]``.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+        Bind-pose positions.
+    joints, weights : (n, K) int and float arrays
+        Influences (weights used as given).
+    num_joints : int
+        J, the skeleton's joint count.
+
+    Returns
+    -------
+    scipy.sparse.csr_matrix, (n, 4 J) float64
+    """
+    import scipy.sparse as sp
+
+    V = np.asarray(V, np.float64).reshape(-1, 3)
+    joints = np.asarray(joints, np.int64).reshape(len(V), -1)
+    weights = np.asarray(weights, np.float64).reshape(len(V), -1)
+    n, K = joints.shape
+    if joints.size and (joints.min() < 0 or joints.max() >= num_joints):
+        raise ValueError(f"skinning: joint index out of range [0, {num_joints})")
+    Vh = np.concatenate([V, np.ones((n, 1))], axis=1)
+    rows = np.repeat(np.arange(n), K * 4)
+    cols = (joints[:, :, None] * 4 + np.arange(4)).ravel()
+    vals = (weights[:, :, None] * Vh[:, None, :]).ravel()
+    return sp.csr_matrix((vals, (rows, cols)), shape=(n, 4 * num_joints))
+
+
+def skinning_columns(M):
+    """The skinning matrices ``M`` ``(k, J, 4, 4)`` (column vectors) as the right-hand side of
+    :func:`skinning_operator`: ``(4 J, 3 k)`` float64, contiguous; column ``3 f + c`` gives the
+    coordinate ``c`` of frame ``f``."""
+    M = np.asarray(M, np.float64)
+    k, J = M.shape[:2]
+    return np.ascontiguousarray(M[..., :3, :].transpose(1, 3, 0, 2).reshape(4 * J, 3 * k))
 
 
 def _matrix_to_dual_quat(M):

@@ -194,6 +194,25 @@ def test_lbs_matches_reference_on_affine_frames():
             np.testing.assert_allclose(U[a, b], lbs_reference(V, joints, weights, M[a, b]), atol=1e-12)
 
 
+def test_skinning_operator_is_linear_blend_skinning():
+    """The sparse form gives the reference's positions, and its row differences the posed edges."""
+    from rigmix.skinning import skinning_columns, skinning_operator
+
+    rng = np.random.default_rng(7)
+    V = rng.normal(size=(60, 3))
+    joints, weights = random_influences(rng, 60, 4, 5)
+    M = random_rigid(rng, (7, 5))
+    M[..., :3, :3] *= rng.uniform(0.5, 2.0, size=(7, 5, 1, 3))
+    B = skinning_operator(V, joints, weights, 5)
+    U = (B @ skinning_columns(M)).reshape(60, 7, 3).transpose(1, 0, 2)
+    for f in range(7):
+        np.testing.assert_allclose(U[f], lbs_reference(V, joints, weights, M[f]), atol=1e-12)
+    edges = ((B[1:] - B[:-1]) @ skinning_columns(M)).reshape(59, 7, 3).transpose(1, 0, 2)
+    np.testing.assert_allclose(edges, U[:, 1:] - U[:, :-1], atol=1e-12)
+    with pytest.raises(ValueError, match="out of range"):
+        skinning_operator(V, joints, weights, 4)
+
+
 @pytest.mark.parametrize("scaled", [False, True])
 def test_dqs_matches_reference(scaled):
     rng = np.random.default_rng(4)

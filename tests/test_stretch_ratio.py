@@ -151,3 +151,33 @@ def test_band_stretch_under_given_matrices_equals_sampling_the_clips():
                          matrices=clip_skinning_matrices(c.skeleton, c.clips))
     assert len(own) > len(band)  # several frames
     assert np.array_equal(own, given) and np.isfinite(own).all() and own.max() > 0
+
+
+def test_band_stretch_is_the_mean_face_stretch_of_the_skinned_band():
+    """The band's samples, taken from the posed edge vectors without posing the vertices, are the
+    definition: each band vertex's area-weighted mean of the stretch of its faces, skinned by
+    every sampled frame of every clip, clip after clip."""
+    from rigmix.io import load_character
+    from rigmix.quality import band_stretch, clip_skinning_matrices, face_stretch
+    from rigmix.skinning import linear_blend_skinning, rest_skinning_matrices
+
+    c = load_character(asset("CesiumMan"))
+    m = c.meshes[0]
+    band = np.flatnonzero(m.positions[:, 1] > np.median(m.positions[:, 1]))
+    got = band_stretch(c.skeleton, c.clips, m.positions, m.joints, m.weights, m.faces, band)
+    rest = linear_blend_skinning(m.positions, m.joints, m.weights, rest_skinning_matrices(c.skeleton))
+    F = np.asarray(m.faces)
+    area = 0.5 * np.linalg.norm(np.cross(rest[F[:, 1]] - rest[F[:, 0]], rest[F[:, 2]] - rest[F[:, 0]]), axis=1)
+    want = []
+    for M in clip_skinning_matrices(c.skeleton, c.clips):
+        s = face_stretch(rest, linear_blend_skinning(m.positions, m.joints, m.weights, M), F)  # (k, m)
+        for f in range(len(M)):
+            num, den = np.zeros(len(rest)), np.zeros(len(rest))
+            for corner in range(3):
+                np.add.at(num, F[:, corner], s[f] * area)
+                np.add.at(den, F[:, corner], area)
+            want.append(num[band] / den[band])
+    want = np.concatenate(want)
+    assert len(got) == len(want) and want.max() > 0.01
+    # near 0 the square root of a difference of eigenvalues turns rounding into ~1e-9
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-8)
