@@ -130,6 +130,38 @@ def test_sample_clip_keeps_rest_values_without_tracks():
     np.testing.assert_array_equal(S[:, :2], np.ones((3, 2, 3)))
 
 
+@pytest.mark.parametrize("interpolation", ["LINEAR", "STEP", "CUBICSPLINE"])
+def test_sample_clip_samples_tracks_that_share_their_keys_as_each_alone(interpolation):
+    """Tracks with the same key times are sampled together: every value is the one the track
+    gives alone, bit for bit, for each path, a single key, and times outside the keys."""
+    rng = np.random.default_rng(11)
+    sk = _skeleton()
+    times = np.array([0.0, 0.4, 1.0])
+    tracks = []
+    for joint in range(3):
+        for path, C in (("translation", 3), ("rotation", 4), ("scale", 3)):
+            shape = (3, 3, C) if interpolation == "CUBICSPLINE" else (3, C)
+            tracks.append(Track(joint, path, times, rng.normal(size=shape), interpolation))
+    tracks.append(Track(0, "translation", [0.5], rng.normal(size=(3, 3) if interpolation == "CUBICSPLINE" else (1, 3)),
+                        interpolation))
+    tracks.pop(0)  # joint 0's translation: the single key above instead
+    clip = Clip("c", tuple(tracks))
+    t = np.array([-0.2, 0.0, 0.1, 0.4, 0.55, 0.99, 1.0, 1.3])
+    T, R, S = sample_clip(sk, clip, t)
+    out = {"translation": T, "rotation": R, "scale": S}
+    for track in clip.tracks:
+        np.testing.assert_array_equal(out[track.path][:, track.joint], sample_track(track, t))
+
+
+def test_sample_clip_of_real_clips_is_the_tracks_sampled_alone():
+    c = read_gltf(asset("Fox"))
+    for clip in c.clips:
+        t = clip_times(clip)
+        out = dict(zip(("translation", "rotation", "scale"), sample_clip(c.skeleton, clip, t)))
+        for track in clip.tracks:
+            np.testing.assert_array_equal(out[track.path][:, track.joint], sample_track(track, t))
+
+
 def test_clip_times():
     clip = Clip("walk", (Track(0, "translation", [0.0, 17 / 24], np.zeros((2, 3))),))
     t = clip_times(clip)

@@ -60,56 +60,61 @@ def sample_track(track: Track, times) -> np.ndarray:
     (F, C) float64 array
         Sampled values; unit quaternions (xyzw) for rotation tracks.
     """
-    t = np.asarray(times, dtype=np.float64).reshape(-1)
-    kt = track.times
     vals = np.asarray(track.values, dtype=np.float64)
-    cubic = track.interpolation == "CUBICSPLINE"
-    rotation = track.path == "rotation"
-    if cubic:
-        vals = vals.reshape(len(kt), 3, -1)
-        points = vals[:, 1]
-    else:
-        vals = vals.reshape(len(kt), -1)
-        points = vals
-    k, C = points.shape
+    k = len(track.times)
+    vals = vals.reshape(k, 3, 1, -1) if track.interpolation == "CUBICSPLINE" else vals.reshape(k, 1, -1)
     if k == 0:
         raise ValueError(f"animation: track of joint {track.joint} ({track.path}) has no keys")
+    return _sample_keys(track.times, vals, track.interpolation, track.path == "rotation", times)[:, 0]
+
+
+def _sample_keys(kt, vals, interpolation, rotation, times):
+    """Values at ``times`` ``(F,)`` of ``T`` tracks that share their key times ``kt`` ``(k,)``
+    and interpolation: ``vals`` ``(k, T, C)``, or ``(k, 3, T, C)`` for ``CUBICSPLINE``; returns
+    ``(F, T, C)`` (each track's values are those :func:`sample_track` gives it alone)."""
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    cubic = interpolation == "CUBICSPLINE"
+    points = vals[:, 1] if cubic else vals
+    k = len(kt)
     if k == 1:
-        out = np.broadcast_to(points[0], (len(t), C)).copy()
+        out = np.broadcast_to(points[0], (len(t),) + points.shape[1:]).copy()
         return quat_normalize(out) if rotation else out
 
-    if track.interpolation == "STEP":
+    if interpolation == "STEP":
         i = np.clip(np.searchsorted(kt, t, side="right") - 1, 0, k - 1)
         out = points[i]
         return quat_normalize(out) if rotation else out
 
     i, u, dt = _key_index(kt, t)
-    if track.interpolation == "LINEAR":
+    if interpolation == "LINEAR":
         a, b = points[i], points[i + 1]
         if rotation:
             # slerp flips b into a's hemisphere; at and after a segment's end key return that
             # key as stored, as interior keys are (they start the next segment)
-            return np.where((u >= 1.0)[:, None], quat_normalize(b), quat_slerp(a, b, u))
-        return a + u[:, None] * (b - a)
+            return np.where((u >= 1.0)[:, None, None], quat_normalize(b), quat_slerp(a, b, u[:, None]))
+        return a + u[:, None, None] * (b - a)
 
     # CUBICSPLINE (glTF 2.0 appendix C): tangents are scaled by the key interval
     u2, u3 = u * u, u * u * u
-    h00 = 2 * u3 - 3 * u2 + 1
-    h10 = u3 - 2 * u2 + u
-    h01 = -2 * u3 + 3 * u2
-    h11 = u3 - u2
+    h00 = (2 * u3 - 3 * u2 + 1)[:, None, None]
+    h10 = (u3 - 2 * u2 + u)[:, None, None]
+    h01 = (-2 * u3 + 3 * u2)[:, None, None]
+    h11 = (u3 - u2)[:, None, None]
     p0, p1 = points[i], points[i + 1]
-    m0 = vals[i, 2] * dt[:, None]  # out-tangent of key i
-    m1 = vals[i + 1, 0] * dt[:, None]  # in-tangent of key i+1
-    out = h00[:, None] * p0 + h10[:, None] * m0 + h01[:, None] * p1 + h11[:, None] * m1
+    m0 = vals[i, 2] * dt[:, None, None]  # out-tangent of key i
+    m1 = vals[i + 1, 0] * dt[:, None, None]  # in-tangent of key i+1
+    out = h00 * p0 + h10 * m0 + h01 * p1 + h11 * m1
     # clamping: outside the key range the spline is held at the end values
-    out = np.where((t < kt[0])[:, None], points[0], out)
-    out = np.where((t > kt[-1])[:, None], points[-1], out)
+    out = np.where((t < kt[0])[:, None, None], points[0], out)
+    out = np.where((t > kt[-1])[:, None, None], points[-1], out)
     return quat_normalize(out) if rotation else out
 
 
 def sample_clip(skeleton, clip: Clip, times):
     """Local joint poses of a clip at the given times.
+
+    Tracks with the same key times, interpolation and path (a glTF clip's channels usually
+    share one time accessor) are sampled together.
 
     Parameters
     ----------
@@ -135,13 +140,29 @@ def sample_clip(skeleton, clip: Clip, times):
         "rotation": np.broadcast_to(quat_normalize(skeleton.rotations), (F, J, 4)).copy(),
         "scale": np.broadcast_to(skeleton.scales, (F, J, 3)).copy(),
     }
+    groups: dict = {}
     for track in clip.tracks:
         if not 0 <= track.joint < J:
             raise ValueError(
                 f"animation: clip {clip.name!r} has a track on joint {track.joint}, "
                 f"but the skeleton has {J} joints"
             )
-        out[track.path][:, track.joint] = sample_track(track, t)
+        if not len(track.times):
+            raise ValueError(f"animation: track of joint {track.joint} ({track.path}) has no keys")
+        key = (track.path, track.interpolation, track.times.tobytes(), np.shape(track.values)[1:])
+        groups.setdefault(key, []).append(track)
+    targets = [(tr.joint, tr.path) for tr in clip.tracks]
+    if len(set(targets)) < len(targets):  # a joint's property keyed twice: the last track wins
+        for track in clip.tracks:
+            out[track.path][:, track.joint] = sample_track(track, t)
+        return out["translation"], out["rotation"], out["scale"]
+    for (path, interpolation, _, _), tracks in groups.items():
+        axis = 2 if interpolation == "CUBICSPLINE" else 1
+        k = len(tracks[0].times)
+        vals = np.stack([np.asarray(tr.values, np.float64).reshape((k, 3, -1) if axis == 2 else (k, -1))
+                         for tr in tracks], axis=axis)
+        joints = [tr.joint for tr in tracks]
+        out[path][:, joints] = _sample_keys(tracks[0].times, vals, interpolation, path == "rotation", t)
     return out["translation"], out["rotation"], out["scale"]
 
 
