@@ -12,6 +12,7 @@
    the configs and again after the scaling cases; every timing is also given as a multiple of
    the median of both (``x ref``), so runs on idle and loaded machines compare. The per-stage
    medians over the configs are given in seconds and in multiples.
+4. Issue 26's timed corpus case (:data:`ACCEPTANCE`), after the configs and outside their medians.
 
 Writes ``benchmarks/results/compose_bench.json`` and ``compose_bench.md``.
 Usage: ``python -m benchmarks.compose_bench``.
@@ -40,6 +41,10 @@ CONFIGS = sorted((ROOT / "tests" / "configs").glob("*.toml")) + sorted((ROOT / "
 SUBDIVISIONS = (1, 2, 4)
 STAGES = ("load", "operations", "mapping", "fusion", "weights", "completion", "assembly", "quality", "total")
 CASE_TIMEOUT = 900.0  # seconds per scaling case
+#: Issue 26's timed case on the corpus (``benchmarks.corpus_matrix``): a humanoid upper body
+#: replacing the Wasp's head (six legs; its neck joint also carries the wings and the abdomen,
+#: which stay). Timed after the configs, not in their medians; skipped without the corpus.
+ACCEPTANCE = ("torso__Wasp__PlatformerCharacter",)
 
 
 def subdivide_mesh(mesh, num_joints):
@@ -101,6 +106,23 @@ def _compose_report(config_path):
             "junction_stretch_ratio": r.get("quality", {}).get("junction_stretch_ratio"),
             "junction_weight_roughness_max": r.get("quality", {}).get("junction_weight_roughness_max"),
             "source_weight_roughness_max": r.get("quality", {}).get("source_weight_roughness_max")}
+
+
+def run_acceptance(folder):
+    """Rows as for the configs, for the :data:`ACCEPTANCE` cases (``config``: the case name)."""
+    from benchmarks.corpus_matrix import generate_matrix, load_subjects, write_configs
+
+    rows = []
+    try:
+        matrix = [c for c in generate_matrix(load_subjects()) if c.name in ACCEPTANCE]
+    except Exception as exc:  # no corpus beside the checkout
+        return [{"config": name, "error": f"{type(exc).__name__}: {exc}"} for name in ACCEPTANCE]
+    for name, path in write_configs(matrix, Path(folder)).items():
+        try:
+            rows.append({**_compose_report(path), "config": name})
+        except Exception as exc:
+            rows.append({"config": name, "error": f"{type(exc).__name__}: {exc}"})
+    return rows
 
 
 def _scaling_case(levels, queue):
@@ -174,7 +196,7 @@ def stage_medians(configs) -> dict:
     return {s: round(float(np.median([t[s] for t in ok if s in t])), 4) for s in STAGES if any(s in t for t in ok)}
 
 
-def _markdown(configs, scaling, reference):
+def _markdown(configs, scaling, reference, acceptance=()):
     stages = list(STAGES)
     ref = reference["seconds"]
     medians = stage_medians(configs)
@@ -193,7 +215,7 @@ def _markdown(configs, scaling, reference):
              "| config | " + " | ".join(stages) + " | total x ref | faces | voxels | min angle p05 | crossing pairs "
              "| stretch ratio | weight roughness max, junction / sources |",
              "|---|" + "---:|" * (len(stages) + 7)]
-    for r in configs:
+    for r in list(configs) + [{**a, "config": f"{a['config']} (corpus, not in the medians)"} for a in acceptance]:
         if "error" in r:
             lines.append(f"| {r['config']} | error: {r['error']} |")
             continue
@@ -232,11 +254,15 @@ def main(argv=None):
         except Exception as exc:
             configs.append({"config": str(path.relative_to(ROOT)), "error": f"{type(exc).__name__}: {exc}"})
         print(json.dumps(configs[-1]), flush=True)
+    with tempfile.TemporaryDirectory() as folder:
+        acceptance = run_acceptance(folder)
+    for row in acceptance:
+        print(json.dumps(row), flush=True)
     scaling = run_scaling()
     for row in scaling:
         print(json.dumps(row), flush=True)
     reference = combine_references(first, reference_operation())
-    for row in configs + scaling:
+    for row in configs + acceptance + scaling:
         if "timings" in row:
             row["timings_x_ref"] = {k: ratio(v, reference["seconds"]) for k, v in row["timings"].items()}
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -246,8 +272,8 @@ def main(argv=None):
     (RESULTS / "compose_bench.json").write_text(json.dumps(
         {"meta": meta, "reference": reference, "stage_medians_s": medians,
          "stage_medians_x_ref": {k: ratio(v, reference["seconds"]) for k, v in medians.items()},
-         "configs": configs, "scaling": scaling}, indent=2) + "\n")
-    (RESULTS / "compose_bench.md").write_text(_markdown(configs, scaling, reference))
+         "configs": configs, "acceptance": acceptance, "scaling": scaling}, indent=2) + "\n")
+    (RESULTS / "compose_bench.md").write_text(_markdown(configs, scaling, reference, acceptance))
     return 0
 
 
