@@ -60,12 +60,16 @@ def sample_track(track: Track, times) -> np.ndarray:
     (F, C) float64 array
         Sampled values; unit quaternions (xyzw) for rotation tracks.
     """
+    _check_keys(track)
     vals = np.asarray(track.values, dtype=np.float64)
     k = len(track.times)
     vals = vals.reshape(k, 3, 1, -1) if track.interpolation == "CUBICSPLINE" else vals.reshape(k, 1, -1)
-    if k == 0:
-        raise ValueError(f"animation: track of joint {track.joint} ({track.path}) has no keys")
     return _sample_keys(track.times, vals, track.interpolation, track.path == "rotation", times)[:, 0]
+
+
+def _check_keys(track: Track) -> None:
+    if not len(track.times):
+        raise ValueError(f"animation: track of joint {track.joint} ({track.path}) has no keys")
 
 
 def _sample_keys(kt, vals, interpolation, rotation, times):
@@ -147,8 +151,7 @@ def sample_clip(skeleton, clip: Clip, times):
                 f"animation: clip {clip.name!r} has a track on joint {track.joint}, "
                 f"but the skeleton has {J} joints"
             )
-        if not len(track.times):
-            raise ValueError(f"animation: track of joint {track.joint} ({track.path}) has no keys")
+        _check_keys(track)
         key = (track.path, track.interpolation, track.times.tobytes(), np.shape(track.values)[1:])
         groups.setdefault(key, []).append(track)
     targets = [(tr.joint, tr.path) for tr in clip.tracks]

@@ -750,7 +750,7 @@ def _remesh_attempt(job, feature_tol, smoothed=False):
     smoothing = params.plain_taubin_iterations if smoothed else params.taubin_iterations
     U = smooth_interior(U, G, np.arange(nfix), iterations=smoothing)
     U = project_to_inputs(U, nfix, pres, surfaces, inputs_fields, h, params.project_voxels, job.clear,
-                           agreeing=smoothed)
+                          agreeing=smoothed)
     G = flip_to_improve_angles(U, G, forbidden=forb)
     U = relocate_poor_vertices(U, G, nfix, surface=(RV, RF))
     G = flip_to_improve_angles(U, G, forbidden=forb)
