@@ -81,6 +81,55 @@ def test_an_overlapping_part_of_an_input_is_counted_not_worked_on(capped_sphere)
     assert np.array_equal(rep.V, V2) and not rep.released.any()
 
 
+def _sheet_and_piece(half, centre):
+    """A flat junction sheet (5 x 5 unit squares at z = 0, its border fixed) and a kept closed
+    box ``(2 half)`` wide around ``centre``, apart from it: ``(V, F, junction, movable)``."""
+    g = np.arange(6.0)
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    Vs = np.stack([X.ravel(), Y.ravel(), np.zeros(36)], axis=1)
+    i = np.arange(5)[:, None] * 6 + np.arange(5)[None, :]
+    a, b, c, d = i.ravel(), i.ravel() + 6, i.ravel() + 7, i.ravel() + 1
+    Fs = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+    Vb = np.asarray(centre) + half * corners
+    Fb = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                   [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    V = np.concatenate([Vs, Vb])
+    F = np.concatenate([Fs, Fb + 36])
+    junction = np.arange(len(F)) < len(Fs)
+    border = (Vs[:, 0] % 5 == 0) | (Vs[:, 1] % 5 == 0)
+    movable = np.concatenate([~border, np.zeros(8, bool)])
+    return V, F, junction, movable
+
+
+def test_kept_parts_are_the_pieces_apart_from_the_junction():
+    from rigmix.fusion.crossings import kept_parts
+
+    V, F, junction, movable = _sheet_and_piece(0.3, (2.5, 2.5, 0.2))
+    part, closed = kept_parts(F, len(V), ~movable)
+    assert np.all(part[junction] == -1)  # the sheet has movable vertices
+    assert len(np.unique(part[~junction])) == 1 and closed[part[~junction][0]]
+    open_box = F[:-1]  # a face less: a box with a hole is no closed piece
+    part, closed = kept_parts(open_box, len(V), ~movable)
+    assert not closed[part[~junction[:-1]][0]]
+
+
+@pytest.mark.parametrize("centre", [(2.5, 2.5, 0.2), (2.0, 2.0, 0.2)], ids=["corners_poke", "vertex_inside"])
+def test_a_junction_goes_off_a_kept_piece_it_cuts(centre):
+    """A rigid piece, mostly above the junction, cuts through it: its corners poke through a
+    junction face with no junction vertex inside it (the face is moved along its normal), or a
+    junction vertex lies inside it (taken out to its surface). The junction ends below it."""
+    V, F, junction, movable = _sheet_and_piece(0.3, centre)
+    assert _crossings(V, F, junction) > 0
+    rep = repair_crossings(V, F, movable, junction, target=1.0)
+    assert rep.found > 0 and rep.left == 0
+    assert _crossings(rep.V, F, junction) == 0
+    moved = np.linalg.norm(rep.V - V, axis=1) > 0
+    assert not moved[~movable].any()
+    assert np.all(rep.V[moved, 2] < 0)  # off the side the piece lies on
+    assert np.all(rep.V[moved, 2] > -0.6)  # by about the piece's depth below the sheet
+
+
 def test_open_borders_never_move(capped_sphere):
     """A vertex on an open border keeps its position even when it is free to move: moving it
     would open a gap the report counts as a new boundary edge."""

@@ -4,13 +4,18 @@ The Triceratops' tail grafted onto CyberpunkCharacter: the figure's hip plates a
 secondary components, kept whole and never blended, sunk into the body the isosurface follows.
 Made as usual, the junction runs through them and the repair cannot undo it; made again around
 them, it crosses nothing.
+
+The Wasp's right hind leg replaced by its mirrored left: the leg is a closed part of its own,
+plugged into the thorax, and the thorax's preserved surface runs on inside the new leg's root up
+to the seam. The faces it covers join the junction (:func:`rigmix.fusion.seams.under_kept_shells`),
+so that the junction starts outside the leg.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import corpus, fused_twice
+from conftest import asset, corpus, fused_twice
 
 from rigmix.fusion.meshutil import edge_counts
 from rigmix.fusion.presence import compute_presence, kept_shells
@@ -59,3 +64,64 @@ def test_kept_shells_are_closed_secondary_parts(tail_graft):
         secondary = {tuple(sorted(f)) for f in P.welded.F[P.secondary].tolist()}
         assert {tuple(sorted(f)) for f in S.tolist()} <= secondary
     assert found  # the figure's plates
+
+
+MIRROR_CASE = "mirror__Wasp__BottomLeg1.R"
+
+
+@pytest.fixture(scope="session")
+def mirrored_leg(tmp_path_factory):
+    """``(inputs, fused, fused without the clearance)`` of :data:`MIRROR_CASE`."""
+    from benchmarks.corpus_matrix import load_subjects, mirror_cases, write_configs
+
+    asset("Wasp")
+    case = next(c for c in mirror_cases(load_subjects(["Wasp"])) if c.name == MIRROR_CASE)
+    config = write_configs([case], tmp_path_factory.mktemp("mirrored_leg"))[MIRROR_CASE]
+    return fused_twice(config, shell_clearance_voxels=0)
+
+
+def _made(mesh):
+    return mesh["junction_self_intersections"] - mesh["junction_crossings_inherited"]
+
+
+def test_a_plugged_in_part_covers_no_seam(mirrored_leg):
+    inputs, out, bare = mirrored_leg
+    assert _made(bare.report["mesh"]) > 0  # the seam runs inside the new leg's root
+    m = out.report["mesh"]
+    assert _made(m) == 0
+    for key in ("junction_boundary_edges", "new_non_manifold_edges", "open_seam_edges"):
+        assert m[key] == 0, key
+    assert m["junction_min_angle_p05"] >= 20.0
+
+
+def test_faces_under_another_inputs_part_join_the_junction(mirrored_leg):
+    import igl
+
+    from rigmix.fusion.seams import under_kept_shells
+
+    inputs, _, _ = mirrored_leg
+    pres = [compute_presence(x.V, x.F, x.W, x.used) for x in inputs]
+    preserved = [P.preserved.copy() for P in pres]
+    junction = [~P.preserved & ~P.absent for P in pres]
+    given = [p.copy() for p in preserved]
+    out = under_kept_shells(pres, preserved, junction)
+    assert all(np.array_equal(a, b) for a, b in zip(preserved, given))  # inputs untouched
+    body, leg = pres
+    taken = preserved[0] & ~out[0]
+    assert 0 < taken.sum() < 0.05 * len(body.welded.F)
+    assert np.array_equal(out[1], preserved[1])  # nothing covers the leg's own surface
+    # every face taken reaches into the mirrored leg, which the output keeps whole
+    shell = kept_shells(leg, preserved[1])
+    w = igl.fast_winding_number(leg.welded.V, shell, body.welded.V[body.welded.F[taken].ravel()])
+    assert np.all((w.reshape(-1, 3) > 0.5).any(axis=1))
+    # and joins the junction through faces taken: no new hole
+    reach = np.zeros(len(body.welded.V), bool)
+    reach[body.welded.F[junction[0]].ravel()] = True
+    left = taken.copy()
+    while True:
+        step = left & reach[body.welded.F].any(axis=1)
+        if not step.any():
+            break
+        reach[body.welded.F[step].ravel()] = True
+        left &= ~step
+    assert not left.any()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import asset
+from conftest import asset, corpus
 
 from rigmix.animation import clip_times, sample_clip
 from rigmix.config import parse_config
@@ -200,3 +200,30 @@ feature_field = false
             np.testing.assert_allclose(mesh.weights.sum(axis=1), 1.0, atol=1e-6)
             assert mesh.weights.shape[1] <= 4 or np.count_nonzero(mesh.weights, axis=1).max() <= 4
     assert comp.report["weights"]["max_influences"] <= 4
+
+
+def test_a_limb_replaced_by_its_mirror_on_a_symmetric_body_needs_no_junction(tmp_path):
+    """PlatformerCharacter is symmetric: its left arm mirrored meets the body's right shoulder
+    edge to edge, no seam is left open, and the junction is empty (no faces picked from the
+    inputs in its place). The output has the input's borders and nothing more."""
+    from benchmarks.corpus_matrix import load_subjects, mirror_cases, write_configs
+    from rigmix.fusion.meshutil import edge_counts
+    from rigmix.geometry import weld
+    from rigmix.pipeline import compose
+
+    corpus("PlatformerCharacter")
+    name = "mirror__PlatformerCharacter__UpperArm.R"
+    case = next(c for c in mirror_cases(load_subjects(["PlatformerCharacter"])) if c.name == name)
+    comp = compose(write_configs([case], tmp_path)[name], until="fusion")
+    m = comp.report["mesh"]
+    assert m["junction_faces"] == 0
+    assert not any(g.get("fallback") for g in comp.report["fields"]["grids"])
+    for key in ("junction_boundary_edges", "open_seam_edges", "new_non_manifold_edges"):
+        assert m[key] == 0, key
+    body = comp.inputs["body"]
+    V = np.concatenate([x.positions for x in body.meshes])
+    offsets = np.cumsum([0] + [len(x.positions) for x in body.meshes])
+    F = np.concatenate([np.asarray(x.faces) + o for x, o in zip(body.meshes, offsets)])
+    _, counts_in = edge_counts(weld(V, F)[2])
+    _, counts_out = edge_counts(weld(comp.surface.V, comp.surface.F)[2])
+    assert (counts_out == 1).sum() == (counts_in == 1).sum()

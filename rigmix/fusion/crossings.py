@@ -9,14 +9,18 @@ phase over the junction faces against the junction and the kept faces near it
 bounded number of rounds, each step kept only if the surface crosses itself less after it and
 the junction's triangles stay as good (5th percentile of the minimum angles):
 
-1. untangle (:func:`_smooth_apart`): the movable corners of the crossing faces, and from the
+1. evict (:func:`_evict`): movable junction vertices inside a closed kept part the junction
+   crosses (a modular character's rigid piece, :func:`kept_parts`) go out to its surface;
+2. untangle (:func:`_smooth_apart`): the movable corners of the crossing faces, and from the
    third round their neighbours, take umbrella-smoothing steps, as few as remove the
    crossings: a fold opens with the least change of shape;
-2. push (:func:`_push_apart`): the movable corners of a face that slices another go across the
+3. clear (:func:`_clear_parts`): a junction face that a kept piece pokes through moves along
+   its normal, off the side where the piece lies, by the depth of the piece's vertices behind it;
+4. push (:func:`_push_apart`): the movable corners of a face that slices another go across the
    other face's plane, to the side where most of the face lies;
-3. release (:func:`_release`, from the second round): kept faces in the way of what is left
+5. release (:func:`_release`, from the second round): kept faces in the way of what is left
    (the kept faces crossed, those around junction corners that cannot move, and a ring more
-   each round) join the junction, so that the two steps above may move their vertices; they
+   each round) join the junction, so that the steps above may move their vertices; they
    stay in the junction only if that lowers the count.
 
 Only vertices move: faces, and so the surface's closedness and manifoldness, never change. A
@@ -33,11 +37,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .meshutil import edge_counts, intersecting_face_pairs, triangle_min_angles, unique_rows, vertex_adjacency
+from .meshutil import (
+    edge_counts,
+    intersecting_face_pairs,
+    triangle_min_angles,
+    unique_rows,
+    vertex_adjacency,
+    vertex_components,
+)
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CrossingRepair", "JunctionRepair", "repair_crossings", "repair_junction"]
+__all__ = ["CrossingRepair", "JunctionRepair", "kept_parts", "repair_crossings", "repair_junction"]
 
 #: Faces within this many target edges of the junction are looked at (the broad phase's reach:
 #: a repair moves vertices by about an edge).
@@ -51,6 +62,9 @@ BISECTIONS = 4
 
 #: Pushed corners end this many target edges beyond the other face's plane.
 PUSH_MARGIN = 0.05
+
+#: Corners taken out of a closed kept part end this many target edges beyond its surface.
+EVICT_MARGIN = 0.25
 
 
 @dataclass(frozen=True)
@@ -87,10 +101,12 @@ class _State:
     """What a repair changes: positions, movable vertices, junction (``check``) faces; and what
     it looks at: faces near the junction, kept faces that cross their own input."""
 
-    def __init__(self, V, F, movable, check, layered, releasable, pinned, reach, span):
+    def __init__(self, V, F, movable, check, layered, releasable, pinned, reach, span, parts=None):
         self.V, self.F = V, F
         self.movable, self.check = movable, check
         self.layered, self.releasable, self.pinned = layered, releasable, pinned
+        # kept part of each face apart from the junction, or -1, and whether each part is closed
+        self.part, self.closed = (np.full(len(F), -1), np.zeros(0, bool)) if parts is None else parts
         self.reach = reach  # a moved face is tested against the faces within about this distance
         self.span = span  # the faces within about this distance of the junction are looked at
         self.look()
@@ -344,17 +360,161 @@ def _least_move(S: _State, pairs, U, p, floor):
     return U, p
 
 
+def kept_parts(F, n, fixed):
+    """The kept parts of the surface apart from the junction: connected components (by shared
+    vertices) whose vertices are all ``fixed`` ``(n,) bool`` (kept vertices that never move), a
+    modular character's separate pieces.
+
+    Returns
+    -------
+    part : (m,) int64
+        Each face's part, or -1 (a face of a component with a junction vertex).
+    closed : (k,) bool
+        Per part label, whether it is closed (no boundary or non-manifold edge): a rigid piece
+        with an inside.
+    """
+    F = np.asarray(F, np.int64)
+    labels = vertex_components(F, n)
+    face_label = labels[F[:, 0]]
+    k = int(labels.max()) + 1 if len(labels) else 0
+    moving = np.zeros(k, bool)
+    moving[labels[~np.asarray(fixed, bool)]] = True
+    closed = np.ones(k, bool)
+    uE, cnt = edge_counts(F)
+    closed[labels[uE[cnt != 2, 0]]] = False
+    return np.where(moving[face_label], -1, face_label), closed & ~moving
+
+
+def _evict(S: _State, pairs, work, *, margin, floor):
+    """Take the movable junction vertices out of the closed kept parts that the crossing pairs
+    ``work`` (of ``pairs``) cross (:func:`kept_parts`): each vertex inside a part (winding
+    number above 1/2) goes to the part's closest point and ``margin`` beyond, away from it.
+
+    The junction went around a rigid piece but cut a corner of it: no fold to smooth open, and a
+    push across one face's plane runs into the next face of the piece.
+
+    Returns
+    -------
+    V : (n, 3) float64, pairs : (p, 2) int64, moved : bool
+    """
+    import igl
+
+    parts = np.unique(S.part[work.ravel()])
+    parts = parts[parts >= 0]
+    parts = parts[S.closed[parts]]
+    if not len(parts):
+        return S.V, pairs, False
+    U = S.V.copy()
+    moved = np.zeros(len(U), bool)
+    cand = np.zeros(len(U), bool)
+    cand[S.F[S.check].ravel()] = True
+    cand &= S.movable
+    for part in parts:
+        Fs = S.F[S.part == part]
+        X = S.V[Fs].reshape(-1, 3)
+        lo, hi = X.min(axis=0) - margin, X.max(axis=0) + margin
+        q = np.flatnonzero(cand & np.all((S.V >= lo) & (S.V <= hi), axis=1))
+        if not len(q):
+            continue
+        w = igl.fast_winding_number(S.V, Fs, S.V[q])
+        q = q[w > 0.5]
+        if not len(q):
+            continue
+        _, _, C = igl.point_mesh_squared_distance(S.V[q], S.V, Fs)
+        d = C - S.V[q]
+        n = np.linalg.norm(d, axis=1, keepdims=True)
+        U[q] = C + margin * d / np.maximum(n, 1e-300)
+        moved[q] = True
+    if not moved.any():
+        return S.V, pairs, False
+    p = S.pairs(U, pairs, moved)
+    if S.better(U, p, pairs, floor):
+        return U, p, True
+    return S.V, pairs, False
+
+
+def _clear_parts(S: _State, pairs, work, *, margin, steps, floor):
+    """Move each junction face of the crossing pairs ``work`` with a kept part
+    (:func:`kept_parts`, closed or not) off the part: along its normal, away from the side where the
+    part's nearby vertices mostly lie, by the depth of the part's vertices that poke through it
+    and ``margin``; the first of ``steps`` moves with no pair of ``work`` left, or else the one
+    with fewest pairs (:data:`PATIENCE`).
+
+    A junction made around a rigid piece cuts its corners where the triangles are coarser than
+    the piece's curvature: the piece's vertices poke through the face, none of the face's
+    corners is inside the piece, and a push across one face's plane of the piece runs into the
+    next one.
+
+    Returns
+    -------
+    V : (n, 3) float64, pairs : (p, 2) int64, steps : int
+    """
+    best = (S.V, pairs, 0)
+    U, p = S.V.copy(), pairs
+    part_vertices = {}
+    for k in range(1, steps + 1):
+        a, b = work[:, 0], work[:, 1]
+        x = np.where(S.check[a], a, b)  # the junction face
+        y = np.where(S.check[a], b, a)
+        sel = (S.part[y] >= 0) & ~S.check[y]
+        if not sel.any():
+            break
+        for q in np.unique(S.part[y[sel]]):
+            if q not in part_vertices:
+                part_vertices[q] = np.unique(S.F[S.part == q].ravel())
+        move = np.zeros_like(U)
+        hits = np.zeros(len(U))
+        for f in np.unique(x[sel]):
+            parts = np.unique(S.part[y[sel & (x == f)]])
+            P = U[S.F[f]]
+            n = np.cross(P[1] - P[0], P[2] - P[0])
+            area2 = np.linalg.norm(n)
+            if area2 <= 0:
+                continue
+            n /= area2
+            c = P.mean(axis=0)
+            radius = np.linalg.norm(P - c, axis=1).max() + S.reach
+            X = U[np.concatenate([part_vertices[q] for q in parts])]
+            X = X[np.linalg.norm(X - c, axis=1) <= radius]
+            if not len(X):
+                continue
+            h = (X - c) @ n
+            side = 1.0 if h.sum() >= 0 else -1.0
+            depth = max(float((-side * h).max()), 0.0)
+            shift = -side * (depth + margin) * n
+            corners = S.F[f][S.movable[S.F[f]]]
+            move[corners] += shift
+            hits[corners] += 1.0
+        if not hits.any():
+            break
+        U = U + move / np.maximum(hits, 1.0)[:, None]
+        p = S.pairs(U, p, hits > 0)
+        if S.better(U, p, best[1], floor):
+            best = (U.copy(), p, k)
+        work = S.targets(p)
+        if len(work) == 0 or k - best[2] >= PATIENCE:
+            break
+    return best
+
+
 def _untangle(S: _State, pairs, *, ring, steps, step, margin, floor):
     """Smoothing then pushing (:func:`_smooth_apart`, :func:`_push_apart`) on the pairs the
     repair works on, each move cut back to the least that does as well (:func:`_least_move`).
     Returns ``(pairs, steps that stood)`` and updates ``S.V``."""
     done = 0
-    for tier in ("smooth", "push"):
+    work = S.targets(pairs)
+    if len(work):
+        U, p, moved = _evict(S, pairs, work, margin=EVICT_MARGIN * S.reach, floor=floor)
+        if moved:
+            S.V, pairs, done = U, p, done + 1
+    for tier in ("smooth", "clear", "push"):
         work = S.targets(pairs)
         if len(work) == 0:
             break
         if tier == "smooth":
             U, p, k = _smooth_apart(S, pairs, work, ring=ring, steps=steps, step=step, floor=floor)
+        elif tier == "clear":
+            U, p, k = _clear_parts(S, pairs, work, margin=PUSH_MARGIN * S.reach, steps=steps, floor=floor)
         else:
             U, p, k = _push_apart(S, pairs, work, margin=margin, steps=steps, floor=floor)
         if k:
@@ -408,8 +568,9 @@ def repair_crossings(V, F, movable, check, *, target, releasable=None, layered=N
     uE, cnt = edge_counts(F)
     pinned = np.zeros(len(V), bool)  # borders and non-manifold edges keep their positions
     pinned[uE[cnt != 2].ravel()] = True
-    S = _State(V, F, np.asarray(movable, bool) & ~pinned, check, np.zeros(m, bool), releasable, pinned,
-               reach=target, span=NEAR_EDGES * target)
+    movable = np.asarray(movable, bool) & ~pinned
+    S = _State(V, F, movable, check, np.zeros(m, bool), releasable, pinned, reach=target, span=NEAR_EDGES * target,
+               parts=kept_parts(F, len(V), ~np.asarray(movable, bool)))
     pairs = S.pairs()
     found = len(pairs)
     if found and layered is not None:

@@ -48,6 +48,7 @@ from .seams import (
     preserved_loops,
     separate_seams,
     shared_preserved,
+    under_kept_shells,
     unpinch_preserved,
 )
 from .stitch import junction_for_cluster
@@ -248,9 +249,10 @@ class FusionParams:
     shell_clearance_voxels : where crossings are left after the repair and an input keeps closed
         parts whole (a robot's plates, an arm band: secondary components, never blended), the
         junction is made again around them, this many voxels clear, and kept if it crosses less
-        (0 disables it). Sunk into the surface they cover, such parts are crossed by the
-        isosurface of that surface (a cyberpunk figure's arm plates by its own arm, 46 pairs on
-        the Triceratops' tail on it).
+        with triangles as good (0 disables it, and :func:`.seams.under_kept_shells`, which first
+        gives the junction the preserved faces such a part covers next to it). Sunk into the
+        surface they cover, such parts are crossed by the isosurface of that surface (a cyberpunk
+        figure's arm plates by its own arm, 46 pairs on the Triceratops' tail on it).
     backend : "numpy" (numpy + libigl) or "openvdb".
     keep_fields : keep the blended grids in the result (for ``dump_fields``).
     """
@@ -454,6 +456,8 @@ def _partition(inputs, actions, params) -> _Partition:
         preserved = separate_seams(pres, preserved, (2.0 * params.cut_voxels + 1.5) * h_est)
         preserved = drop_specks(pres, preserved, params.min_island_faces)
         preserved = unpinch_preserved(pres, preserved)
+        if params.shell_clearance_voxels > 0:
+            preserved = under_kept_shells(pres, preserved, junction)
         if params.min_seam_wedge > 0:
             preserved = [open_notches(P, preserved[i], min_wedge=params.min_seam_wedge) for i, P in enumerate(pres)]
         junction = [~preserved[i] & ~(P.absent & ~P.preserved) for i, P in enumerate(pres)]
@@ -600,7 +604,8 @@ def _fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, param
 
     Where the isosurface cannot close the junction (open sheets have no inside; loops left
     unmatched), the cluster's input faces are kept instead from the input most present on each
-    (:func:`.seams.most_present_faces`).
+    (:func:`.seams.most_present_faces`). Where no input has a seam loop left open (the kept
+    faces meet edge to edge), the junction is empty.
     """
     pres = part.pres
     grid = cluster_grid(lo, hi, part.h0, params, part.diagonal)
@@ -624,7 +629,10 @@ def _fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, param
     if clearance is not None:
         info["shell_clearance"] = True
     JV, JF, selected = cj.V, cj.F, None
-    if info["unmatched_preserved_loops"] > 0 or len(JF) == 0:
+    # no seam open anywhere: the kept faces of the inputs close each other (a symmetric
+    # character's limb replaced by its mirrored partner), and nothing is left to cover
+    closed = not loops_all
+    if info["unmatched_preserved_loops"] > 0 or (len(JF) == 0 and not closed):
         selected = most_present_faces(pres, part.junction, grid)
         info["fallback"] = "face-selection"
         JV, JF = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
@@ -848,8 +856,9 @@ def _around_kept_parts(inputs, part: _Partition, boxes, clusters, repaired: _Rep
                        loops_all, backend, actions, params):
     """The junction made again around the closed parts the inputs keep whole (:func:`kept_shells`),
     in the clusters near one whose junction has a crossing no input had, where it leaves fewer
-    such crossing pairs than ``repaired``, no more clusters falling back to face selection and
-    no more over-shared edges.
+    such crossing pairs than ``repaired``, no more clusters falling back to face selection, no
+    more over-shared edges, and triangles as good (the 5th percentile of the junction's minimum
+    angles at least the smaller of ``min_angle_p05`` and the first junction's).
 
     ``shells``: per input, :func:`kept_shells`; the clusters' ``input_fields`` are used again.
 
@@ -870,10 +879,19 @@ def _around_kept_parts(inputs, part: _Partition, boxes, clusters, repaired: _Rep
         return clusters, repaired
     carved = [c if c is not None else o for c, o in zip(carved, clusters)]
     alt = _repair_clusters(inputs, part, carved, params)
+    floor = min(params.min_angle_p05, _angle_p05(repaired.JV, repaired.JF))
     if (_made(alt) < _made(repaired) and _fallbacks(carved) <= _fallbacks(clusters)
-            and _overused_edges(alt.JF) <= _overused_edges(repaired.JF)):
+            and _overused_edges(alt.JF) <= _overused_edges(repaired.JF) and _angle_p05(alt.JV, alt.JF) >= floor):
         return carved, alt
     return clusters, repaired
+
+
+def _angle_p05(V, F) -> float:
+    """5th percentile of the minimum angles of the triangles ``F`` over ``V`` (degrees; 90 for
+    none)."""
+    from .meshutil import triangle_min_angles
+
+    return float(np.percentile(triangle_min_angles(V, F), 5)) if len(F) else 90.0
 
 
 def _junction_geometry(clusters):

@@ -20,7 +20,7 @@ from .meshutil import (
     nondegenerate,
     undirected_edges,
 )
-from .presence import Presence
+from .presence import Presence, kept_shells
 
 __all__ = [
     "attach_conflicts",
@@ -30,6 +30,7 @@ __all__ = [
     "drop_specks",
     "separate_seams",
     "open_notches",
+    "under_kept_shells",
     "junction_clusters",
     "cluster_grid",
     "preserved_loops",
@@ -339,6 +340,96 @@ def open_notches(P: Presence, preserved, *, min_wedge=60.0, rounds=3):
             break
         out &= ~bad[Fw].any(axis=1)
     return out
+
+
+def under_kept_shells(pres: list[Presence], preserved, junction, *, rounds=64):
+    """Un-preserve the faces, next to a junction, that a kept closed part covers.
+
+    A modular character's rigid part (a leg plugged into the thorax, an arm's shoulder cylinder)
+    is kept whole and is not in the fields. Where it lands on another input's preserved surface,
+    that surface runs on inside it up to the seam, and every junction face the seam starts
+    crosses the part: no move of the junction's own vertices can take them out. The covered faces
+    join the junction instead, so that the junction starts outside the part and can go around
+    it (``FusionParams.shell_clearance_voxels``). Another input's part takes every face it
+    reaches into; an input's own part, laid over its surface by its artist, only the faces it
+    hides whole. Only faces joined to a junction through covered
+    faces are taken: a covered patch away from every junction stays as it is (the part hides
+    it), no new hole opens, and an input whose seam would split into more pieces keeps its faces.
+
+    Parameters
+    ----------
+    pres : list of Presence
+    preserved, junction : list of (m_i,) bool arrays
+        Per input, preserved and junction welded faces.
+    rounds : int
+        Rings of covered faces taken from a junction at most.
+
+    Returns
+    -------
+    list of (m_i,) bool arrays
+        New preserved masks; the inputs are not modified.
+    """
+    out = [m.copy() for m in preserved]
+    shells = [kept_shells(P, preserved[j]) for j, P in enumerate(pres)]
+    for i, P in enumerate(pres):
+        V, F = P.welded.V, P.welded.F
+        if not junction[i].any():
+            continue
+        by_other, by_own = np.zeros(len(V), bool), np.zeros(len(V), bool)
+        for j, Q in enumerate(pres):
+            if len(shells[j]):
+                covered = by_own if j == i else by_other
+                covered |= _inside_closed(Q.welded.V, shells[j], V)
+        in_shell = np.zeros(len(V), bool)
+        in_shell[shells[i].ravel()] = True  # a part does not cover itself
+        # another character's part: every face it reaches into; the input's own parts, which
+        # its artist laid over its surface: only the faces they hide whole
+        take = out[i] & ~in_shell[F].all(axis=1) & (by_other[F].any(axis=1) | by_own[F].all(axis=1))
+        if not take.any():
+            continue
+        reach = np.zeros(len(V), bool)
+        reach[F[junction[i]].ravel()] = True
+        grown = np.zeros(len(F), bool)
+        for _ in range(rounds):
+            new = take & ~grown & reach[F].any(axis=1)
+            if not new.any():
+                break
+            grown |= new
+            reach[F[new].ravel()] = True
+        # a seam that splits in two (a preserved island cut off) is a loop no bridge expects
+        if _border_count(F, out[i] & ~grown & ~P.secondary) <= _border_count(F, out[i] & ~P.secondary):
+            out[i] &= ~grown
+    return out
+
+
+def _inside_closed(Vs, Fs, X):
+    """``(len(X),) bool``: points ``X`` inside the closed surface ``Fs`` over ``Vs`` (winding
+    number above 1/2); only those within its bounding box are tested."""
+    import igl
+
+    out = np.zeros(len(X), bool)
+    T = Vs[Fs].reshape(-1, 3)
+    near = np.flatnonzero(np.all((X >= T.min(axis=0)) & (X <= T.max(axis=0)), axis=1))
+    if len(near):
+        w = igl.fast_winding_number(np.ascontiguousarray(Vs, np.float64), np.ascontiguousarray(Fs, np.int64),
+                                    np.ascontiguousarray(X[near], np.float64))
+        out[near[w > 0.5]] = True
+    return out
+
+
+def _border_count(F, faces):
+    """Connected pieces of the border of the faces ``faces`` ``(m,) bool`` of ``F`` (their
+    boundary edges joined at shared vertices): the seam loops and open borders they make."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    B = boundary_halfedges(F[faces])
+    if not len(B):
+        return 0
+    verts, inv = np.unique(B.ravel(), return_inverse=True)
+    inv = inv.reshape(-1, 2)
+    A = coo_matrix((np.ones(len(inv)), (inv[:, 0], inv[:, 1])), shape=(len(verts), len(verts)))
+    return int(connected_components(A, directed=False)[0])
 
 
 def junction_clusters(pres, junction, margin):
