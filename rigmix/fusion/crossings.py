@@ -14,11 +14,9 @@ the junction's triangles stay as good (5th percentile of the minimum angles):
 2. untangle (:func:`_smooth_apart`): the movable corners of the crossing faces, and from the
    third round their neighbours, take umbrella-smoothing steps, as few as remove the
    crossings: a fold opens with the least change of shape;
-3. clear (:func:`_clear_parts`): a junction face that a kept piece pokes through moves along
-   its normal, off the side where the piece lies, by the depth of the piece's vertices behind it;
-4. push (:func:`_push_apart`): the movable corners of a face that slices another go across the
+3. push (:func:`_push_apart`): the movable corners of a face that slices another go across the
    other face's plane, to the side where most of the face lies;
-5. release (:func:`_release`, from the second round): kept faces in the way of what is left
+4. release (:func:`_release`, from the second round): kept faces in the way of what is left
    (the kept faces crossed, those around junction corners that cannot move, and a ring more
    each round) join the junction, so that the steps above may move their vertices; they
    stay in the junction only if that lowers the count.
@@ -433,70 +431,6 @@ def _evict(S: _State, pairs, work, *, margin, floor):
     return S.V, pairs, False
 
 
-def _clear_parts(S: _State, pairs, work, *, margin, steps, floor):
-    """Move each junction face of the crossing pairs ``work`` with a kept part
-    (:func:`kept_parts`, closed or not) off the part: along its normal, away from the side where the
-    part's nearby vertices mostly lie, by the depth of the part's vertices that poke through it
-    and ``margin``; the first of ``steps`` moves with no pair of ``work`` left, or else the one
-    with fewest pairs (:data:`PATIENCE`).
-
-    A junction made around a rigid piece cuts its corners where the triangles are coarser than
-    the piece's curvature: the piece's vertices poke through the face, none of the face's
-    corners is inside the piece, and a push across one face's plane of the piece runs into the
-    next one.
-
-    Returns
-    -------
-    V : (n, 3) float64, pairs : (p, 2) int64, steps : int
-    """
-    best = (S.V, pairs, 0)
-    U, p = S.V.copy(), pairs
-    part_vertices = {}
-    for k in range(1, steps + 1):
-        a, b = work[:, 0], work[:, 1]
-        x = np.where(S.check[a], a, b)  # the junction face
-        y = np.where(S.check[a], b, a)
-        sel = (S.part[y] >= 0) & ~S.check[y]
-        if not sel.any():
-            break
-        for q in np.unique(S.part[y[sel]]):
-            if q not in part_vertices:
-                part_vertices[q] = np.unique(S.F[S.part == q].ravel())
-        move = np.zeros_like(U)
-        hits = np.zeros(len(U))
-        for f in np.unique(x[sel]):
-            parts = np.unique(S.part[y[sel & (x == f)]])
-            P = U[S.F[f]]
-            n = np.cross(P[1] - P[0], P[2] - P[0])
-            area2 = np.linalg.norm(n)
-            if area2 <= 0:
-                continue
-            n /= area2
-            c = P.mean(axis=0)
-            radius = np.linalg.norm(P - c, axis=1).max() + S.reach
-            X = U[np.concatenate([part_vertices[q] for q in parts])]
-            X = X[np.linalg.norm(X - c, axis=1) <= radius]
-            if not len(X):
-                continue
-            h = (X - c) @ n
-            side = 1.0 if h.sum() >= 0 else -1.0
-            depth = max(float((-side * h).max()), 0.0)
-            shift = -side * (depth + margin) * n
-            corners = S.F[f][S.movable[S.F[f]]]
-            move[corners] += shift
-            hits[corners] += 1.0
-        if not hits.any():
-            break
-        U = U + move / np.maximum(hits, 1.0)[:, None]
-        p = S.pairs(U, p, hits > 0)
-        if S.better(U, p, best[1], floor):
-            best = (U.copy(), p, k)
-        work = S.targets(p)
-        if len(work) == 0 or k - best[2] >= PATIENCE:
-            break
-    return best
-
-
 def _untangle(S: _State, pairs, *, ring, steps, step, margin, floor):
     """Smoothing then pushing (:func:`_smooth_apart`, :func:`_push_apart`) on the pairs the
     repair works on, each move cut back to the least that does as well (:func:`_least_move`).
@@ -507,14 +441,12 @@ def _untangle(S: _State, pairs, *, ring, steps, step, margin, floor):
         U, p, moved = _evict(S, pairs, work, margin=EVICT_MARGIN * S.reach, floor=floor)
         if moved:
             S.V, pairs, done = U, p, done + 1
-    for tier in ("smooth", "clear", "push"):
+    for tier in ("smooth", "push"):
         work = S.targets(pairs)
         if len(work) == 0:
             break
         if tier == "smooth":
             U, p, k = _smooth_apart(S, pairs, work, ring=ring, steps=steps, step=step, floor=floor)
-        elif tier == "clear":
-            U, p, k = _clear_parts(S, pairs, work, margin=PUSH_MARGIN * S.reach, steps=steps, floor=floor)
         else:
             U, p, k = _push_apart(S, pairs, work, margin=margin, steps=steps, floor=floor)
         if k:

@@ -605,7 +605,8 @@ def _fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, param
     Where the isosurface cannot close the junction (open sheets have no inside; loops left
     unmatched), the cluster's input faces are kept instead from the input most present on each
     (:func:`.seams.most_present_faces`). Where no input has a seam loop left open (the kept
-    faces meet edge to edge), the junction is empty.
+    faces meet edge to edge) and every input with junction faces keeps some, the junction is
+    empty.
     """
     pres = part.pres
     grid = cluster_grid(lo, hi, part.h0, params, part.diagonal)
@@ -630,8 +631,9 @@ def _fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, param
         info["shell_clearance"] = True
     JV, JF, selected = cj.V, cj.F, None
     # no seam open anywhere: the kept faces of the inputs close each other (a symmetric
-    # character's limb replaced by its mirrored partner), and nothing is left to cover
-    closed = not loops_all
+    # character's limb replaced by its mirrored partner), and nothing is left to cover; unless
+    # an input would vanish whole (a graft smaller than the voxel is all junction, no seam)
+    closed = not loops_all and all(np.any(k) for k, j in zip(part.kept, part.junction) if np.any(j))
     if info["unmatched_preserved_loops"] > 0 or (len(JF) == 0 and not closed):
         selected = most_present_faces(pres, part.junction, grid)
         info["fallback"] = "face-selection"
