@@ -227,3 +227,20 @@ def test_a_limb_replaced_by_its_mirror_on_a_symmetric_body_needs_no_junction(tmp
     _, counts_in = edge_counts(weld(V, F)[2])
     _, counts_out = edge_counts(weld(comp.surface.V, comp.surface.F)[2])
     assert (counts_out == 1).sum() == (counts_in == 1).sum()
+
+
+def test_a_seam_left_open_on_a_chain_is_never_left_without_a_junction(tmp_path):
+    """The Deer's tail is cut next to a hole of its mesh: its seam is a chain, not a loop, and no
+    seam loop is left anywhere. That is no seamless fit (the rule of the test above): the
+    junction is made, or picked from the inputs, rather than left empty."""
+    from benchmarks.corpus_matrix import load_subjects, tail_cases, write_configs
+    from rigmix.pipeline import compose
+
+    corpus("Deer")
+    corpus("CyberpunkCharacter")
+    name = "tail__CyberpunkCharacter__Deer"
+    case = next(c for c in tail_cases(load_subjects(["CyberpunkCharacter", "Deer"])) if c.name == name)
+    comp = compose(write_configs([case], tmp_path)[name], until="fusion")
+    m = comp.report["mesh"]
+    assert m["open_seam_edges"] > 0
+    assert m["junction_faces"] > 0

@@ -595,18 +595,19 @@ class _ClusterResult:
 
 
 def _fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params,
-                  shells=None, input_fields=None, keep_input_fields=False) -> _ClusterResult | None:
+                  shells=None, input_fields=None, keep_input_fields=False, open_seams=0) -> _ClusterResult | None:
     """Fields and junction surface of cluster ``ci`` (box ``lo``, ``hi``); with ``shells`` (per
     input, welded faces of its kept closed parts: :func:`kept_shells`), a junction that goes
     around those near the cluster (:func:`_shell_clearance`), None when none is near.
     ``input_fields``: the inputs' fields of this cluster from an earlier pass (computed when
-    None); ``keep_input_fields``: return them with the result.
+    None); ``keep_input_fields``: return them with the result; ``open_seams``: seam edges on
+    chains that do not close (:func:`_seam_loops`), over all inputs.
 
     Where the isosurface cannot close the junction (open sheets have no inside; loops left
     unmatched), the cluster's input faces are kept instead from the input most present on each
     (:func:`.seams.most_present_faces`). Where no input has a seam loop left open (the kept
-    faces meet edge to edge) and every input with junction faces keeps some, the junction is
-    empty.
+    faces meet edge to edge, no seam chain either) and every input with junction faces keeps
+    some, the junction is empty.
     """
     pres = part.pres
     grid = cluster_grid(lo, hi, part.h0, params, part.diagonal)
@@ -633,7 +634,7 @@ def _fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, param
     # no seam open anywhere: the kept faces of the inputs close each other (a symmetric
     # character's limb replaced by its mirrored partner), and nothing is left to cover; unless
     # an input would vanish whole (a graft smaller than the voxel is all junction, no seam)
-    closed = not loops_all and all(np.any(k) for k, j in zip(part.kept, part.junction) if np.any(j))
+    closed = not loops_all and open_seams == 0 and all(np.any(k) for k, j in zip(part.kept, part.junction) if np.any(j))
     if info["unmatched_preserved_loops"] > 0 or (len(JF) == 0 and not closed):
         selected = most_present_faces(pres, part.junction, grid)
         info["fallback"] = "face-selection"
@@ -855,7 +856,7 @@ def _repair_clusters(inputs, part: _Partition, clusters, params) -> _Repaired:
 
 
 def _around_kept_parts(inputs, part: _Partition, boxes, clusters, repaired: _Repaired, shells, surfaces,
-                       loops_all, backend, actions, params):
+                       loops_all, backend, actions, params, open_seams=0):
     """The junction made again around the closed parts the inputs keep whole (:func:`kept_shells`),
     in the clusters near one whose junction has a crossing no input had, where it leaves fewer
     such crossing pairs than ``repaired``, no more clusters falling back to face selection, no
@@ -875,7 +876,7 @@ def _around_kept_parts(inputs, part: _Partition, boxes, clusters, repaired: _Rep
     offsets = np.cumsum([0] + [len(c.F) for c in clusters])
     crossing = [bool(repaired.made[a:b].any()) for a, b in zip(offsets[:-1], offsets[1:])]
     carved = [_fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params, shells=shells,
-                            input_fields=clusters[ci].input_fields) if crossing[ci] else None
+                            input_fields=clusters[ci].input_fields, open_seams=open_seams) if crossing[ci] else None
               for ci, (lo, hi) in enumerate(boxes)]
     if all(c is None for c in carved):
         return clusters, repaired
@@ -1102,7 +1103,7 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     for ci, (lo, hi) in enumerate(boxes):
         step(f"junction {ci + 1} of {len(boxes)}")
         clusters.append(_fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params,
-                                      keep_input_fields=second_pass))
+                                      keep_input_fields=second_pass, open_seams=open_chain_edges))
     for c in clusters:
         for k, v in c.timings.items():
             timings[k] = timings.get(k, 0.0) + v
@@ -1114,7 +1115,7 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
         t0 = time.perf_counter()
         step("around kept parts")
         clusters, repaired = _around_kept_parts(inputs, part, boxes, clusters, repaired, shells, surfaces,
-                                                loops_all, backend, actions, params)
+                                                loops_all, backend, actions, params, open_chain_edges)
         timings["shell_clearance"] = time.perf_counter() - t0
     clusters = [replace(c, input_fields=None) for c in clusters]  # free them before assembly
     for ci, c in enumerate(clusters):
