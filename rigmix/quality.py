@@ -324,12 +324,18 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
             scale = float(plan.scales.get(cid, 1.0)) or 1.0
             c = src.skeleton.rest_worlds()[j, :3, 3]
             M0 = rest_skinning_matrices(src.skeleton)
-            for m in src.meshes:
-                if not m.skinned or not len(m.faces):
+            meshes = [m for m in src.meshes if m.skinned and len(m.faces) and len(m.positions)]
+            rests = [linear_blend_skinning(m.positions, m.joints, m.weights, M0) for m in meshes]
+            dists = [np.linalg.norm(x - c, axis=1) for x in rests]
+            if not meshes:
+                continue
+            # the input's band, at least its nearest vertex (not each mesh's: a prop or a far
+            # part of a modular character has no vertex near the joint)
+            reach = max(r / scale, min(float(d.min()) for d in dists))
+            for m, rest, d in zip(meshes, rests, dists):
+                b = np.flatnonzero(d <= reach)
+                if not len(b):
                     continue
-                rest = linear_blend_skinning(m.positions, m.joints, m.weights, M0)
-                d = np.linalg.norm(rest - c, axis=1)
-                b = np.flatnonzero(d <= max(r / scale, float(d.min())))
                 nsrc += len(b)
                 samples.setdefault(cid, []).append(
                     band_stretch(src.skeleton, src.clips, m.positions, m.joints, m.weights, m.faces, b,

@@ -181,3 +181,33 @@ def test_band_stretch_is_the_mean_face_stretch_of_the_skinned_band():
     assert len(got) == len(want) and want.max() > 0.01
     # near 0 the square root of a difference of eigenvalues turns rounding into ~1e-9
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-8)
+
+
+def test_an_inputs_band_is_its_vertices_within_reach_of_the_joint(witch_wings):
+    """Over all the input's meshes, at least its nearest vertex; a mesh far from the joint (a
+    modular character's other parts, a prop) adds none."""
+    from rigmix.skinning import linear_blend_skinning, rest_skinning_matrices
+
+    comp = witch_wings
+    q = comp.report["quality"]
+    donor = comp.inputs["donor"]
+    scale = float(comp.plan.scales.get("donor", 1.0))
+    M0 = rest_skinning_matrices(donor.skeleton)
+    meshes = [m for m in donor.meshes if m.skinned and len(m.faces)]
+    assert len(meshes) > 1
+    expected = 0
+    for p in comp.plan.fused_pairs:
+        c = donor.skeleton.rest_worlds()[p.source_joint, :3, 3]
+        d = [np.linalg.norm(linear_blend_skinning(m.positions, m.joints, m.weights, M0) - c, axis=1) for m in meshes]
+        reach = max(q["band_radius"] / scale, min(x.min() for x in d))
+        per_mesh = [int((x <= reach).sum()) for x in d]
+        assert 0 in per_mesh  # some part of the Wasp lies beyond the reach of each wing's root
+        expected += sum(per_mesh)
+    # the Witch has no clip: her band is her own vertices in the output band
+    body = comp.fusion_ids.index("body")
+    S = comp.surface
+    V = np.asarray(S.V)
+    P = comp.plan.skeleton.rest_worlds()[[p.output for p in comp.plan.fused_pairs], :3, 3]
+    band = np.linalg.norm(V[:, None] - P[None], axis=2).min(axis=1) <= q["band_radius"]
+    expected += int((band & (S.origin_input == body) & ~np.asarray(S.junction_vertices)).sum())
+    assert q["source_band_vertices"] == expected
