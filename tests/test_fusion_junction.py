@@ -458,3 +458,27 @@ def test_relocation_matches_one_candidate_at_a_time():
         if pos is not None:
             W[v] = pos
     assert np.allclose(out, W, rtol=0, atol=1e-12 * edge)
+
+
+def test_an_edge_two_fans_share_is_flipped_apart():
+    """A pinched seam bridged from both sides of its pinch: two quads, each split along the same
+    edge ``a b`` (four faces on it). One quad takes its other diagonal; the faces stay
+    consistently oriented and cover the same quads."""
+    from rigmix.fusion.remesh import flip_doubled_edges
+
+    a, b = (0.0, 0.0, 0.0), (1.0, 1.0, 0.0)
+    V = np.array([a, b, (0.0, 1.0, 0.0), (1.0, 0.0, 0.0), (0.5, 0.5, 0.7), (0.5, 0.5, -0.7)])
+    F = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4], [1, 0, 5]])
+    _, cnt = edge_counts(F)
+    assert cnt.max() == 4
+    G = flip_doubled_edges(V, F)
+    uE, cnt = edge_counts(G)
+    assert len(G) == len(F) and cnt.max() == 2
+    assert sum(1 for e in uE.tolist() if sorted(e) == [0, 1]) == 1  # one quad keeps the edge a b
+    halfedges = np.concatenate([G[:, [0, 1]], G[:, [1, 2]], G[:, [2, 0]]])
+    assert len(np.unique(halfedges, axis=0)) == len(halfedges)  # consistently oriented
+    def area(T):
+        return 0.5 * np.linalg.norm(np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]]), axis=1).sum()
+
+    assert area(G) == pytest.approx(area(F))  # each quad split the other way covers the same (planar) quad
+    assert np.array_equal(flip_doubled_edges(V, G), G)  # nothing left to flip

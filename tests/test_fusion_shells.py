@@ -125,3 +125,19 @@ def test_faces_under_another_inputs_part_join_the_junction(mirrored_leg):
         reach[body.welded.F[step].ravel()] = True
         left &= ~step
     assert not left.any()
+
+
+def test_a_pinched_seam_bridged_from_both_sides_leaves_no_non_manifold_edge(tmp_path):
+    """The Wasp's left fore leg replaced by its mirrored partner: the seam touches itself at a
+    vertex, and the bridge reached one isosurface vertex from both sides of the pinch (four faces
+    on one edge). Flipped apart, the output has no edge the inputs did not share."""
+    from benchmarks.corpus_matrix import load_subjects, mirror_cases, write_configs
+    from rigmix.pipeline import compose
+
+    asset("Wasp")
+    name = "mirror__Wasp__TopLeg1.L"
+    case = next(c for c in mirror_cases(load_subjects(["Wasp"])) if c.name == name)
+    m = compose(write_configs([case], tmp_path)[name], until="fusion").report["mesh"]
+    assert m["junction_faces"] > 0
+    for key in ("new_non_manifold_edges", "junction_boundary_edges", "open_seam_edges"):
+        assert m[key] == 0, key

@@ -14,6 +14,7 @@ from .meshutil import (
     intersecting_face_pairs,
     nondegenerate,
     triangle_corner_angles,
+    triangle_min_angles,
     undirected_edges,
     unique_ints,
     unique_rows,
@@ -59,6 +60,64 @@ def is_edge_manifold(F):
     r = igl.is_vertex_manifold(F)
     ok = r[0] if isinstance(r, tuple) else r
     return bool(np.all(ok))
+
+
+def flip_doubled_edges(V, F):
+    """Faces ``F`` with each edge that two separate pairs of faces share made manifold by a flip.
+
+    Bridging a seam loop that touches itself at a vertex (a pinched seam) to the isosurface can
+    join that vertex to one isosurface vertex from both sides of the pinch: four faces on one
+    edge, two running each way. Each face running one way pairs with the one running the other
+    way that lies flattest against it (largest normal dot product); the pair whose flip makes
+    the better smallest angle, and no edge that exists already, takes the other diagonal of its
+    quad. Edges shared otherwise are left as they are.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+    F : (m, 3) int array
+        Consistently oriented faces.
+
+    Returns
+    -------
+    (m, 3) int64
+        The same number of faces; only the flipped pairs differ.
+    """
+    F = np.array(F, dtype=np.int64).reshape(-1, 3)
+    uE, cnt = edge_counts(F)
+    if not np.any(cnt == 4):
+        return F
+    V = np.asarray(V, dtype=np.float64)
+    for a, b in uE[cnt == 4]:
+        has = np.isin(F, (a, b)).sum(axis=1) == 2
+        fw, bw = [], []  # (face, opposite vertex): faces running a -> b, and b -> a
+        for f in np.flatnonzero(has):
+            k = int(np.flatnonzero(F[f] == a)[0])
+            other = int(F[f][(F[f] != a) & (F[f] != b)][0])
+            (fw if F[f][(k + 1) % 3] == b else bw).append((int(f), other))
+        if len(fw) != 2 or len(bw) != 2:
+            continue
+        n = {f: _unit_normal(V[F[f]]) for f, _ in fw + bw}
+        straight = n[fw[0][0]] @ n[bw[0][0]] + n[fw[1][0]] @ n[bw[1][0]]
+        crossed = n[fw[0][0]] @ n[bw[1][0]] + n[fw[1][0]] @ n[bw[0][0]]
+        pairs = [(fw[0], bw[0]), (fw[1], bw[1])] if straight >= crossed else [(fw[0], bw[1]), (fw[1], bw[0])]
+        present = {tuple(sorted(e)) for e in np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]).tolist()}
+        best = None
+        for (f, c), (g, d) in pairs:
+            if c == d or tuple(sorted((c, d))) in present:
+                continue
+            flipped = np.array([(c, a, d), (d, b, c)], np.int64)
+            angle = float(triangle_min_angles(V, flipped).min())
+            if best is None or angle > best[0]:
+                best = (angle, f, g, flipped)
+        if best is not None:
+            F[best[1]], F[best[2]] = best[3]
+    return F
+
+
+def _unit_normal(P):
+    n = np.cross(P[1] - P[0], P[2] - P[0])
+    return n / max(float(np.linalg.norm(n)), 1e-300)
 
 
 def remesh_junction(V, F, fixed, *, target, iterations=5):

@@ -32,6 +32,7 @@ from .junction import (
 from .meshutil import cross3, dihedral_angles, intersecting_face_pairs, triangle_min_angles
 from .remesh import (
     collapse_to_improve_angles,
+    flip_doubled_edges,
     flip_to_improve_angles,
     insert_points,
     is_edge_manifold,
@@ -902,6 +903,7 @@ def _remesh_bridged(bridge, grid, pres, surfaces, preserved, inputs_fields, acti
     h = grid.voxel
     nI, keys, edge = bridge.n_iso, bridge.keys, bridge.seam_edge
     JV, JF, old = remove_unreferenced(bridge.V, bridge.F)
+    JF = flip_doubled_edges(JV, JF)  # a pinched seam bridged from both sides of its pinch
     isfixed = old >= nI
     fixed_keys = {v: k for k, v in keys.items()}
     info: dict = {}
