@@ -114,10 +114,12 @@ def test_kept_parts_are_the_pieces_apart_from_the_junction():
     assert not closed[part[~junction[:-1]][0]]
 
 
-def test_a_junction_goes_off_a_kept_piece_it_cuts():
-    """A rigid piece, mostly above the junction, cuts through it with a junction vertex inside
-    it: the vertex is taken out to the piece's surface, and the junction ends below it."""
-    V, F, junction, movable = _sheet_and_piece(0.3, (2.0, 2.0, 0.2))
+@pytest.mark.parametrize("centre", [(2.5, 2.5, 0.2), (2.0, 2.0, 0.2)], ids=["corners_poke", "vertex_inside"])
+def test_a_junction_goes_off_a_kept_piece_it_cuts(centre):
+    """A rigid piece, mostly above the junction, cuts through it: its corners poke through a
+    junction face with no junction vertex inside it (the face is moved along its normal), or a
+    junction vertex lies inside it (taken out to its surface). The junction ends below it."""
+    V, F, junction, movable = _sheet_and_piece(0.3, centre)
     assert _crossings(V, F, junction) > 0
     rep = repair_crossings(V, F, movable, junction, target=1.0)
     assert rep.found > 0 and rep.left == 0

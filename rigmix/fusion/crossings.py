@@ -14,9 +14,11 @@ the junction's triangles stay as good (5th percentile of the minimum angles):
 2. untangle (:func:`_smooth_apart`): the movable corners of the crossing faces, and from the
    third round their neighbours, take umbrella-smoothing steps, as few as remove the
    crossings: a fold opens with the least change of shape;
-3. push (:func:`_push_apart`): the movable corners of a face that slices another go across the
+3. clear (:func:`_clear_parts`): a junction face that a kept piece pokes through moves along
+   its normal, off the side where the piece lies, by the depth of the piece's vertices behind it;
+4. push (:func:`_push_apart`): the movable corners of a face that slices another go across the
    other face's plane, to the side where most of the face lies;
-4. release (:func:`_release`, from the second round): kept faces in the way of what is left
+5. release (:func:`_release`, from the second round): kept faces in the way of what is left
    (the kept faces crossed, those around junction corners that cannot move, and a ring more
    each round) join the junction, so that the steps above may move their vertices; they
    stay in the junction only if that lowers the count.
@@ -60,6 +62,9 @@ BISECTIONS = 4
 
 #: Pushed corners end this many target edges beyond the other face's plane.
 PUSH_MARGIN = 0.05
+
+#: A clearing step (:func:`_clear_parts`) moves no corner further than this many target edges.
+CLEAR_EDGES = 1.0
 
 #: Corners taken out of a closed kept part end this many target edges beyond its surface.
 EVICT_MARGIN = 0.25
@@ -431,6 +436,76 @@ def _evict(S: _State, pairs, work, *, margin, floor):
     return S.V, pairs, False
 
 
+def _clear_parts(S: _State, pairs, work, *, margin, steps, floor):
+    """Move each junction face of the crossing pairs ``work`` with a kept part
+    (:func:`kept_parts`, closed or not) off the part: along its normal, away from the side where the
+    part's nearby vertices mostly lie, by the depth of the part's vertices that poke through it
+    and ``margin``; the first of ``steps`` moves with no pair of ``work`` left, or else the one
+    with fewest pairs (:data:`PATIENCE`).
+
+    A junction made around a rigid piece cuts its corners where the triangles are coarser than
+    the piece's curvature: the piece's vertices poke through the face, none of the face's
+    corners is inside the piece, and a push across one face's plane of the piece runs into the
+    next one.
+
+    Returns
+    -------
+    V : (n, 3) float64, pairs : (p, 2) int64, steps : int
+    """
+    best = (S.V, pairs, 0)
+    U, p = S.V.copy(), pairs
+    part_vertices = {}
+    for k in range(1, steps + 1):
+        a, b = work[:, 0], work[:, 1]
+        x = np.where(S.check[a], a, b)  # the junction face
+        y = np.where(S.check[a], b, a)
+        sel = (S.part[y] >= 0) & ~S.check[y]
+        if not sel.any():
+            break
+        for q in np.unique(S.part[y[sel]]):
+            if q not in part_vertices:
+                part_vertices[q] = np.unique(S.F[S.part == q].ravel())
+        move = np.zeros_like(U)
+        hits = np.zeros(len(U))
+        for f in np.unique(x[sel]):
+            parts = np.unique(S.part[y[sel & (x == f)]])
+            P = U[S.F[f]]
+            n = np.cross(P[1] - P[0], P[2] - P[0])
+            area2 = np.linalg.norm(n)
+            if area2 <= 0:
+                continue
+            n /= area2
+            c = P.mean(axis=0)
+            radius = np.linalg.norm(P - c, axis=1).max() + S.reach
+            X = U[np.concatenate([part_vertices[q] for q in parts])]
+            X = X[np.linalg.norm(X - c, axis=1) <= radius]
+            if not len(X):
+                continue
+            h = (X - c) @ n
+            side = 1.0 if h.sum() >= 0 else -1.0
+            depth = max(float((-side * h).max()), 0.0)
+            shift = -side * (depth + margin) * n
+            corners = S.F[f][S.movable[S.F[f]]]
+            move[corners] += shift
+            hits[corners] += 1.0
+        if not hits.any():
+            break
+        U = U + move / np.maximum(hits, 1.0)[:, None]
+        # a piece sunk deep under the junction is not the junction's to go around: no corner
+        # goes further than CLEAR_EDGES target edges from where the clearing started
+        d = U - S.V
+        r = np.linalg.norm(d, axis=1)
+        far = r > CLEAR_EDGES * S.reach
+        U[far] = S.V[far] + d[far] * (CLEAR_EDGES * S.reach / r[far])[:, None]
+        p = S.pairs(U, p, hits > 0)
+        if S.better(U, p, best[1], floor):
+            best = (U.copy(), p, k)
+        work = S.targets(p)
+        if len(work) == 0 or k - best[2] >= PATIENCE:
+            break
+    return best
+
+
 def _untangle(S: _State, pairs, *, ring, steps, step, margin, floor):
     """Smoothing then pushing (:func:`_smooth_apart`, :func:`_push_apart`) on the pairs the
     repair works on, each move cut back to the least that does as well (:func:`_least_move`).
@@ -441,12 +516,14 @@ def _untangle(S: _State, pairs, *, ring, steps, step, margin, floor):
         U, p, moved = _evict(S, pairs, work, margin=EVICT_MARGIN * S.reach, floor=floor)
         if moved:
             S.V, pairs, done = U, p, done + 1
-    for tier in ("smooth", "push"):
+    for tier in ("smooth", "clear", "push"):
         work = S.targets(pairs)
         if len(work) == 0:
             break
         if tier == "smooth":
             U, p, k = _smooth_apart(S, pairs, work, ring=ring, steps=steps, step=step, floor=floor)
+        elif tier == "clear":
+            U, p, k = _clear_parts(S, pairs, work, margin=PUSH_MARGIN * S.reach, steps=steps, floor=floor)
         else:
             U, p, k = _push_apart(S, pairs, work, margin=margin, steps=steps, floor=floor)
         if k:
@@ -559,6 +636,8 @@ class JunctionRepair:
         As :class:`CrossingRepair`.
     moved : bool
         Whether anything changed (else ``JV``, ``JF`` are the input's).
+    largest_move : float
+        The largest distance a vertex moved (same units as the positions; 0 when none did).
     made : (mJ,) bool
         Faces of the given junction ``JF`` in a crossing left that the inputs did not have
         (:attr:`CrossingRepair.made`); the first ``mJ`` faces of ``JF`` out are these, in order.
@@ -572,6 +651,7 @@ class JunctionRepair:
     layered: int
     moved: bool
     made: np.ndarray
+    largest_move: float = 0.0
 
 
 def repair_junction(KV, KF, JV, JF, *, counted, layered=None, rounds=6, min_angle=20.0) -> JunctionRepair:
@@ -622,4 +702,5 @@ def repair_junction(KV, KF, JV, JF, *, counted, layered=None, rounds=6, min_angl
         return JunctionRepair(JV=JV, JF=JF, released=np.zeros(mK, bool), moved=False, **counts)
     faces = np.concatenate([np.arange(mK, len(Fw)), np.flatnonzero(rep.released)])
     JV2, JF2, _ = remove_unreferenced(rep.V, Fw[faces])
-    return JunctionRepair(JV=JV2, JF=JF2, released=rep.released[:mK], moved=True, **counts)
+    largest = float(np.linalg.norm(rep.V - Vw, axis=1).max()) if len(Vw) else 0.0
+    return JunctionRepair(JV=JV2, JF=JF2, released=rep.released[:mK], moved=True, largest_move=largest, **counts)

@@ -244,8 +244,9 @@ class FusionParams:
         faces in the way joining the junction; 0 disables it). Where the junction band is
         narrow, the remeshed junction folds through itself or through a kept face (9 pairs on
         the Horse + Knight centaur, 14 on the built-in centaur); the report's
-        ``junction_crossings_repaired``, ``junction_faces_released`` and
-        ``junction_crossings_layered`` say what the repair did and what it left.
+        ``junction_crossings_repaired``, ``junction_faces_released``,
+        ``junction_crossings_layered`` and ``junction_repair_largest_move`` say what the repair
+        did and what it left.
     shell_clearance_voxels : where crossings are left after the repair and an input keeps closed
         parts whole (a robot's plates, an arm band: secondary components, never blended), the
         junction is made again around them, this many voxels clear, and kept if it crosses less
@@ -348,7 +349,8 @@ class FusedSurface:
         junction_boundary_edges, junction_min_angle_p05 and junction_min_angle_min (degrees, over
         the junction faces that are not copied; None without any), junction_faces, copied_faces,
         unmatched_loops, junction_self_intersections, and what the repair of crossing faces did:
-        junction_crossings_repaired, junction_faces_released, junction_crossings_layered),
+        junction_crossings_repaired, junction_faces_released, junction_crossings_layered,
+        junction_repair_largest_move: the farthest it moved a vertex, in the surface's units),
         ``fields`` (voxel_size, voxels, backend, grids), ``timings`` (seconds per stage).
     """
 
@@ -921,6 +923,8 @@ class _Repaired:
     found, left, layered, released : int
         Crossing pairs before and after, those left with overlapping input parts
         (:attr:`.crossings.CrossingRepair.layered`); kept faces that joined the junction.
+    largest_move : float
+        The farthest the repair moved a vertex (same units as the surface; 0 when none moved).
     made : (q0,) bool
         Over the clusters' junction faces before the repair (:func:`_junction_geometry`), those
         in a crossing left that no input had.
@@ -935,6 +939,7 @@ class _Repaired:
     layered: int
     released: int
     made: np.ndarray
+    largest_move: float = 0.0
 
 
 def _crossing_own_input(part: _Partition, parts, faces):
@@ -1009,7 +1014,7 @@ def _repair_crossings(inputs, part: _Partition, selected, JV, JF, params) -> _Re
     rep = repair_junction(KV, KF, JV, JF, counted=counted, layered=partial(_crossing_own_input, part, parts),
                           rounds=params.crossing_rounds, min_angle=params.min_angle_p05)
     counts = {"found": rep.found, "left": rep.left, "layered": rep.layered, "released": int(rep.released.sum()),
-              "made": rep.made}
+              "made": rep.made, "largest_move": rep.largest_move}
     if not rep.released.any():
         return _Repaired(part=part, selected=selected, JV=rep.JV, JF=rep.JF, **counts)
     preserved = [p.copy() for p in part.preserved]
@@ -1133,6 +1138,7 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     mrep["junction_crossings_repaired"] = repaired.found - repaired.left
     mrep["junction_faces_released"] = repaired.released
     mrep["junction_crossings_layered"] = repaired.layered
+    mrep["junction_repair_largest_move"] = repaired.largest_move
     timings["report"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all
     report = {"mesh": mrep, "fields": fields, "timings": {k: round(v, 4) for k, v in timings.items()}}
