@@ -151,3 +151,31 @@ def test_bad_inputs_are_reported():
         fuse_surfaces([FusionInput(V, F + 1000, W, np.array([True]))], [])
     with pytest.raises(InputError, match="two different inputs"):
         fuse_surfaces([FusionInput(V, F, W, np.array([True]))], [FusionAction("replace", 0, 0)])
+
+
+def test_a_seam_that_runs_into_a_hole_of_the_mesh_closes_it():
+    """A sphere with a face missing where the seam of a replace runs: the seam of each input is
+    a chain from the hole's edge round to it. Closed along the hole's edge, it is bridged like
+    any seam loop, and the output is closed (open, it left 39 boundary edges)."""
+    from fusion_shapes import sphere
+
+    V, F = sphere(3)
+    W = two_joint_weights(V, 0.0, 0.15)
+    params = FusionParams(copy_coincident=False)
+
+    def fuse(faces):
+        return fuse_surfaces([FusionInput(V, faces, W, np.array([True, False])),
+                              FusionInput(V, faces, W, np.array([False, True]))],
+                             [FusionAction("replace", 0, 1)], params=params)
+
+    whole = fuse(F)
+    # the seam runs along the kept faces of input 0 that touch the junction: take one away
+    Vw, _, Fw = weld(whole.V, whole.F)[:3]
+    on_junction = np.zeros(len(Vw), bool)
+    on_junction[Fw[whole.junction_faces].ravel()] = True
+    beside = np.flatnonzero(~whole.junction_faces & (whole.face_origin_input == 0) & on_junction[Fw].any(axis=1))
+    holed = np.delete(F, whole.face_origin_face[beside[0]], axis=0)
+    m = fuse(holed).report["mesh"]
+    for key in ("boundary_edges", "junction_boundary_edges", "open_seam_edges", "new_non_manifold_edges"):
+        assert m[key] == 0, key
+    assert m["junction_faces"] > 0 and m["junction_min_angle_p05"] >= 20.0

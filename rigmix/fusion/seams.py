@@ -568,7 +568,53 @@ def preserved_loops(P: Presence, preserved, source, others=()):
                               for (V, _), F in zip(others, covering)])
         interior &= ~np.isin(_halfedge_keys(P.welded.V, B), rev)
     loops, chains = boundary_loops(P.welded.V, None, source, halfedges=B[interior])
+    if chains and not interior.all():
+        closed, chains = _close_along_holes(P.welded.V, B, interior, chains, source)
+        loops += closed
     return loops, int(sum(len(c) - 1 for c in chains))
+
+
+def _close_along_holes(V, B, seam, chains, source):
+    """Seam chains closed along the input's open border where they end on a small hole.
+
+    The kept faces' boundary half-edges ``B`` ``(b, 2)`` chain into closed loops; where the seam
+    (``seam``, ``(b,) bool``) runs into a hole of the input's mesh (a gap left at a tail's root),
+    a loop is part seam, part hole border, and the seam alone is a chain the junction cannot
+    bridge. Such a loop is taken whole when its border part is no longer than its seam part: the
+    junction then closes the hole where it meets the seam. Longer borders (an open sleeve) stay
+    open, and their chains with them.
+
+    Returns
+    -------
+    loops : list of Loop
+        The closed loops (seam and border edges).
+    chains : list of (k,) int64 arrays
+        The chains left open.
+    """
+    full, _ = boundary_loops(V, None, source, halfedges=B)
+
+    def key(E):  # an undirected edge as one integer
+        return np.minimum(E[:, 0], E[:, 1]) * (len(V) + 1) + np.maximum(E[:, 0], E[:, 1])
+
+    seam_keys = key(B[seam])
+    closed, used = [], set()
+    for L in full:
+        E = np.stack([L.vertices, np.roll(L.vertices, -1)], axis=1)
+        on_seam = np.isin(key(E), seam_keys)
+        if on_seam.all() or not on_seam.any():
+            continue
+        length = np.linalg.norm(V[E[:, 1]] - V[E[:, 0]], axis=1)
+        if length[~on_seam].sum() > length[on_seam].sum():
+            continue
+        loop_keys = key(E)
+        mine = [i for i, c in enumerate(chains)
+                if np.isin(key(np.stack([c[:-1], c[1:]], axis=1)), loop_keys).all()]
+        covered = np.concatenate([key(np.stack([chains[i][:-1], chains[i][1:]], axis=1)) for i in mine]) if mine else []
+        if not np.isin(loop_keys[on_seam], covered).all():  # its seam is not all on chains of its own
+            continue
+        closed.append(L)
+        used.update(mine)
+    return closed, [c for i, c in enumerate(chains) if i not in used]
 
 
 def most_present_faces(pres, junction, grid):
