@@ -244,3 +244,23 @@ def test_a_seam_that_runs_into_a_hole_of_the_mesh_closes_it(tmp_path):
     assert m["junction_faces"] > 0
     for key in ("open_seam_edges", "junction_boundary_edges", "new_non_manifold_edges", "junction_self_intersections"):
         assert m[key] == 0, key
+
+
+def test_a_seam_closed_along_a_hole_the_isosurface_misses_stays_open_and_counted(tmp_path):
+    """The Stegosaurus' neck seam runs into a slit of its mesh; closed along it, no isosurface
+    loop matches it, and the whole cluster would be picked from the inputs (104 crossing pairs,
+    triangles down to 3 degrees). The junction is made without it: the seam stays open, counted
+    in open_seam_edges, and the rest of the junction is clean."""
+    from benchmarks.corpus_matrix import head_swap_cases, load_subjects, write_configs
+    from rigmix.pipeline import compose
+
+    corpus("Stegosaurus")
+    corpus("Trex")
+    name = "head_swap__Stegosaurus__Trex"
+    case = next(c for c in head_swap_cases(load_subjects(["Stegosaurus", "Trex"])) if c.name == name)
+    comp = compose(write_configs([case], tmp_path)[name], until="fusion")
+    m = comp.report["mesh"]
+    assert not any(g.get("fallback") for g in comp.report["fields"]["grids"])
+    assert any(g.get("seams_left_open") for g in comp.report["fields"]["grids"])
+    assert m["open_seam_edges"] == m["junction_boundary_edges"] > 0  # the gap is reported, not hidden
+    assert m["junction_self_intersections"] == 0 and m["junction_min_angle_p05"] >= 20.0

@@ -626,9 +626,19 @@ def _fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, param
     lo_g, hi_g = grid.origin, grid.upper
     cl = [L for L in loops_all
           if np.all(L.positions.mean(axis=0) >= lo_g) and np.all(L.positions.mean(axis=0) <= hi_g)]
-    cj = junction_for_cluster(grid, pres, surfaces, part.kept, cl, fields, actions, params, band,
-                              local_edge_length(pres, part.junction, grid), junction_masks=part.junction,
-                              diagonal=part.diagonal, floor=clearance)
+    def junction(loops):
+        return junction_for_cluster(grid, pres, surfaces, part.kept, loops, fields, actions, params, band,
+                                    local_edge_length(pres, part.junction, grid), junction_masks=part.junction,
+                                    diagonal=part.diagonal, floor=clearance)
+
+    cj = junction(cl)
+    if cj.info["unmatched_preserved_loops"] > 0 and any(L.hole_edges for L in cl):
+        # a seam closed along a hole that the isosurface does not meet: left open as a chain
+        # (counted in open_seam_edges), rather than the whole cluster picked from the inputs
+        alt = junction([L for L in cl if not L.hole_edges])
+        if alt.info["unmatched_preserved_loops"] == 0:
+            cj = alt
+            cj.info["seams_left_open"] = sum(len(L.vertices) - L.hole_edges for L in cl if L.hole_edges)
     info = {**cj.info, "voxel_size": grid.voxel, "voxels": grid.size, "shape": list(grid.shape), "loops": len(cl)}
     if clearance is not None:
         info["shell_clearance"] = True
@@ -1041,7 +1051,7 @@ def _surface_report(surface, part, inputs, infos, h0, backend_name, open_chain_e
     mrep["junction_faces"] = int(surface.junction_faces.sum())
     mrep["copied_faces"] = int(surface.copied_faces.sum())
     mrep["unmatched_loops"] = int(sum(inf["unmatched_preserved_loops"] for inf in infos))
-    mrep["open_seam_edges"] = int(open_chain_edges)
+    mrep["open_seam_edges"] = int(open_chain_edges) + sum(int(g.get("seams_left_open", 0)) for g in infos)
     fields = {
         "voxel_size": float(min([g["voxel_size"] for g in infos], default=h0)),
         "voxels": int(sum(g["voxels"] for g in infos)),

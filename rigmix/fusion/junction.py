@@ -191,11 +191,15 @@ class Loop:
     vertices : (k,) int64
         Vertex ids in that piece, in boundary order (the piece lies to the left).
     positions : (k, 3) float64
+    hole_edges : int
+        Its edges along a hole of its input's mesh (:func:`.seams.preserved_loops`: a seam
+        closed along the hole it runs into); 0 for a seam loop.
     """
 
     source: int
     vertices: np.ndarray
     positions: np.ndarray
+    hole_edges: int = 0
 
 
 def boundary_loops(V, F, source=-1, *, halfedges=None):

@@ -7,6 +7,8 @@ seam loops, and the face-selection fallback.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from ..geometry import check_grid_voxels
@@ -612,7 +614,7 @@ def _close_along_holes(V, B, seam, chains, source):
         covered = np.concatenate([key(np.stack([chains[i][:-1], chains[i][1:]], axis=1)) for i in mine]) if mine else []
         if not np.isin(loop_keys[on_seam], covered).all():  # its seam is not all on chains of its own
             continue
-        closed.append(L)
+        closed.append(replace(L, hole_edges=int(np.count_nonzero(~on_seam))))
         used.update(mine)
     return closed, [c for i, c in enumerate(chains) if i not in used]
 
