@@ -107,8 +107,9 @@ __all__ = ["face_stretch", "vertex_stretch", "clip_skinning_matrices", "band_str
 log = logging.getLogger(__name__)
 
 #: Floats per temporary of the stretch sampling (edge vectors of the band's faces over a chunk of
-#: frames): about 32 MB each.
-_STRETCH_CHUNK = 1 << 22
+#: frames): about 1 MB each. Temporaries of 32 MB are above glibc's largest mmap threshold: each
+#: was mapped afresh and page-faulted in, twice the time of the whole stage on a first call.
+_STRETCH_CHUNK = 1 << 17
 
 
 def face_stretch(V0, U, F):
@@ -196,12 +197,16 @@ def _frames(clip, fps, max_frames):
 
 def clip_skinning_matrices(skeleton, clips, *, fps=30.0, max_frames=30) -> list:
     """Skinning matrices of each clip at its stretch frames (at most ``max_frames``, evenly
-    spread over its samples at ``fps``): one ``(k, J, 4, 4)`` array per clip, column vectors."""
-    out = []
-    for clip in clips:
-        T, R, S = sample_clip(skeleton, clip, _frames(clip, fps, max_frames))
-        out.append(skinning_matrices(skeleton, T, R, S))
-    return out
+    spread over its samples at ``fps``): one ``(k, J, 4, 4)`` array per clip, column vectors.
+
+    The frames of all clips go through forward kinematics together (one pass over the joints,
+    not one per clip; each frame's matrices are the same floats either way)."""
+    poses = [sample_clip(skeleton, clip, _frames(clip, fps, max_frames)) for clip in clips]
+    if not poses:
+        return []
+    T, R, S = (np.concatenate([p[i] for p in poses]) for i in range(3))
+    M = skinning_matrices(skeleton, T, R, S)
+    return np.split(M, np.cumsum([len(p[0]) for p in poses])[:-1])
 
 
 def band_stretch(skeleton, clips, V0, joints, weights, F, vertices, *, rest=None, fps=30.0, max_frames=30,

@@ -153,6 +153,27 @@ def test_band_stretch_under_given_matrices_equals_sampling_the_clips():
     assert np.array_equal(own, given) and np.isfinite(own).all() and own.max() > 0
 
 
+def test_all_clips_through_one_forward_kinematics_pass_are_each_clip_on_its_own():
+    """clip_skinning_matrices poses the frames of every clip together: each clip's matrices are
+    those of posing its own frames alone, bit for bit, and as many as its stretch frames."""
+    from rigmix.animation import sample_clip
+    from rigmix.io import load_character
+    from rigmix.quality import clip_skinning_matrices
+    from rigmix.skinning import skinning_matrices
+
+    c = load_character(asset("Fox"))
+    assert len(c.clips) > 1
+    together = clip_skinning_matrices(c.skeleton, c.clips, max_frames=7)
+    assert len(together) == len(c.clips)
+    for clip, M in zip(c.clips, together):
+        alone = clip_skinning_matrices(c.skeleton, [clip], max_frames=7)[0]
+        assert M.shape == alone.shape == (min(7, len(M)), c.skeleton.num_joints, 4, 4)
+        assert np.array_equal(M, alone)
+        T, R, S = sample_clip(c.skeleton, clip, np.zeros(1))
+        assert np.array_equal(clip_skinning_matrices(c.skeleton, [clip], max_frames=1)[0],
+                              skinning_matrices(c.skeleton, T, R, S))  # the first frame is time 0
+
+
 def test_band_stretch_is_the_mean_face_stretch_of_the_skinned_band():
     """The band's samples, taken from the posed edge vectors without posing the vertices, are the
     definition: each band vertex's area-weighted mean of the stretch of its faces, skinned by
