@@ -330,10 +330,10 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
             c = src.skeleton.rest_worlds()[j, :3, 3]
             M0 = rest_skinning_matrices(src.skeleton)
             meshes = [m for m in src.meshes if m.skinned and len(m.faces) and len(m.positions)]
-            rests = [linear_blend_skinning(m.positions, m.joints, m.weights, M0) for m in meshes]
-            dists = [np.linalg.norm(x - c, axis=1) for x in rests]
             if not meshes:
                 continue
+            rests = [linear_blend_skinning(m.positions, m.joints, m.weights, M0) for m in meshes]
+            dists = [np.linalg.norm(x - c, axis=1) for x in rests]
             # the input's band, at least its nearest vertex (not each mesh's: a prop or a far
             # part of a modular character has no vertex near the joint)
             reach = max(r / scale, min(float(d.min()) for d in dists))

@@ -477,6 +477,7 @@ def test_an_edge_two_fans_share_is_flipped_apart():
     assert sum(1 for e in uE.tolist() if sorted(e) == [0, 1]) == 1  # one quad keeps the edge a b
     halfedges = np.concatenate([G[:, [0, 1]], G[:, [1, 2]], G[:, [2, 0]]])
     assert len(np.unique(halfedges, axis=0)) == len(halfedges)  # consistently oriented
+
     def area(T):
         return 0.5 * np.linalg.norm(np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]]), axis=1).sum()
 

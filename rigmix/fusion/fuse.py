@@ -486,6 +486,15 @@ def _seam_loops(part: _Partition):
     return loops_all, open_chain_edges
 
 
+def _seamless(part: _Partition, loops_all, open_chain_edges) -> bool:
+    """Whether the inputs' kept faces close each other: no seam loop or chain left open (a
+    symmetric character's limb replaced by its mirrored partner meets the body edge to edge),
+    and every input with junction faces keeps some (a graft smaller than the voxel is all
+    junction and has no seam either: it must not vanish). Then no junction is needed."""
+    return (not loops_all and open_chain_edges == 0
+            and all(np.any(k) for k, j in zip(part.kept, part.junction) if np.any(j)))
+
+
 def _cluster_fields(grid, band, pres, surfaces, backend):
     """Signed distance and presence of each input near ``grid``, at its samples.
 
@@ -597,19 +606,18 @@ class _ClusterResult:
 
 
 def _fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params,
-                  shells=None, input_fields=None, keep_input_fields=False, open_seams=0) -> _ClusterResult | None:
+                  shells=None, input_fields=None, keep_input_fields=False, seamless=False) -> _ClusterResult | None:
     """Fields and junction surface of cluster ``ci`` (box ``lo``, ``hi``); with ``shells`` (per
     input, welded faces of its kept closed parts: :func:`kept_shells`), a junction that goes
     around those near the cluster (:func:`_shell_clearance`), None when none is near.
     ``input_fields``: the inputs' fields of this cluster from an earlier pass (computed when
-    None); ``keep_input_fields``: return them with the result; ``open_seams``: seam edges on
-    chains that do not close (:func:`_seam_loops`), over all inputs.
+    None); ``keep_input_fields``: return them with the result; ``seamless``: the inputs' kept
+    faces close each other (:func:`_seamless`).
 
     Where the isosurface cannot close the junction (open sheets have no inside; loops left
     unmatched), the cluster's input faces are kept instead from the input most present on each
-    (:func:`.seams.most_present_faces`). Where no input has a seam loop left open (the kept
-    faces meet edge to edge, no seam chain either) and every input with junction faces keeps
-    some, the junction is empty.
+    (:func:`.seams.most_present_faces`); where the composition is ``seamless``, the junction is
+    empty.
     """
     pres = part.pres
     grid = cluster_grid(lo, hi, part.h0, params, part.diagonal)
@@ -626,10 +634,11 @@ def _fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, param
     lo_g, hi_g = grid.origin, grid.upper
     cl = [L for L in loops_all
           if np.all(L.positions.mean(axis=0) >= lo_g) and np.all(L.positions.mean(axis=0) <= hi_g)]
+    edge = local_edge_length(pres, part.junction, grid)
+
     def junction(loops):
-        return junction_for_cluster(grid, pres, surfaces, part.kept, loops, fields, actions, params, band,
-                                    local_edge_length(pres, part.junction, grid), junction_masks=part.junction,
-                                    diagonal=part.diagonal, floor=clearance)
+        return junction_for_cluster(grid, pres, surfaces, part.kept, loops, fields, actions, params, band, edge,
+                                    junction_masks=part.junction, diagonal=part.diagonal, floor=clearance)
 
     cj = junction(cl)
     if cj.info["unmatched_preserved_loops"] > 0 and any(L.hole_edges for L in cl):
@@ -643,11 +652,7 @@ def _fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, param
     if clearance is not None:
         info["shell_clearance"] = True
     JV, JF, selected = cj.V, cj.F, None
-    # no seam open anywhere: the kept faces of the inputs close each other (a symmetric
-    # character's limb replaced by its mirrored partner), and nothing is left to cover; unless
-    # an input would vanish whole (a graft smaller than the voxel is all junction, no seam)
-    closed = not loops_all and open_seams == 0 and all(np.any(k) for k, j in zip(part.kept, part.junction) if np.any(j))
-    if info["unmatched_preserved_loops"] > 0 or (len(JF) == 0 and not closed):
+    if info["unmatched_preserved_loops"] > 0 or (len(JF) == 0 and not seamless):
         selected = most_present_faces(pres, part.junction, grid)
         info["fallback"] = "face-selection"
         JV, JF = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
@@ -868,7 +873,7 @@ def _repair_clusters(inputs, part: _Partition, clusters, params) -> _Repaired:
 
 
 def _around_kept_parts(inputs, part: _Partition, boxes, clusters, repaired: _Repaired, shells, surfaces,
-                       loops_all, backend, actions, params, open_seams=0):
+                       loops_all, backend, actions, params, seamless=False):
     """The junction made again around the closed parts the inputs keep whole (:func:`kept_shells`),
     in the clusters near one whose junction has a crossing no input had, where it leaves fewer
     such crossing pairs than ``repaired``, no more clusters falling back to face selection, no
@@ -888,7 +893,7 @@ def _around_kept_parts(inputs, part: _Partition, boxes, clusters, repaired: _Rep
     offsets = np.cumsum([0] + [len(c.F) for c in clusters])
     crossing = [bool(repaired.made[a:b].any()) for a, b in zip(offsets[:-1], offsets[1:])]
     carved = [_fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params, shells=shells,
-                            input_fields=clusters[ci].input_fields, open_seams=open_seams) if crossing[ci] else None
+                            input_fields=clusters[ci].input_fields, seamless=seamless) if crossing[ci] else None
               for ci, (lo, hi) in enumerate(boxes)]
     if all(c is None for c in carved):
         return clusters, repaired
@@ -1104,6 +1109,7 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     t0 = time.perf_counter()
     step("seams")
     loops_all, open_chain_edges = _seam_loops(part)
+    seamless = _seamless(part, loops_all, open_chain_edges)
     boxes = junction_clusters(part.pres, part.junction, params.margin_voxels * part.h0)
     backend = get_backend(params.backend)
     # secondary components are kept whole or dropped, never blended: not in the fields
@@ -1118,7 +1124,7 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     for ci, (lo, hi) in enumerate(boxes):
         step(f"junction {ci + 1} of {len(boxes)}")
         clusters.append(_fuse_cluster(ci, lo, hi, part, surfaces, loops_all, backend, actions, params,
-                                      keep_input_fields=second_pass, open_seams=open_chain_edges))
+                                      keep_input_fields=second_pass, seamless=seamless))
     for c in clusters:
         for k, v in c.timings.items():
             timings[k] = timings.get(k, 0.0) + v
@@ -1130,7 +1136,7 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
         t0 = time.perf_counter()
         step("around kept parts")
         clusters, repaired = _around_kept_parts(inputs, part, boxes, clusters, repaired, shells, surfaces,
-                                                loops_all, backend, actions, params, open_chain_edges)
+                                                loops_all, backend, actions, params, seamless)
         timings["shell_clearance"] = time.perf_counter() - t0
     clusters = [replace(c, input_fields=None) for c in clusters]  # free them before assembly
     for ci, c in enumerate(clusters):

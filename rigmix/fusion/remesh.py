@@ -88,6 +88,7 @@ def flip_doubled_edges(V, F):
     if not np.any(cnt == 4):
         return F
     V = np.asarray(V, dtype=np.float64)
+    present = {tuple(e) for e in uE.tolist()}
     for a, b in uE[cnt == 4]:
         has = np.isin(F, (a, b)).sum(axis=1) == 2
         fw, bw = [], []  # (face, opposite vertex): faces running a -> b, and b -> a
@@ -97,11 +98,11 @@ def flip_doubled_edges(V, F):
             (fw if F[f][(k + 1) % 3] == b else bw).append((int(f), other))
         if len(fw) != 2 or len(bw) != 2:
             continue
-        n = {f: _unit_normal(V[F[f]]) for f, _ in fw + bw}
-        straight = n[fw[0][0]] @ n[bw[0][0]] + n[fw[1][0]] @ n[bw[1][0]]
-        crossed = n[fw[0][0]] @ n[bw[1][0]] + n[fw[1][0]] @ n[bw[0][0]]
+        T = F[[f for f, _ in fw + bw]]
+        n = _unit_normals(V[T[:, 0]], V[T[:, 1]], V[T[:, 2]])[0]  # fw[0], fw[1], bw[0], bw[1]
+        straight = n[0] @ n[2] + n[1] @ n[3]
+        crossed = n[0] @ n[3] + n[1] @ n[2]
         pairs = [(fw[0], bw[0]), (fw[1], bw[1])] if straight >= crossed else [(fw[0], bw[1]), (fw[1], bw[0])]
-        present = {tuple(sorted(e)) for e in np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]).tolist()}
         best = None
         for (f, c), (g, d) in pairs:
             if c == d or tuple(sorted((c, d))) in present:
@@ -112,12 +113,9 @@ def flip_doubled_edges(V, F):
                 best = (angle, f, g, flipped)
         if best is not None:
             F[best[1]], F[best[2]] = best[3]
+            c, d = best[3][0, 0], best[3][0, 2]
+            present.add((min(c, d), max(c, d)))
     return F
-
-
-def _unit_normal(P):
-    n = np.cross(P[1] - P[0], P[2] - P[0])
-    return n / max(float(np.linalg.norm(n)), 1e-300)
 
 
 def remesh_junction(V, F, fixed, *, target, iterations=5):

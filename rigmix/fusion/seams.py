@@ -599,6 +599,7 @@ def _close_along_holes(V, B, seam, chains, source):
         return np.minimum(E[:, 0], E[:, 1]) * (len(V) + 1) + np.maximum(E[:, 0], E[:, 1])
 
     seam_keys = key(B[seam])
+    chain_keys = [key(np.stack([c[:-1], c[1:]], axis=1)) for c in chains]
     closed, used = [], set()
     for L in full:
         E = np.stack([L.vertices, np.roll(L.vertices, -1)], axis=1)
@@ -609,9 +610,8 @@ def _close_along_holes(V, B, seam, chains, source):
         if length[~on_seam].sum() > length[on_seam].sum():
             continue
         loop_keys = key(E)
-        mine = [i for i, c in enumerate(chains)
-                if np.isin(key(np.stack([c[:-1], c[1:]], axis=1)), loop_keys).all()]
-        covered = np.concatenate([key(np.stack([chains[i][:-1], chains[i][1:]], axis=1)) for i in mine]) if mine else []
+        mine = [i for i, k in enumerate(chain_keys) if np.isin(k, loop_keys).all()]
+        covered = np.concatenate([chain_keys[i] for i in mine]) if mine else []
         if not np.isin(loop_keys[on_seam], covered).all():  # its seam is not all on chains of its own
             continue
         closed.append(replace(L, hole_edges=int(np.count_nonzero(~on_seam))))
