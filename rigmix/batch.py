@@ -524,9 +524,12 @@ def _run_pool(todo: list[Path], out_dir: Path, workers: int | None, finish, *, j
 def _stop_slots(pools: list) -> None:
     """Cancel what has not started, SIGTERM the workers (SIGKILL after :data:`STOP_TIMEOUT`),
     wait for them: no worker outlives an interrupted batch."""
-    procs = []
+    procs, managers = [], []
     for pool in pools:
         procs += list((getattr(pool, "_processes", None) or {}).values())  # the stdlib keeps no public list
+        # shutdown(wait=False) forgets the manager thread, so a later shutdown(wait=True) no longer
+        # joins it; one still running at exit races the stdlib's exit hook on its wake-up pipe
+        managers.append(getattr(pool, "_executor_manager_thread", None))
         pool.shutdown(wait=False, cancel_futures=True)
     for proc in procs:
         if proc.is_alive():
@@ -540,6 +543,9 @@ def _stop_slots(pools: list) -> None:
             proc.join(5)
     for pool in pools:
         pool.shutdown(wait=True)
+    for thread in managers:
+        if thread is not None:
+            thread.join(STOP_TIMEOUT)
     logger.info("batch: interrupted; %d worker process(es) stopped", len(procs))
 
 

@@ -14,6 +14,7 @@ import json
 import subprocess
 import sys
 import tempfile
+import threading
 
 import pytest
 from conftest import ROOT, require
@@ -126,6 +127,22 @@ def test_batch_process_pool(tmp_path, monkeypatch):
     configs[0].write_text(configs[0].read_text().replace("scale = 1.0", "scale = 0.95"))
     todo, skipped = plan_batch(configs, out)
     assert [p.name for p in todo] == [configs[0].name, configs[7].name] and len(skipped) == 18
+
+
+@pytest.mark.slow
+def test_an_interrupted_pool_leaves_no_thread_behind(tmp_path):
+    """An interrupt while a worker composes stops the workers and joins the pools' manager threads:
+    one left running races the executor's exit hook on its closed wake-up pipe ("Bad file
+    descriptor" at interpreter exit)."""
+    configs = make_configs(tmp_path / "configs", n=4, broken=-1)
+
+    def interrupt(done, total, entry):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_batch(configs, tmp_path / "out", workers=2, progress=interrupt)
+    managers = [t for t in threading.enumerate() if type(t).__name__ == "_ExecutorManagerThread"]
+    assert not [t for t in managers if t.is_alive()]
 
 
 @pytest.mark.slow
