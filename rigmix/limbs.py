@@ -87,6 +87,9 @@ WING_WIDTH = 0.35
 PAIR_TOL = 0.08
 #: a detached part's skin touches its host's within this fraction of the bounding-box diagonal
 CONTACT = 0.05
+#: a T-posed clavicle is shorter than this fraction of the upper arm after it (human clavicles
+#: are about half the upper arm's length at most; the Quaternius rigs' about a third).
+CLAVICLE_LENGTH = 0.5
 #: a chain holding a joint named head wins the head over one scoring at most this much more
 HEAD_TIE = 0.3
 
@@ -339,11 +342,23 @@ def _lateral(rig: _Rig, j: int, k: int) -> bool:
     return n > 0 and abs(d[rig.axis]) > 0.7 * n
 
 
+def _clavicle(rig: _Rig, chain: list[int]) -> bool:
+    """Whether the chain's first bone is a clavicle: a bone across the body before the chain
+    turns (an A-pose), or, where the chain goes on across (a T-pose), one under
+    ``CLAVICLE_LENGTH`` of the next bone's length whose skin stays blended with the body."""
+    if len(chain) < 3 or not _lateral(rig, chain[0], chain[1]):
+        return False
+    if not _lateral(rig, chain[1], chain[2]):
+        return True
+    first, second = (float(np.linalg.norm(rig.P[b] - rig.P[a])) for a, b in zip(chain, chain[1:3]))
+    return first < CLAVICLE_LENGTH * second and rig.separation(chain[0]) < 0.7
+
+
 def _limb_root(rig: _Rig, chain: list[int]) -> int:
-    """How many joints along a paired chain the limb starts: past a clavicle (a bone across the
-    body before the chain turns) and past a hip whose skin stays blended with the body behind it."""
+    """How many joints along a paired chain the limb starts: past a clavicle (:func:`_clavicle`)
+    and past a hip whose skin stays blended with the body behind it."""
     i = 0
-    if len(chain) >= 3 and _lateral(rig, chain[0], chain[1]) and not _lateral(rig, chain[1], chain[2]):
+    if _clavicle(rig, chain):
         i = 1
         if len(chain) >= 4 and rig.separation(chain[1]) < 0.7 <= rig.separation(chain[2]):
             i = 2
