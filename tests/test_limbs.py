@@ -29,6 +29,48 @@ def _plan(name):
     return classify_limbs(_load(name))
 
 
+HUMANOIDS = ("CesiumMan", "RiggedFigure", "Knight", "Adventurer", "Witch", "CyberpunkCharacter", "PlatformerCharacter")
+
+
+def _bone(character, j):
+    """Length of joint ``j``'s bone: to its heaviest-subtree child (0 for a leaf)."""
+    sk = character.skeleton
+    P = sk.rest_worlds()[:, :3, 3]
+    kids = [k for k in range(len(sk.parents)) if sk.parents[k] == j]
+    if not kids:
+        return 0.0
+    size = {k: sum(1 for x in range(len(sk.parents)) if _under(sk.parents, x, k)) for k in kids}
+    k = max(kids, key=size.get)
+    return float(((P[k] - P[j]) ** 2).sum() ** 0.5)
+
+
+def _under(parents, x, k):
+    while x >= 0:
+        if x == k:
+            return True
+        x = parents[x]
+    return False
+
+
+@pytest.mark.parametrize("name", HUMANOIDS)
+def test_arms_start_past_the_clavicle_in_a_t_pose_and_an_a_pose(name):
+    """Every humanoid's arm starts at its upper arm, so that arms swap upper arm for upper arm: the
+    root's bone is no clavicle (at least half as long as the forearm after it), and a paired
+    bone above it, where the rig has one, is a clavicle (under half the upper arm's length)."""
+    ch = _load(name)
+    names = list(ch.skeleton.names)
+    for limb in _plan(name).limbs:
+        if limb.kind != "arm":
+            continue
+        j = names.index(limb.root)
+        upper = _bone(ch, j)
+        child = [k for k in range(len(names)) if ch.skeleton.parents[k] == j and names[k] in limb.joints]
+        assert upper >= 0.5 * max(_bone(ch, k) for k in child), (name, limb.root)
+        parent = ch.skeleton.parents[j]
+        if parent >= 0 and (names[parent].endswith((".L", ".R", "_L", "_R"))):
+            assert _bone(ch, parent) < 0.5 * upper, (name, limb.root, names[parent])
+
+
 @pytest.mark.parametrize("name", sorted(LIMBS))
 def test_reproduces_the_hand_written_table(name):
     plan = _plan(name)
