@@ -102,7 +102,7 @@ class WeightParams:
     strength: float | None = None
     bone_prior: float | None = None
     ambient_borrow: float = 0.5
-    cut_joint_reach: float = 0.0
+    cut_joint_reach: float = 0.001
     field_cache: str | None = None
     distill_options: dict[str, Any] | None = None
 
