@@ -115,15 +115,42 @@ def fusion_stage(composition: Composition, step: Step | None = None) -> Composit
     """
     from .fusion import fuse_surfaces
     from .fusion.inputs import fusion_inputs_from_plan
+    from .gates import mesh_gates
     from .quality import grafted_visibility, junction_dihedral
 
     plan = composition.plan
     inputs, actions, ids = fusion_inputs_from_plan(plan)
-    surface = fuse_surfaces(inputs, actions, params=composition.config.fusion.to_params(), step=step)
-    fused = replace(composition, fusion_inputs=tuple(inputs), fusion_ids=tuple(ids), surface=surface)
     roles = {cid: info["role"] for cid, info in plan.report["characters"].items()}
-    mesh = {**surface.report["mesh"], **grafted_visibility(surface, inputs, ids, roles), **junction_dihedral(fused)}
-    return replace(fused, report={**composition.report, "mesh": mesh, "fields": surface.report["fields"]})
+    params = composition.config.fusion.to_params()
+
+    def fuse(params):
+        surface = fuse_surfaces(inputs, actions, params=params, step=step)
+        fused = replace(composition, fusion_inputs=tuple(inputs), fusion_ids=tuple(ids), surface=surface)
+        mesh = {**surface.report["mesh"], **grafted_visibility(surface, inputs, ids, roles), **junction_dihedral(fused)}
+        return fused, mesh
+
+    fused, mesh = fuse(params)
+    mesh["replaced_whole_region"] = not params.replaced_present
+    if params.reveal_grafted and params.replaced_present and _buried(mesh) and any(
+            x.replaced is not None and x.replaced.any() for x in inputs):
+        # the target's skin of the replaced joint, kept, can cover the new part (a stump in front of it)
+        alt, alt_mesh = fuse(replace(params, replaced_present=False))
+        failed = {g.name for g in mesh_gates(mesh) if g.passed is False}
+        alt_failed = {g.name for g in mesh_gates(alt_mesh) if g.passed is False}
+        shown = alt_mesh.get("grafted_visible_min") or 0.0
+        logger.info("fusion: a grafted part shows %.3g; with the replaced regions taken whole %.3g, failing %s",
+                    mesh["grafted_visible_min"], shown, sorted(alt_failed) or "no gate")
+        if shown > mesh["grafted_visible_min"] and alt_failed <= failed:
+            fused, mesh = alt, {**alt_mesh, "replaced_whole_region": True}
+    return replace(fused, report={**composition.report, "mesh": mesh, "fields": fused.surface.report["fields"]})
+
+
+def _buried(mesh: dict) -> bool:
+    """Whether a grafted part shows less than the ``grafted_visible`` gate asks (report ``mesh``)."""
+    from .gates import MIN_GRAFTED_VISIBLE
+
+    least = mesh.get("grafted_visible_min")
+    return least is not None and least < MIN_GRAFTED_VISIBLE
 
 
 def weights_stage(composition: Composition, step: Step | None = None) -> Composition:

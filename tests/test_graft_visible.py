@@ -135,3 +135,25 @@ mode = "blend"
     on_leg = x.W[:, [sk.index("UpperLeg.L"), sk.index("Foot.L")]].sum(axis=1) > 0.999
     kept = np.asarray(c.surface.face_origin_face)[np.asarray(c.surface.face_origin_input) == body]
     assert not on_leg[np.asarray(x.F)[kept]].all(axis=1).any()
+
+
+def test_an_arm_hidden_by_the_old_shoulder_is_revealed_by_taking_the_replaced_region_whole(tmp_path):
+    """The Witch's left arm on the Platformer: the Platformer's skin on its own UpperArm.L, kept by
+    default (``replaced_present``), wraps the grafted shoulder (0.85 of it showed). Fused again with
+    that region taken away whole (``reveal_grafted``), the arm shows, and no fusion gate fails."""
+    from rigmix.config import load_config
+    from rigmix.gates import mesh_gates
+
+    action = ('op = "replace"\nsource = "donor"\nsource_joint = "UpperArm.L"\n'
+              'target = "body"\ntarget_joint = "UpperArm.L"\nmode = "blend"')
+    path = _config(tmp_path, "platformer_witch_arm", corpus("PlatformerCharacter"), corpus("Witch"), action)
+    shown = compose(path, until="fusion").report["mesh"]
+    assert shown["replaced_whole_region"] is True
+    assert shown["grafted_visible_min"] >= MIN_GRAFTED_VISIBLE
+    assert not [g.name for g in mesh_gates(shown) if g.passed is False]
+
+    config = load_config(path)
+    kept = config.model_copy(update={"fusion": config.fusion.model_copy(update={"reveal_grafted": False})})
+    hidden = compose(kept, until="fusion").report["mesh"]
+    assert hidden["replaced_whole_region"] is False
+    assert hidden["grafted_visible_min"] < MIN_GRAFTED_VISIBLE
