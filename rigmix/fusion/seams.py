@@ -80,17 +80,20 @@ def attach_conflicts(pres: list[Presence], actions, h):
             Vx = Px.welded.V
             C = Vx[Px.welded.F[idx]].mean(axis=1)
             Vy = Py.welded.V
-            d2, _, _ = igl.point_mesh_squared_distance(C, Vy, Fy)
             if act.kind == "attach":
+                d2, _, _ = igl.point_mesh_squared_distance(C, Vy, Fy)
                 w = igl.fast_winding_number(Vy, Fy, C)
                 hit = (d2 < (h * 2.0) ** 2) | (np.abs(w) > 0.5)
             else:
-                # inside the other's whole surface, nearest to a present part of it, not on it
+                # inside the other's whole surface, nearest to a present part of it, not on it; the
+                # distances only for the centres inside (each query is answered on its own)
                 Fall = prepare_surface(Vy, Py.welded.F[~Py.secondary])
-                w = igl.fast_winding_number(Vy, Fall, C)
-                d2a, fa, _ = igl.point_mesh_squared_distance(C, Vy, Fall)
-                pa = Py.p_welded[Fall[fa]].mean(axis=1)
-                hit = (w > 0.5) & (pa >= 0.5) & (d2a > (0.5 * h) ** 2)
+                hit = igl.fast_winding_number(Vy, Fall, C) > 0.5
+                inside = np.flatnonzero(hit)
+                if len(inside):
+                    d2a, fa, _ = igl.point_mesh_squared_distance(C[inside], Vy, Fall)
+                    pa = Py.p_welded[Fall[fa]].mean(axis=1)
+                    hit[inside] = (pa >= 0.5) & (d2a > (0.5 * h) ** 2)
             out[x][idx[hit]] = False
     return out
 
