@@ -29,7 +29,7 @@ from .junction import (
     orientation_agrees,
     remove_unreferenced,
 )
-from .meshutil import cross3, dihedral_angles, intersecting_face_pairs, triangle_min_angles
+from .meshutil import closest_points, cross3, dihedral_angles, intersecting_face_pairs, triangle_min_angles
 from .remesh import (
     collapse_to_improve_angles,
     flip_doubled_edges,
@@ -109,7 +109,7 @@ def project_to_inputs(U, nfixed, pres, surfaces, inputs_fields, h, max_voxels, c
         Fs = surfaces[i]
         if len(Fs) == 0:
             continue
-        d2, fid, C = igl.point_mesh_squared_distance(Q, P.welded.V, Fs)
+        d2, fid, C = closest_points(Q, P.welded.V, Fs, (max_voxels + 2.0) * h)
         T = Fs[fid]
         B = igl.barycentric_coordinates(C, P.welded.V[T[:, 0]], P.welded.V[T[:, 1]], P.welded.V[T[:, 2]])
         B = np.clip(np.nan_to_num(B, nan=1 / 3), 0, 1)
