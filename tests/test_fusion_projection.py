@@ -77,3 +77,28 @@ def test_a_target_farther_than_the_reach_stays():
     plain = _pulled(points, [(V, F), (V, F)], h, agreeing=False)
     assert with_agreement[0] == 0.0 and np.isclose(plain[0], h)
     assert np.isclose(with_agreement[1], 0.05) and np.isclose(plain[1], 0.05)
+
+
+def test_closest_points_near_first_agree_with_the_whole_surface():
+    """:func:`closest_points` looks among the faces near the queries first: queries close to the
+    surface and queries far beyond the reach (answered by the whole surface) get the distances and
+    closest points of a query on every face."""
+    import igl
+
+    from rigmix.fusion.meshutil import closest_points
+
+    V, F = _grid(60, 2.0)
+    V = V.copy()
+    V[:, 2] = 0.2 * np.sin(3.0 * V[:, 0]) * np.cos(2.0 * V[:, 1])  # a wavy sheet
+    rng = np.random.default_rng(0)
+    Q = np.concatenate([rng.uniform([-0.3, -0.3, -0.05], [0.3, 0.3, 0.05], (200, 3)),
+                        rng.uniform([-0.3, -0.3, 0.6], [0.3, 0.3, 0.9], (20, 3))])  # beyond the reach
+    d2, fid, C = closest_points(Q, V, F, 0.1)
+    d2_all, _, C_all = igl.point_mesh_squared_distance(Q, V, F)
+    np.testing.assert_allclose(d2, d2_all, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(C, C_all, atol=1e-12)
+    # the faces named hold the closest points
+    T = V[F[fid]]
+    B = igl.barycentric_coordinates(C, T[:, 0].copy(), T[:, 1].copy(), T[:, 2].copy())
+    np.testing.assert_allclose(np.einsum("nk,nkd->nd", B, T), C, atol=1e-9)
+    assert np.all(B > -1e-9)
