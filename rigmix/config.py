@@ -361,7 +361,7 @@ FUSION_RANGES: dict[str, dict] = {
     "collapse_poor": {},
     "copy_coincident": {},
     "replaced_present": {},
-    "reveal_grafted": {},
+    "retry_whole_region": {},
     "bridge_recuts": {"ge": 0},
     "untangle_move": {"ge": 0},
     "crossing_rounds": {"ge": 0, "le": MAX_ITERATIONS},

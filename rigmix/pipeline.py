@@ -131,26 +131,19 @@ def fusion_stage(composition: Composition, step: Step | None = None) -> Composit
 
     fused, mesh = fuse(params)
     mesh["replaced_whole_region"] = not params.replaced_present
-    if params.reveal_grafted and params.replaced_present and _buried(mesh) and any(
+    failed = {g.name for g in mesh_gates(mesh) if g.passed is False}
+    if params.retry_whole_region and params.replaced_present and failed and any(
             x.replaced is not None and x.replaced.any() for x in inputs):
-        # the target's skin of the replaced joint, kept, can cover the new part (a stump in front of it)
+        # the target's skin of a replaced joint, kept, can cover the new part (a stump in front of
+        # it) or leave the junction too little room between the seams
         alt, alt_mesh = fuse(replace(params, replaced_present=False))
-        failed = {g.name for g in mesh_gates(mesh) if g.passed is False}
         alt_failed = {g.name for g in mesh_gates(alt_mesh) if g.passed is False}
-        shown = alt_mesh.get("grafted_visible_min") or 0.0
-        logger.info("fusion: a grafted part shows %.3g; with the replaced regions taken whole %.3g, failing %s",
-                    mesh["grafted_visible_min"], shown, sorted(alt_failed) or "no gate")
-        if shown > mesh["grafted_visible_min"] and alt_failed <= failed:
+        logger.info("fusion: failing %s; with the replaced regions taken whole, failing %s", sorted(failed),
+                    sorted(alt_failed) or "no gate")
+        if alt_failed < failed or (alt_failed == failed and "grafted_visible" in failed
+                                   and alt_mesh["grafted_visible_min"] > mesh["grafted_visible_min"]):
             fused, mesh = alt, {**alt_mesh, "replaced_whole_region": True}
     return replace(fused, report={**composition.report, "mesh": mesh, "fields": fused.surface.report["fields"]})
-
-
-def _buried(mesh: dict) -> bool:
-    """Whether a grafted part shows less than the ``grafted_visible`` gate asks (report ``mesh``)."""
-    from .gates import MIN_GRAFTED_VISIBLE
-
-    least = mesh.get("grafted_visible_min")
-    return least is not None and least < MIN_GRAFTED_VISIBLE
 
 
 def weights_stage(composition: Composition, step: Step | None = None) -> Composition:

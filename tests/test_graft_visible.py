@@ -140,7 +140,7 @@ mode = "blend"
 def test_an_arm_hidden_by_the_old_shoulder_is_revealed_by_taking_the_replaced_region_whole(tmp_path):
     """The Witch's left arm on the Platformer: the Platformer's skin on its own UpperArm.L, kept by
     default (``replaced_present``), wraps the grafted shoulder (0.85 of it showed). Fused again with
-    that region taken away whole (``reveal_grafted``), the arm shows, and no fusion gate fails."""
+    that region taken away whole (``retry_whole_region``), the arm shows, and no fusion gate fails."""
     from rigmix.config import load_config
     from rigmix.gates import mesh_gates
 
@@ -153,7 +153,30 @@ def test_an_arm_hidden_by_the_old_shoulder_is_revealed_by_taking_the_replaced_re
     assert not [g.name for g in mesh_gates(shown) if g.passed is False]
 
     config = load_config(path)
-    kept = config.model_copy(update={"fusion": config.fusion.model_copy(update={"reveal_grafted": False})})
+    kept = config.model_copy(update={"fusion": config.fusion.model_copy(update={"retry_whole_region": False})})
     hidden = compose(kept, until="fusion").report["mesh"]
     assert hidden["replaced_whole_region"] is False
     assert hidden["grafted_visible_min"] < MIN_GRAFTED_VISIBLE
+
+
+def test_a_leg_whose_junction_creases_is_fused_again_with_the_replaced_region_whole(tmp_path):
+    """The Wasp's left top leg on the Velociraptor's left hind leg (the corpus matrix's leg swap):
+    with the raptor's skin of its own upper leg kept, the junction creases between the seams
+    (dihedral p95 1.8 times the inputs'); fused again with that region taken away
+    (``retry_whole_region``), every fusion gate passes."""
+    from rigmix.config import load_config
+    from rigmix.gates import mesh_gates
+
+    action = ('op = "replace"\nsource = "donor"\nsource_joint = "TopLeg1.L"\n'
+              'target = "body"\ntarget_joint = "BackUpLeg.L"\nmode = "blend"\n'
+              '[[actions]]\nop = "remove"\ntarget = "body"\ntarget_joint = "BackFoot.L"')
+    path = _config(tmp_path, "raptor_wasp_leg", asset("Velociraptor"), asset("Wasp"), action)
+    mesh = compose(path, until="fusion").report["mesh"]
+    assert mesh["replaced_whole_region"] is True
+    assert not [g.name for g in mesh_gates(mesh) if g.passed is False]
+
+    config = load_config(path)
+    kept = config.model_copy(update={"fusion": config.fusion.model_copy(update={"retry_whole_region": False})})
+    first = compose(kept, until="fusion").report["mesh"]
+    assert first["replaced_whole_region"] is False
+    assert "junction_dihedral_ratio" in [g.name for g in mesh_gates(first) if g.passed is False]

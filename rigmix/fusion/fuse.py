@@ -129,13 +129,13 @@ class FusionParams:
         target's part around the fused joint stays (the built-in centaur's quadruped neck, a
         stump in front of the rider); False takes the whole replaced region away. Measured on
         the corpus matrix with ``WeightParams.cut_joint_reach`` 0.1 (on 260 cases): 9 cases
-        pass that failed and 17 fail that passed, so it is not the default; ``reveal_grafted``
-        takes it where it shows a buried part.
-    reveal_grafted : where True (the default) and ``replaced_present`` is True, a composition
-        whose least visible grafted part falls under the ``grafted_visible`` gate is fused again
-        with the replaced regions taken away whole (``replaced_present`` False), and that
-        surface is kept when it shows more of the grafted parts and fails no fusion gate the
-        first passes (:func:`rigmix.pipeline.fusion_stage`).
+        pass that failed and 17 fail that passed, so it is not the default;
+        ``retry_whole_region`` takes it where it passes more gates.
+    retry_whole_region : where True (the default) and ``replaced_present`` is True, a
+        composition that fails a fusion gate (:func:`rigmix.gates.mesh_gates`) is fused again
+        with the replaced regions taken away whole (``replaced_present`` False), and that surface
+        is kept when the gates it fails are some of those the first fails, or the same ones
+        with its grafted parts showing more (:func:`rigmix.pipeline.fusion_stage`).
     voxel_factor : voxel = voxel_factor x smallest average edge length (0.8) before refinement.
     min_voxels_across : the voxel is refined until this many span the junction (its second
         largest extent).
@@ -271,7 +271,7 @@ class FusionParams:
     morphology_rounds: int = 2
     secondary_variance: float = 0.04
     replaced_present: bool = True
-    reveal_grafted: bool = True
+    retry_whole_region: bool = True
     voxel_factor: float = 0.8
     min_voxels_across: int = 32
     max_voxel_diagonal: float = 0.0
