@@ -362,6 +362,7 @@ FUSION_RANGES: dict[str, dict] = {
     "copy_coincident": {},
     "replaced_present": {},
     "retry_whole_region": {},
+    "retry_max_faces": {"ge": 0},
     "bridge_recuts": {"ge": 0},
     "untangle_move": {"ge": 0},
     "crossing_rounds": {"ge": 0, "le": MAX_ITERATIONS},

@@ -81,9 +81,9 @@ from .errors import RigmixError
 __all__ = ["MAX_SECONDS", "MIN_ANGLE_P05", "MIN_GRAFTED_VISIBLE", "MAX_DIHEDRAL_RATIO", "MAX_STRETCH_RATIO",
            "MAX_INFLUENCES", "IDENTITY_TOLERANCE", "GATE_FPS", "WEIGHT_SUM_TOLERANCE", "VALIDATOR_TIMEOUT",
            "GATE_NAMES", "GateBounds", "Gate", "evaluate_gates", "wall_time_gate", "validator_gate", "mesh_gates",
-           "crossing_gate", "visibility_gate", "dihedral_gate", "stretch_gate", "weight_gates", "clip_gates",
-           "identity_gates", "identity_mismatch", "clip_fingerprint", "character_fingerprint", "failed_gates",
-           "failure_items", "failure_text", "gate_summary"]
+           "crossing_gate", "fails_less", "visibility_gate", "dihedral_gate", "stretch_gate", "weight_gates",
+           "clip_gates", "identity_gates", "identity_mismatch", "clip_fingerprint", "character_fingerprint",
+           "failed_gates", "failure_items", "failure_text", "gate_summary"]
 
 logger = logging.getLogger(__name__)
 
@@ -622,6 +622,19 @@ def world_scale_gate(written, *, bound: float = MAX_WORLD_SCALE_ERROR) -> Gate:
         return _not_applicable("joint_world_scale_error", "<=", bound, "no joint")
     scales = np.linalg.norm(worlds[:, :3, :3], axis=1)
     return Gate.measure("joint_world_scale_error", float(np.abs(scales - 1.0).max()), "<=", bound)
+
+
+def fails_less(alt: dict, first: dict) -> bool:
+    """Whether the failed gates ``alt`` (name -> :class:`Gate`) are better than
+    ``first``: some of them only, or the same ones, each as near its bound or nearer and one of
+    them nearer."""
+    if set(alt) != set(first):
+        return set(alt) < set(first)
+
+    def nearer(a, b):  # a's value on the passing side of b's
+        return a.value < b.value if a.op == "<=" else a.value > b.value
+
+    return all(not nearer(first[k], alt[k]) for k in alt) and any(nearer(alt[k], first[k]) for k in alt)
 
 
 def failed_gates(gates: list[dict]) -> list[dict]:

@@ -180,3 +180,51 @@ def test_a_leg_whose_junction_creases_is_fused_again_with_the_replaced_region_wh
     first = compose(kept, until="fusion").report["mesh"]
     assert first["replaced_whole_region"] is False
     assert "junction_dihedral_ratio" in [g.name for g in mesh_gates(first) if g.passed is False]
+    # the retry's budget: inputs of more faces than retry_max_faces are fused once
+    small = config.model_copy(update={"fusion": config.fusion.model_copy(update={"retry_max_faces": 1000})})
+    once = compose(small, until="fusion").report["mesh"]
+    assert once["replaced_whole_region"] is False
+    assert once["junction_dihedral_ratio"] == first["junction_dihedral_ratio"]
+
+
+def test_a_retry_that_fails_the_same_gates_is_kept_only_when_nearer_their_bounds(tmp_path):
+    """The Platformer's upper body on the Wasp's head: with the Wasp's head skin kept, the
+    junction runs through the Platformer's modular pieces (about 70 crossing pairs it made);
+    with the head taken whole it still crosses one, so the same gate fails, nearer its bound:
+    that surface is kept. The rule itself: the same failed gates, none farther and one nearer."""
+    from rigmix.config import load_config
+    from rigmix.gates import Gate, crossing_gate, fails_less
+
+    path = tmp_path / "wasp_torso.toml"
+    path.write_text(f"""name = "wasp_torso"
+[characters.body]
+path = "{asset('Wasp')}"
+[characters.rider]
+path = "{corpus('PlatformerCharacter')}"
+scale = "auto"
+[[actions]]
+op = "replace"
+source = "rider"
+source_joint = "Abdomen"
+target = "body"
+target_joint = "Head"
+mode = "blend"
+""")
+    config = load_config(path)
+    kept = config.model_copy(update={"fusion": config.fusion.model_copy(update={"retry_whole_region": False})})
+    first = crossing_gate(compose(kept, until="fusion").report["mesh"])
+    mesh = compose(config, until="fusion").report["mesh"]
+    retried = crossing_gate(mesh)
+    assert mesh["replaced_whole_region"] is True
+    assert first.passed is False and retried.value < first.value
+
+    def gate(name, value, op="<="):
+        return Gate.measure(name, value, op, 0.0 if op == "<=" else 20.0)
+
+    crossings, angle = "junction_self_intersections", "junction_min_angle_p05"
+    assert fails_less({crossings: gate(crossings, 3)}, {crossings: gate(crossings, 9)})
+    assert not fails_less({crossings: gate(crossings, 9)}, {crossings: gate(crossings, 9)})
+    assert not fails_less({crossings: gate(crossings, 3), angle: gate(angle, 10.0, ">=")},
+                           {crossings: gate(crossings, 9), angle: gate(angle, 12.0, ">=")})
+    assert fails_less({}, {angle: gate(angle, 12.0, ">=")})
+    assert not fails_less({crossings: gate(crossings, 1)}, {angle: gate(angle, 12.0, ">=")})

@@ -134,8 +134,11 @@ class FusionParams:
     retry_whole_region : where True (the default) and ``replaced_present`` is True, a
         composition that fails a fusion gate (:func:`rigmix.gates.mesh_gates`) is fused again
         with the replaced regions taken away whole (``replaced_present`` False), and that surface
-        is kept when the gates it fails are some of those the first fails, or the same ones
-        with its grafted parts showing more (:func:`rigmix.pipeline.fusion_stage`).
+        is kept when the gates it fails are some of those the first fails, or the same ones,
+        none farther from its bound and one nearer (fewer crossing pairs, grafted parts showing
+        more; :func:`rigmix.pipeline.fusion_stage`).
+    retry_max_faces : the retry's work budget: it is not tried when the fusion's inputs hold
+        more faces than this together (250,000; a second fusion costs as much as the first).
     voxel_factor : voxel = voxel_factor x smallest average edge length (0.8) before refinement.
     min_voxels_across : the voxel is refined until this many span the junction (its second
         largest extent).
@@ -272,6 +275,7 @@ class FusionParams:
     secondary_variance: float = 0.04
     replaced_present: bool = True
     retry_whole_region: bool = True
+    retry_max_faces: int = 250_000
     voxel_factor: float = 0.8
     min_voxels_across: int = 32
     max_voxel_diagonal: float = 0.0
