@@ -111,7 +111,11 @@ def fusion_stage(composition: Composition, step: Step | None = None) -> Composit
     Returns the composition with ``fusion_inputs``, ``fusion_ids``,
     ``surface`` (:class:`rigmix.fusion.FusedSurface`) and ``report["mesh"]`` (the fusion's figures,
     then the rest-pose figures of :func:`rigmix.quality.grafted_visibility` and
-    :func:`rigmix.quality.junction_dihedral`), ``report["fields"]``.
+    :func:`rigmix.quality.junction_dihedral`, and ``replaced_whole_region``), ``report["fields"]``.
+
+    Where a fusion gate fails (:func:`rigmix.gates.mesh_gates`), the surface may be fused a second
+    time with the replaced regions taken whole (``FusionParams.retry_whole_region``), and that one
+    kept when it fails less (:func:`rigmix.gates.fails_less`); the stage's time then holds both.
     """
     from .fusion import fuse_surfaces
     from .fusion.inputs import fusion_inputs_from_plan
