@@ -51,20 +51,13 @@ _LAYERED = ("crossing pairs the composition made and the repair cannot undo (tho
 #: case -> {gate: why it fails}; see the module docstring
 KNOWN_FAILURES: dict[str, dict[str, str]] = {
     "arm_swap__CesiumMan__CyberpunkCharacter": {"junction_self_intersections": _LAYERED},
-    "head_swap__Bee__Bull": {"junction_self_intersections": _LAYERED,
-                             "junction_stretch_ratio": "the neck junction between the Bee's body and the Bull's "
-                                                       "head stretches as the Bee's clips turn the head (2.76)",
-                             "grafted_visible": "the Bull's head (scale 0.26: its chain and its cut agree) sits "
-                                                "partly inside the Bee's body, whose kept faces on Body and Mouth "
-                                                "cover it"},
+    "head_swap__Bee__Bull": {"junction_self_intersections": _LAYERED},
     "wings__Deer__Wasp": {"grafted_visible": "the wings' roots, fused to a joint inside the Deer's torso, are "
                                              "partly inside it (0.89)",
                           "junction_stretch_ratio": "the wings' root junction on the Deer's back stretches as the "
                                                     "back bends (1.55)"},
     "torso__Wasp__PlatformerCharacter": {"junction_self_intersections": _LAYERED},
     "torso__Frog__PlatformerCharacter": {"junction_self_intersections": _LAYERED},
-    "three__RiggedFigure__Horse__Witch": {"grafted_visible": "the Horse's head (scaled 0.095 by its cut) shows "
-                                                             "0.81 of its surface; not diagnosed further"},
 }
 
 
