@@ -81,9 +81,9 @@ from .errors import RigmixError
 __all__ = ["MAX_SECONDS", "MIN_ANGLE_P05", "MIN_GRAFTED_VISIBLE", "MAX_DIHEDRAL_RATIO", "MAX_STRETCH_RATIO",
            "MAX_INFLUENCES", "IDENTITY_TOLERANCE", "GATE_FPS", "WEIGHT_SUM_TOLERANCE", "VALIDATOR_TIMEOUT",
            "GATE_NAMES", "GateBounds", "Gate", "evaluate_gates", "wall_time_gate", "validator_gate", "mesh_gates",
-           "crossing_gate", "fails_less", "visibility_gate", "dihedral_gate", "stretch_gate", "weight_gates",
-           "clip_gates", "identity_gates", "identity_mismatch", "clip_fingerprint", "character_fingerprint",
-           "failed_gates", "failure_items", "failure_text", "gate_summary"]
+           "crossing_gate", "failed_mesh_gates", "fails_less", "visibility_gate", "dihedral_gate", "stretch_gate",
+           "weight_gates", "clip_gates", "identity_gates", "identity_mismatch", "clip_fingerprint",
+           "character_fingerprint", "failed_gates", "failure_items", "failure_text", "gate_summary"]
 
 logger = logging.getLogger(__name__)
 
@@ -622,6 +622,11 @@ def world_scale_gate(written, *, bound: float = MAX_WORLD_SCALE_ERROR) -> Gate:
         return _not_applicable("joint_world_scale_error", "<=", bound, "no joint")
     scales = np.linalg.norm(worlds[:, :3, :3], axis=1)
     return Gate.measure("joint_world_scale_error", float(np.abs(scales - 1.0).max()), "<=", bound)
+
+
+def failed_mesh_gates(mesh: dict) -> dict:
+    """The fusion's gates (:func:`mesh_gates`) that fail on the report's ``mesh``, by name."""
+    return {g.name: g for g in mesh_gates(mesh) if g.passed is False}
 
 
 def fails_less(alt: dict, first: dict) -> bool:

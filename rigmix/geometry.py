@@ -23,9 +23,9 @@ from dfd.mesh import weld
 
 from .errors import InputError
 
-__all__ = ["bounding_box_diagonal", "closest_surface_points", "neighbour_roughness", "weld", "MAX_COORDINATE",
-           "MAX_COORDINATE_RATIO", "MAX_GRID_VOXELS", "FLOAT32_MAX", "check_coordinates", "check_transforms",
-           "check_unmirrored", "check_float32", "check_grid_voxels"]
+__all__ = ["bounding_box_diagonal", "closest_points", "closest_surface_points", "neighbour_roughness", "weld",
+           "MAX_COORDINATE", "MAX_COORDINATE_RATIO", "MAX_GRID_VOXELS", "FLOAT32_MAX", "check_coordinates",
+           "check_transforms", "check_unmirrored", "check_float32", "check_grid_voxels"]
 
 #: Largest coordinate, in metres from the origin, that the geometry kernels are given: 1000 km,
 #: beyond any character; float32 output positions there are still spaced 6 cm apart, and squared
@@ -58,6 +58,57 @@ def bounding_box_diagonal(V) -> float:
     return float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
 
 
+def closest_points(Q, V, F, reach=None):
+    """Closest points of ``Q`` on the triangles ``F`` over ``V`` (libigl's exact query).
+
+    With ``reach``, the faces whose bounding boxes come within ``reach`` of the queries' box are
+    asked first: they answer every query whose closest point they hold within ``reach`` (any other
+    face is farther), and the whole surface answers the rest. The tree of a whole input surface
+    costs far more to build than a junction's few queries.
+
+    Parameters
+    ----------
+    Q : (q, 3) float array
+        Query points.
+    V : (n, 3) float array
+    F : (m, 3) int array
+        At least one face.
+    reach : float, optional
+        Distance (same units) within which the near faces are gathered; None: the whole surface.
+
+    Returns
+    -------
+    d2 : (q,) float64
+        Squared distances.
+    face : (q,) int64
+        Rows of ``F``.
+    C : (q, 3) float64
+        Closest points.
+    """
+    import igl
+
+    Q = np.ascontiguousarray(Q, dtype=np.float64).reshape(-1, 3)
+    V = np.ascontiguousarray(V, dtype=np.float64)
+    F = np.ascontiguousarray(F, dtype=np.int64).reshape(-1, 3)
+    if len(Q) == 0:
+        return np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 3))
+    near = np.arange(len(F))
+    if reach is not None:
+        T = V[F]
+        lo, hi = Q.min(axis=0) - reach, Q.max(axis=0) + reach
+        near = np.flatnonzero(np.all(T.min(axis=1) <= hi, axis=1) & np.all(T.max(axis=1) >= lo, axis=1))
+    if len(near) == len(F) or not len(near):
+        d2, face, C = igl.point_mesh_squared_distance(Q, V, F)
+        return np.asarray(d2, np.float64), np.asarray(face, np.int64), np.asarray(C, np.float64)
+    d2, face, C = igl.point_mesh_squared_distance(Q, V, np.ascontiguousarray(F[near]))
+    d2, C = np.array(d2, np.float64), np.array(C, np.float64)
+    face = near[np.asarray(face, np.int64)]
+    far = np.flatnonzero(d2 > reach * reach)
+    if len(far):
+        d2[far], face[far], C[far] = igl.point_mesh_squared_distance(np.ascontiguousarray(Q[far]), V, F)
+    return d2, face, C
+
+
 def closest_surface_points(Q, V, F):
     """The closest point of a triangle mesh to each query point.
 
@@ -80,12 +131,11 @@ def closest_surface_points(Q, V, F):
     """
     import igl
 
-    Q = np.ascontiguousarray(Q, dtype=np.float64).reshape(-1, 3)
     V = np.ascontiguousarray(V, dtype=np.float64)
     F = np.ascontiguousarray(F, dtype=np.int64).reshape(-1, 3)
-    if len(Q) == 0:
-        return np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 3))
-    d2, face, C = igl.point_mesh_squared_distance(Q, V, F)
+    d2, face, C = closest_points(Q, V, F)
+    if len(face) == 0:
+        return np.zeros(0), face, np.zeros((0, 3))
     T = F[face]
     B = igl.barycentric_coordinates(C, V[T[:, 0]], V[T[:, 1]], V[T[:, 2]])
     B = np.clip(np.nan_to_num(B, nan=1 / 3), 0, 1)

@@ -119,7 +119,7 @@ def fusion_stage(composition: Composition, step: Step | None = None) -> Composit
     """
     from .fusion import fuse_surfaces
     from .fusion.inputs import fusion_inputs_from_plan
-    from .gates import fails_less, mesh_gates
+    from .gates import failed_mesh_gates, fails_less
     from .quality import grafted_visibility, junction_dihedral
 
     plan = composition.plan
@@ -135,14 +135,14 @@ def fusion_stage(composition: Composition, step: Step | None = None) -> Composit
 
     fused, mesh = fuse(params)
     mesh["replaced_whole_region"] = not params.replaced_present
-    failed = {g.name: g for g in mesh_gates(mesh) if g.passed is False}
+    failed = failed_mesh_gates(mesh)
     if (params.retry_whole_region and params.replaced_present and failed
             and any(x.replaced is not None and x.replaced.any() for x in inputs)
             and sum(len(x.F) for x in inputs) <= params.retry_max_faces):
         # the target's skin of a replaced joint, kept, can cover the new part (a stump in front of
         # it) or leave the junction too little room between the seams
         alt, alt_mesh = fuse(replace(params, replaced_present=False))
-        alt_failed = {g.name: g for g in mesh_gates(alt_mesh) if g.passed is False}
+        alt_failed = failed_mesh_gates(alt_mesh)
         logger.info("fusion: failing %s; with the replaced regions taken whole, failing %s", sorted(failed),
                     sorted(alt_failed) or "no gate")
         if fails_less(alt_failed, failed):

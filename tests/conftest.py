@@ -110,6 +110,15 @@ def fused_twice(config, **changes):
     return inputs, comp.surface, changed
 
 
+def with_fusion(config, **changes):
+    """``config`` (a :class:`rigmix.config.Config` or its file) with ``changes`` to its ``[fusion]``
+    section."""
+    from rigmix.config import Config, load_config
+
+    config = config if isinstance(config, Config) else load_config(Path(config))
+    return config.model_copy(update={"fusion": config.fusion.model_copy(update=changes)})
+
+
 def tail_config(scale: float = 0.65, extra: str = "", name: str = "tail") -> str:
     """A composition config ``name``: the built-in humanoid with the quadruped's tail attached,
     nearest junction weights (a few seconds); ``extra`` is TOML inserted before the actions."""

@@ -85,7 +85,7 @@ def test_closest_points_near_first_agree_with_the_whole_surface():
     closest points of a query on every face."""
     import igl
 
-    from rigmix.fusion.meshutil import closest_points
+    from rigmix.geometry import closest_points
 
     V, F = _grid(60, 2.0)
     V = V.copy()

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import asset, corpus
+from conftest import asset, corpus, with_fusion
 
-from rigmix.gates import MIN_GRAFTED_VISIBLE
+from rigmix.gates import MIN_GRAFTED_VISIBLE, failed_mesh_gates
 from rigmix.io import load_character
 from rigmix.operations.mirror import mirror_plane, side_axis
 from rigmix.operations.positioning import (
@@ -141,20 +141,15 @@ def test_an_arm_hidden_by_the_old_shoulder_is_revealed_by_taking_the_replaced_re
     """The Witch's left arm on the Platformer: the Platformer's skin on its own UpperArm.L, kept by
     default (``replaced_present``), wraps the grafted shoulder (0.85 of it showed). Fused again with
     that region taken away whole (``retry_whole_region``), the arm shows, and no fusion gate fails."""
-    from rigmix.config import load_config
-    from rigmix.gates import mesh_gates
-
     action = ('op = "replace"\nsource = "donor"\nsource_joint = "UpperArm.L"\n'
               'target = "body"\ntarget_joint = "UpperArm.L"\nmode = "blend"')
     path = _config(tmp_path, "platformer_witch_arm", corpus("PlatformerCharacter"), corpus("Witch"), action)
     shown = compose(path, until="fusion").report["mesh"]
     assert shown["replaced_whole_region"] is True
     assert shown["grafted_visible_min"] >= MIN_GRAFTED_VISIBLE
-    assert not [g.name for g in mesh_gates(shown) if g.passed is False]
+    assert not failed_mesh_gates(shown)
 
-    config = load_config(path)
-    kept = config.model_copy(update={"fusion": config.fusion.model_copy(update={"retry_whole_region": False})})
-    hidden = compose(kept, until="fusion").report["mesh"]
+    hidden = compose(with_fusion(path, retry_whole_region=False), until="fusion").report["mesh"]
     assert hidden["replaced_whole_region"] is False
     assert hidden["grafted_visible_min"] < MIN_GRAFTED_VISIBLE
 
@@ -164,56 +159,34 @@ def test_a_leg_whose_junction_creases_is_fused_again_with_the_replaced_region_wh
     with the raptor's skin of its own upper leg kept, the junction creases between the seams
     (dihedral p95 1.8 times the inputs'); fused again with that region taken away
     (``retry_whole_region``), every fusion gate passes."""
-    from rigmix.config import load_config
-    from rigmix.gates import mesh_gates
-
     action = ('op = "replace"\nsource = "donor"\nsource_joint = "TopLeg1.L"\n'
               'target = "body"\ntarget_joint = "BackUpLeg.L"\nmode = "blend"\n'
               '[[actions]]\nop = "remove"\ntarget = "body"\ntarget_joint = "BackFoot.L"')
     path = _config(tmp_path, "raptor_wasp_leg", asset("Velociraptor"), asset("Wasp"), action)
     mesh = compose(path, until="fusion").report["mesh"]
     assert mesh["replaced_whole_region"] is True
-    assert not [g.name for g in mesh_gates(mesh) if g.passed is False]
+    assert not failed_mesh_gates(mesh)
 
-    config = load_config(path)
-    kept = config.model_copy(update={"fusion": config.fusion.model_copy(update={"retry_whole_region": False})})
-    first = compose(kept, until="fusion").report["mesh"]
+    first = compose(with_fusion(path, retry_whole_region=False), until="fusion").report["mesh"]
     assert first["replaced_whole_region"] is False
-    assert "junction_dihedral_ratio" in [g.name for g in mesh_gates(first) if g.passed is False]
+    assert "junction_dihedral_ratio" in failed_mesh_gates(first)
     # the retry's budget: inputs of more faces than retry_max_faces are fused once
-    small = config.model_copy(update={"fusion": config.fusion.model_copy(update={"retry_max_faces": 1000})})
-    once = compose(small, until="fusion").report["mesh"]
+    once = compose(with_fusion(path, retry_max_faces=1000), until="fusion").report["mesh"]
     assert once["replaced_whole_region"] is False
     assert once["junction_dihedral_ratio"] == first["junction_dihedral_ratio"]
 
 
 def test_a_retry_that_fails_the_same_gates_is_kept_only_when_nearer_their_bounds(tmp_path):
     """The Platformer's upper body on the Wasp's head: with the Wasp's head skin kept, the
-    junction runs through the Platformer's modular pieces (about 70 crossing pairs it made);
-    with the head taken whole it still crosses one, so the same gate fails, nearer its bound:
-    that surface is kept. The rule itself: the same failed gates, none farther and one nearer."""
-    from rigmix.config import load_config
+    junction runs through the Platformer's modular pieces; with the head taken whole it crosses
+    them less, but still crosses, so the same gate fails, nearer its bound: that surface is kept. The rule itself: the same failed gates, none farther and one nearer."""
     from rigmix.gates import Gate, crossing_gate, fails_less
 
-    path = tmp_path / "wasp_torso.toml"
-    path.write_text(f"""name = "wasp_torso"
-[characters.body]
-path = "{asset('Wasp')}"
-[characters.rider]
-path = "{corpus('PlatformerCharacter')}"
-scale = "auto"
-[[actions]]
-op = "replace"
-source = "rider"
-source_joint = "Abdomen"
-target = "body"
-target_joint = "Head"
-mode = "blend"
-""")
-    config = load_config(path)
-    kept = config.model_copy(update={"fusion": config.fusion.model_copy(update={"retry_whole_region": False})})
-    first = crossing_gate(compose(kept, until="fusion").report["mesh"])
-    mesh = compose(config, until="fusion").report["mesh"]
+    action = ('op = "replace"\nsource = "donor"\nsource_joint = "Abdomen"\n'
+              'target = "body"\ntarget_joint = "Head"\nmode = "blend"')
+    path = _config(tmp_path, "wasp_torso", asset("Wasp"), corpus("PlatformerCharacter"), action)
+    first = crossing_gate(compose(with_fusion(path, retry_whole_region=False), until="fusion").report["mesh"])
+    mesh = compose(path, until="fusion").report["mesh"]
     retried = crossing_gate(mesh)
     assert mesh["replaced_whole_region"] is True
     assert first.passed is False and retried.value < first.value

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import asset, corpus
+from conftest import asset, corpus, with_fusion
 
 from rigmix.animation import clip_times, sample_clip
 from rigmix.config import parse_config
@@ -253,22 +253,20 @@ def test_a_seam_closed_along_a_hole_the_isosurface_misses_stays_open_and_counted
     in open_seam_edges, and the rest of the junction is clean. That gate failed, the fusion runs
     again with the Stegosaurus' neck taken whole (``retry_whole_region``), and closes."""
     from benchmarks.corpus_matrix import head_swap_cases, load_subjects, write_configs
-    from rigmix.config import load_config
-    from rigmix.gates import mesh_gates
+    from rigmix.gates import failed_mesh_gates
     from rigmix.pipeline import compose
 
     corpus("Stegosaurus")
     corpus("Trex")
     name = "head_swap__Stegosaurus__Trex"
     case = next(c for c in head_swap_cases(load_subjects(["Stegosaurus", "Trex"])) if c.name == name)
-    config = load_config(write_configs([case], tmp_path)[name])
-    first = config.model_copy(update={"fusion": config.fusion.model_copy(update={"retry_whole_region": False})})
-    comp = compose(first, until="fusion")
+    path = write_configs([case], tmp_path)[name]
+    comp = compose(with_fusion(path, retry_whole_region=False), until="fusion")
     m = comp.report["mesh"]
     assert not any(g.get("fallback") for g in comp.report["fields"]["grids"])
     assert any(g.get("seams_left_open") for g in comp.report["fields"]["grids"])
     assert m["open_seam_edges"] == m["junction_boundary_edges"] > 0  # the gap is reported, not hidden
     assert m["junction_self_intersections"] == 0 and m["junction_min_angle_p05"] >= 20.0
-    m = compose(config, until="fusion").report["mesh"]
+    m = compose(path, until="fusion").report["mesh"]
     assert m["replaced_whole_region"] is True and m["open_seam_edges"] == m["junction_boundary_edges"] == 0
-    assert not [g.name for g in mesh_gates(m) if g.passed is False]
+    assert not failed_mesh_gates(m)

@@ -23,7 +23,6 @@ __all__ = [
     "triangle_min_angles",
     "edge_counts",
     "average_edge_length",
-    "closest_points",
     "intersecting_face_pairs",
     "dihedral_angles",
 ]
@@ -273,56 +272,6 @@ def average_edge_length(V, F):
         return 0.0
     V = np.asarray(V, dtype=np.float64)
     return float(np.linalg.norm(V[uE[:, 0]] - V[uE[:, 1]], axis=1).mean())
-
-
-def closest_points(Q, V, F, reach):
-    """Closest points of ``Q`` on the triangles ``F`` over ``V``, looking first among the faces near ``Q``.
-
-    The tree of a whole input surface costs far more to build than a junction's few queries; the
-    faces whose bounding boxes come within ``reach`` of the queries' box answer every query whose
-    closest point they hold within ``reach`` (any other face is farther), and the whole surface
-    answers the rest.
-
-    Parameters
-    ----------
-    Q : (k, 3) float array
-        Query points.
-    V : (n, 3) float array
-    F : (m, 3) int array
-        A non-empty triangle set.
-    reach : float
-        Distance (same units) within which the near faces are gathered.
-
-    Returns
-    -------
-    d2 : (k,) float64
-        Squared distances.
-    fid : (k,) int64
-        Rows of ``F``.
-    C : (k, 3) float64
-        Closest points.
-    """
-    import igl
-
-    Q = np.asarray(Q, np.float64)
-    V = np.asarray(V, np.float64)
-    F = np.asarray(F, np.int64)
-    if not len(Q):
-        return np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 3))
-    lo, hi = Q.min(axis=0) - reach, Q.max(axis=0) + reach
-    T = V[F]
-    near = np.flatnonzero(np.all(T.min(axis=1) <= hi, axis=1) & np.all(T.max(axis=1) >= lo, axis=1))
-    if len(near) == len(F) or not len(near):
-        d2, fid, C = igl.point_mesh_squared_distance(Q, V, F)
-        return np.asarray(d2, np.float64), np.asarray(fid, np.int64), np.asarray(C, np.float64)
-    d2, fid, C = igl.point_mesh_squared_distance(Q, V, F[near])
-    d2, C = np.array(d2, np.float64), np.array(C, np.float64)
-    fid = near[np.asarray(fid, np.int64)]
-    far = np.flatnonzero(d2 > reach * reach)
-    if len(far):
-        d2[far], f2, C[far] = igl.point_mesh_squared_distance(Q[far], V, F)
-        fid[far] = f2
-    return d2, fid, C
 
 
 class TooManyCandidates(RuntimeError):

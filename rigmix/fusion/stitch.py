@@ -16,6 +16,7 @@ from functools import partial
 
 import numpy as np
 
+from ..geometry import closest_points
 from .fields import blend_attach, blend_cap, blend_replace, signed_distance_at
 from .junction import (
     Loop,
@@ -29,7 +30,7 @@ from .junction import (
     orientation_agrees,
     remove_unreferenced,
 )
-from .meshutil import closest_points, cross3, dihedral_angles, intersecting_face_pairs, triangle_min_angles
+from .meshutil import cross3, dihedral_angles, intersecting_face_pairs, triangle_min_angles
 from .remesh import (
     collapse_to_improve_angles,
     flip_doubled_edges,
