@@ -179,7 +179,8 @@ def test_a_leg_whose_junction_creases_is_fused_again_with_the_replaced_region_wh
 def test_a_retry_that_fails_the_same_gates_is_kept_only_when_nearer_their_bounds(tmp_path):
     """The Platformer's upper body on the Wasp's head: with the Wasp's head skin kept, the
     junction runs through the Platformer's modular pieces; with the head taken whole it crosses
-    them less, but still crosses, so the same gate fails, nearer its bound: that surface is kept. The rule itself: the same failed gates, none farther and one nearer."""
+    them less, but still crosses, so the same gate fails, nearer its bound: that surface is kept.
+    The rule itself: the same failed gates, none farther and one nearer."""
     from rigmix.gates import Gate, crossing_gate, fails_less
 
     action = ('op = "replace"\nsource = "donor"\nsource_joint = "Abdomen"\n'
