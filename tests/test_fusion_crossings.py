@@ -12,8 +12,8 @@ import pytest
 from conftest import ROOT, asset, corpus, fused_twice
 from fusion_shapes import sphere
 
-from rigmix.fusion.crossings import repair_crossings
-from rigmix.fusion.meshutil import intersecting_face_pairs
+from rigmix.fusion.crossings import fan_fill, knot_regions, repair_crossings, repair_junction
+from rigmix.fusion.meshutil import edge_counts, intersecting_face_pairs, vertex_adjacency
 
 
 @pytest.fixture(scope="module")
@@ -42,6 +42,74 @@ def test_a_fold_through_the_surface_is_smoothed_open(capped_sphere):
     assert not rep.released.any()
     again = repair_crossings(V, F, movable, cap, target=0.15)
     assert np.array_equal(again.V, rep.V)  # deterministic
+
+
+def _crumpled(capped_sphere, seed):
+    """The cap's top and its ring shrunk to a speck and scattered: tiny triangles folded through
+    each other (a knot), one ring apart."""
+    V, F, cap, movable = capped_sphere
+    top = int(np.argmax(V[:, 2]))
+    inner = np.concatenate([[top], vertex_adjacency(F, len(V)).tocsr()[top].indices])
+    U = V.copy()
+    scatter = np.random.default_rng(seed).normal(scale=0.01, size=(len(inner), 3))
+    U[inner] = V[top] + 0.03 * (V[inner] - V[top]) + scatter
+    return U, inner
+
+
+@pytest.mark.parametrize("seed", [1, 3, 4])
+def test_a_knot_is_filled_again_as_a_fan_without_crossings(capped_sphere, seed):
+    V, F, cap, movable = capped_sphere
+    U, inner = _crumpled(capped_sphere, seed)
+    pairs = intersecting_face_pairs(U, F, np.flatnonzero(cap))
+    assert len(pairs) > 0
+    _, count = edge_counts(F)
+    regions = knot_regions(F, len(U), ~movable | np.isin(np.arange(len(U)), F[~cap]), pairs)
+    assert len(regions) == 1
+    R, loop = regions[0]
+    assert cap[R].all() and set(inner) <= set(F[R].ravel())  # the knot, inside the junction
+    V2, F2, origin = fan_fill(U, F, regions)
+    assert len(V2) == len(U) + 1 and len(F2) == len(F) - len(R) + len(loop)
+    assert np.array_equal(F2[:len(F) - len(R)], F[np.setdiff1d(np.arange(len(F)), R)])  # the rest, in order
+    assert np.all(origin[len(F) - len(R):] == R[0])
+    assert len(intersecting_face_pairs(V2, F2)) == 0
+    _, count2 = edge_counts(F2)
+    assert count2.max() == 2 and (count2 == 1).sum() == (count == 1).sum() == 0  # still closed, manifold
+    E = np.concatenate([F2[:, [0, 1]], F2[:, [1, 2]], F2[:, [2, 0]]])
+    assert len(np.unique(E, axis=0)) == len(E)  # every edge once each way: the orientation kept
+
+
+def test_a_knot_with_a_fixed_inner_vertex_is_not_taken(capped_sphere):
+    V, F, cap, movable = capped_sphere
+    U, inner = _crumpled(capped_sphere, 3)
+    pairs = intersecting_face_pairs(U, F, np.flatnonzero(cap))
+    fixed = np.zeros(len(U), bool)
+    fixed[inner] = True
+    assert knot_regions(F, len(U), fixed, pairs) == []
+
+
+def test_repair_junction_unties_the_knot_and_maps_its_faces(capped_sphere):
+    V, F, cap, movable = capped_sphere
+    U, _ = _crumpled(capped_sphere, 3)
+    kept = np.flatnonzero(~cap)
+
+    def compact(faces):
+        used = np.unique(F[faces])
+        new = np.full(len(U), -1)
+        new[used] = np.arange(len(used))
+        return U[used], new[F[faces]]
+
+    KV, KF = compact(kept)
+    JV, JF = compact(np.flatnonzero(cap))
+    rep = repair_junction(KV, KF, JV, JF, counted=np.zeros(len(KF), bool))
+    assert rep.found >= len(intersecting_face_pairs(U, F, np.flatnonzero(cap))) and rep.left == 0
+    assert rep.moved and len(rep.JF) < len(JF) and len(rep.made) == len(JF) and not rep.made.any()
+    V2 = np.concatenate([KV, rep.JV])
+    from rigmix.geometry import weld
+
+    Vw, _, Fw = weld(V2, np.concatenate([KF, rep.JF + len(KV)]))
+    assert len(intersecting_face_pairs(Vw, Fw)) == 0
+    _, count = edge_counts(Fw)
+    assert count.max() == 2 and count.min() == 2  # the sphere is closed again, every edge twice
 
 
 def test_a_kept_part_in_the_way_joins_the_junction(capped_sphere):

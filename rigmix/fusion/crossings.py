@@ -24,7 +24,13 @@ the junction's triangles stay as good (5th percentile of the minimum angles):
    stay in the junction only if that lowers the count.
 
 Only vertices move: faces, and so the surface's closedness and manifoldness, never change. A
-vertex on a kept face, on an open border or on a non-manifold edge never moves. Pairs with a
+vertex on a kept face, on an open border or on a non-manifold edge never moves.
+
+Before those steps, :func:`repair_junction` takes out the knots of the junction: where two
+junction faces one ring apart cross (a crumpled cluster of tiny triangles, folded over itself,
+that no vertex move untangles), the ring of faces around them (:func:`knot_regions`) is filled
+again as a fan from one new vertex (:func:`fan_fill`), where that lowers the junction's crossings,
+shares no edge more than twice and keeps its triangles as good. Pairs with a
 kept face that crosses its own input (overlapping parts of a modular character: a shoulder
 pad through the arm it covered, which the junction replaces) are counted but not worked on.
 Every step is deterministic (no threads, no random choice).
@@ -36,9 +42,12 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import sparse
 
 from .meshutil import (
+    boundary_halfedges,
     edge_counts,
+    edges_to_loops,
     intersecting_face_pairs,
     triangle_min_angles,
     unique_rows,
@@ -48,7 +57,8 @@ from .meshutil import (
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CrossingRepair", "JunctionRepair", "kept_parts", "repair_crossings", "repair_junction"]
+__all__ = ["CrossingRepair", "JunctionRepair", "fan_fill", "kept_parts", "knot_regions", "repair_crossings",
+           "repair_junction"]
 
 #: Faces within this many target edges of the junction are looked at (the broad phase's reach:
 #: a repair moves vertices by about an edge).
@@ -68,6 +78,9 @@ CLEAR_EDGES = 1.0
 
 #: Corners taken out of a closed kept part end this many target edges beyond its surface.
 EVICT_MARGIN = 0.25
+
+#: A knot (:func:`knot_regions`) is looked for within at most this many rings around its pair.
+KNOT_RINGS = 3
 
 
 @dataclass(frozen=True)
@@ -621,6 +634,119 @@ def repair_crossings(V, F, movable, check, *, target, releasable=None, layered=N
                           rounds=done, steps=n_steps, made=made)
 
 
+def knot_regions(F, n, fixed, pairs, *, rings=KNOT_RINGS) -> list:
+    """The knots around crossing pairs of faces that lie one ring apart.
+
+    For each pair ``(a, b)`` of ``pairs`` where a corner of ``b`` is a corner of ``a`` or its
+    neighbour, the faces whose corners all lie within ``k`` rings of the pair's corners, for the
+    smallest ``k <= rings`` where they form one region bounded by a single closed loop without a
+    repeated vertex, with at least one inner vertex, every inner vertex free to move (not
+    ``fixed``) and used by the region's faces only. Regions never share a face.
+
+    Parameters
+    ----------
+    F : (m, 3) int array
+        Faces over ``n`` vertices (welded by position).
+    fixed : (n,) bool
+        Vertices that must keep their place and their faces (kept vertices, borders).
+    pairs : (p, 2) int array
+        Crossing face pairs.
+
+    Returns
+    -------
+    list of (faces, loop)
+        ``faces`` ``(r,)`` int64 the region's faces, ``loop`` ``(k,)`` int64 its boundary, in
+        the direction of its faces' edges.
+    """
+    F = np.asarray(F, np.int64).reshape(-1, 3)
+    A = (vertex_adjacency(F, n) + sparse.identity(n, format="csr")).tocsr()
+    degree = np.bincount(F.ravel(), minlength=n)  # faces per vertex
+    taken = np.zeros(len(F), bool)
+    out = []
+    for a, b in np.asarray(pairs, np.int64).reshape(-1, 2):
+        if taken[a] or taken[b]:
+            continue
+        near = np.zeros(n)
+        near[F[a]] = 1.0
+        if not ((A @ near) > 0)[F[b]].any():
+            continue
+        seed = np.zeros(n)
+        seed[F[[a, b]].ravel()] = 1.0
+        for _ in range(rings):
+            seed = ((A @ seed) > 0).astype(np.float64)
+            R = np.flatnonzero((seed[F] > 0).all(axis=1))
+            if taken[R].any():
+                break
+            loops, closed = edges_to_loops(boundary_halfedges(F[R]))
+            if len(loops) != 1 or not closed[0] or len(np.unique(loops[0])) != len(loops[0]):
+                continue
+            inner = np.setdiff1d(np.unique(F[R]), loops[0])
+            in_region = np.bincount(F[R].ravel(), minlength=n)
+            if len(inner) and not fixed[inner].any() and np.all(in_region[inner] == degree[inner]):
+                out.append((R, loops[0]))
+                taken[R] = True
+                break
+    return out
+
+
+def fan_fill(V, F, regions):
+    """Each region of ``regions`` (:func:`knot_regions`) replaced by a fan of triangles from a new
+    vertex at the mean of its boundary loop to each loop edge (the faces' orientation kept).
+
+    Returns
+    -------
+    V2 : (n + r, 3) float64
+        ``V`` then one vertex per region.
+    F2 : (m2, 3) int64
+        The faces outside the regions, in order, then the fans.
+    origin : (m2,) int64
+        The face of ``F`` each face of ``F2`` is or replaces (a fan: its region's first face).
+    """
+    V = np.asarray(V, np.float64)
+    F = np.asarray(F, np.int64).reshape(-1, 3)
+    keep = np.ones(len(F), bool)
+    centres, fans, origin = [], [], []
+    for R, loop in regions:
+        keep[R] = False
+        centres.append(V[loop].mean(axis=0))
+        fans.append(np.stack([loop, np.roll(loop, -1), np.full(len(loop), len(V) + len(centres) - 1)], axis=1))
+        origin.append(np.full(len(loop), R[0], np.int64))
+    V2 = np.concatenate([V, np.reshape(centres, (-1, 3))])
+    F2 = np.concatenate([F[keep]] + fans).astype(np.int64)
+    return V2, F2, np.concatenate([np.flatnonzero(keep)] + origin).astype(np.int64)
+
+
+def _untie_knots(Vw, Fw, mK, fixed, min_angle):
+    """The junction faces ``Fw[mK:]`` with their knots filled again (:func:`knot_regions`,
+    :func:`fan_fill`) where that lowers the crossing pairs among them, shares no edge of the
+    whole surface more than twice, and keeps the junction's 5th percentile of minimum angles at
+    least the smaller of ``min_angle`` and its value before; else ``None``.
+
+    Returns
+    -------
+    None or (V2, F2, origin)
+        The surface (kept faces first, unchanged) and, per junction face, the junction face of
+        ``Fw[mK:]`` it is or replaces.
+    """
+    JF = Fw[mK:]
+    pairs = intersecting_face_pairs(Vw, JF)
+    if not len(pairs):
+        return None
+    regions = knot_regions(JF, len(Vw), fixed, pairs)
+    if not regions:
+        return None
+    V2, JF2, origin = fan_fill(Vw, JF, regions)
+    F2 = np.concatenate([Fw[:mK], JF2])
+    floor = min(min_angle, float(np.percentile(triangle_min_angles(Vw, JF), 5)))
+    if (len(intersecting_face_pairs(V2, JF2)) >= len(pairs)
+            or np.count_nonzero(edge_counts(F2)[1] > 2) > np.count_nonzero(edge_counts(Fw)[1] > 2)
+            or float(np.percentile(triangle_min_angles(V2, JF2), 5)) < floor):
+        return None
+    log.info("fusion: %d knots of the junction filled again (%d faces -> %d)", len(regions),
+             sum(len(R) for R, _ in regions), sum(len(loop) for _, loop in regions))
+    return V2, F2, origin
+
+
 @dataclass(frozen=True)
 class JunctionRepair:
     """A junction surface after :func:`repair_junction`.
@@ -628,19 +754,21 @@ class JunctionRepair:
     Attributes
     ----------
     JV : (k, 3) float64, JF : (q, 3) int64
-        The junction: its faces, then the released kept faces, over its own vertices (those it
-        shares with kept faces at their exact positions).
+        The junction: its faces (its knots filled again, :func:`fan_fill`), then the released
+        kept faces, over its own vertices (those it shares with kept faces at their exact
+        positions).
     released : (mK,) bool
         Kept faces that joined the junction.
     found, left, layered : int
-        As :class:`CrossingRepair`.
+        As :class:`CrossingRepair`; ``found`` also counts the pairs the refilled knots had.
     moved : bool
         Whether anything changed (else ``JV``, ``JF`` are the input's).
     largest_move : float
         The largest distance a vertex moved (same units as the positions; 0 when none did).
     made : (mJ,) bool
         Faces of the given junction ``JF`` in a crossing left that the inputs did not have
-        (:attr:`CrossingRepair.made`); the first ``mJ`` faces of ``JF`` out are these, in order.
+        (:attr:`CrossingRepair.made`; a refilled knot's on the first face of its region). Where
+        no knot was refilled, the first ``mJ`` faces of ``JF`` out are these, in order.
     """
 
     JV: np.ndarray
@@ -691,14 +819,26 @@ def repair_junction(KV, KF, JV, JF, *, counted, layered=None, rounds=6, min_angl
                          np.concatenate([KF, JF + nK]))
     movable = np.ones(len(Vw), bool)
     movable[index[:nK]] = False
-    check = np.concatenate([np.asarray(counted, bool), np.ones(len(JF), bool)])
+    origin, untied = np.arange(len(JF)), 0
+    uE, cnt = edge_counts(Fw)
+    fixed = ~movable
+    fixed[uE[cnt != 2].ravel()] = True
+    knots = _untie_knots(Vw, Fw, mK, fixed, min_angle)
+    if knots is not None:
+        before = len(intersecting_face_pairs(Vw, Fw[mK:]))
+        Vw, Fw, origin = knots
+        untied = before - len(intersecting_face_pairs(Vw, Fw[mK:]))
+        movable = np.concatenate([movable, np.ones(len(Vw) - len(movable), bool)])
+    check = np.concatenate([np.asarray(counted, bool), np.ones(len(Fw) - mK, bool)])
     E = np.concatenate([JF[:, [0, 1]], JF[:, [1, 2]], JF[:, [2, 0]]])
     target = float(np.median(np.linalg.norm(JV[E[:, 0]] - JV[E[:, 1]], axis=1)))
     kept = np.arange(len(Fw)) < mK
     rep = repair_crossings(Vw, Fw, movable, check, target=target, releasable=kept, layered=layered, rounds=rounds,
                            min_angle=min_angle)
-    counts = {"found": rep.found, "left": rep.left, "layered": rep.layered, "made": rep.made[mK:]}
-    if rep.steps == 0:
+    made = np.zeros(len(JF), bool)
+    made[origin[rep.made[mK:]]] = True  # on the given junction's faces, a refilled knot's on its first
+    counts = {"found": rep.found + untied, "left": rep.left, "layered": rep.layered, "made": made}
+    if rep.steps == 0 and knots is None:
         return JunctionRepair(JV=JV, JF=JF, released=np.zeros(mK, bool), moved=False, **counts)
     faces = np.concatenate([np.arange(mK, len(Fw)), np.flatnonzero(rep.released)])
     JV2, JF2, _ = remove_unreferenced(rep.V, Fw[faces])
