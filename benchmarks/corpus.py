@@ -12,6 +12,12 @@ per-stage ``timings``, its ``mesh``, ``quality`` and ``weights`` figures, and th
 
 * ``exit_status`` (0) and ``process_seconds`` (the whole command, at most :data:`TIME_BOUND`, 60 s),
   measured here;
+* ``blender_roundtrip_error`` (issue 25): the output imported into Blender and evaluated at rest
+  and at :data:`BLENDER_FRAMES` frames of every clip (:func:`rigmix.io.blender_check.blender_roundtrip`),
+  its largest vertex distance from rigmix's own skinning of the file over the diagonal, at most
+  :data:`BLENDER_BOUND`; a machine without Blender fails it (``make`` installs Debian's), and
+  ``--no-blender`` leaves it out. The row's ``blender_s`` is the round trip's seconds, outside the
+  time gate (it is not the composition's);
 * the report's ``gates`` (:mod:`rigmix.gates`) when it has them; otherwise (FALLBACK, marked
   ``gates_source = "fallback"`` in the row and the table) the same gates derived here from the
   report, the Khronos validator run on the output and the input clip counts
@@ -32,13 +38,15 @@ and loaded machines compare. A row from a run that did not time it is divided by
 ``reference`` (the table says so). ``--tables`` rewrites both files from the stored rows with the
 reference timed now, composing nothing.
 
-Resuming: a row whose config text is unchanged (SHA-256) is kept and its case skipped;
+Resuming: a row whose config text is unchanged (SHA-256) is kept and its case skipped (unless it
+lacks the Blender gate and the run measures it);
 ``--fresh`` runs everything again, ``--rerun-failed`` the cases that did not pass. Slices:
 ``--only PATTERN`` (shell pattern on the case name, or a substring), ``--kind KIND``,
 ``--limit N`` (the first N of the selection left to run), ``--ci`` (the CI slice).
 
 Usage: ``python -m benchmarks.corpus [--fresh] [--rerun-failed] [--only PATTERN] [--kind KIND]
-[--limit N] [--ci] [--jobs N] [--timeout S] [--out DIR] [--results DIR] [--list] [--tables]``.
+[--limit N] [--ci] [--jobs N] [--timeout S] [--no-blender] [--out DIR] [--results DIR] [--list]
+[--tables]``.
 Exit status 0 when every row passes, 1 otherwise, 2 when the characters are missing.
 """
 
@@ -90,6 +98,12 @@ STAGES = ("load", "operations", "mapping", "fusion", "weights", "completion", "a
           "write", "gates")
 #: a weight row sums to 1 within this (float32 in the file)
 SUM_TOLERANCE = 1e-3
+#: Blender's deformed output may depart from rigmix's skinning by this much of the diagonal (issue 25)
+BLENDER_BOUND = 1e-3
+#: frames of each clip the Blender round trip compares (evenly spaced, :func:`rigmix.io.blender_check.sample_times`)
+BLENDER_FRAMES = 8
+#: the gate the Blender round trip writes
+BLENDER_GATE = "blender_roundtrip_error"
 
 
 # --------------------------------------------------------------------------- gates
@@ -171,6 +185,23 @@ def fallback_gates(report: dict, glb: Path, input_clips: int, identity: bool) ->
     return out
 
 
+def blender_gate(glb: Path, *, timeout: float) -> tuple[dict, float]:
+    """The ``blender_roundtrip_error`` gate of the composed file ``glb`` (module docstring) and the
+    round trip's seconds; a failing import or a missing Blender fails it, with the reason as note."""
+    from rigmix.errors import RigmixError
+    from rigmix.io.blender_check import blender_roundtrip
+
+    t0 = time.perf_counter()
+    try:
+        rt = blender_roundtrip(glb, frames=BLENDER_FRAMES, timeout=timeout)
+    except RigmixError as exc:  # no Blender, or it failed on the file
+        return gate(BLENDER_GATE, None, "<=", BLENDER_BOUND, False, _last_line(str(exc))), time.perf_counter() - t0
+    worst = max(rt.clip_errors, key=rt.clip_errors.get) if rt.clip_errors else None
+    note = f"rest {rt.rest_error:.2g}" + (f", worst clip {worst!r}" if worst is not None else "")
+    return (measured(BLENDER_GATE, float(f"{rt.error:.4g}"), "<=", BLENDER_BOUND, note),
+            time.perf_counter() - t0)
+
+
 def report_gates(report: dict, glb: Path, case: Case) -> tuple[str, list[dict]]:
     """``("report", report["gates"])`` when the report has them, else ``("fallback",``
     :func:`fallback_gates` ``)``."""
@@ -206,8 +237,11 @@ def _input_clips(case: Case) -> int:
     return sum(len(load_character(files[n][1]).clips) for n in case.characters)
 
 
-def run_case(case: Case, config: Path, scratch: Path, *, timeout: float = DEFAULT_TIMEOUT) -> dict:
-    """Compose one case in a subprocess and return its row (see the module docstring)."""
+def run_case(case: Case, config: Path, scratch: Path, *, timeout: float = DEFAULT_TIMEOUT,
+             blender: bool = True) -> dict:
+    """Compose one case in a subprocess and return its row (see the module docstring); with
+    ``blender``, a composed file also goes through the Blender round trip (:func:`blender_gate`,
+    killed after ``timeout`` seconds too)."""
     glb = scratch / "glb" / f"{case.name}.glb"
     report_path = scratch / "reports" / f"{case.name}.json"
     for p in (glb, report_path):
@@ -238,6 +272,10 @@ def run_case(case: Case, config: Path, scratch: Path, *, timeout: float = DEFAUL
             row[key] = report.get(key)
         row["gates_source"], more = report_gates(report, glb, case)
         gates += [g for g in more if g.get("name") not in {x["name"] for x in gates}]
+    if blender and rc == 0 and glb.is_file():
+        g, seconds = blender_gate(glb, timeout=timeout)
+        gates.append(g)
+        row["blender_s"] = round(seconds, 2)
     row["gates"] = gates
     failed = failed_gates(gates)
     row["failed"] = [g["name"] for g in failed]
@@ -281,12 +319,16 @@ def select(cases, *, only=None, kind=None, ci=False) -> list[Case]:
     return list(cases)
 
 
-def to_run(cases, rows: dict, *, fresh=False, rerun_failed=False) -> list[Case]:
-    """The cases whose row is missing, or stale (its config changed), or asked for again."""
+def to_run(cases, rows: dict, *, fresh=False, rerun_failed=False, blender=False) -> list[Case]:
+    """The cases whose row is missing, or stale (its config changed; with ``blender``, a composed
+    row without the Blender gate), or asked for again."""
     out = []
     for c in cases:
         row = rows.get(c.name)
-        if fresh or row is None or row.get("config_sha") != c.sha or (rerun_failed and not row.get("passed")):
+        unmeasured = (blender and row is not None and row.get("rc") == 0
+                      and BLENDER_GATE not in {g["name"] for g in row.get("gates", [])})
+        if (fresh or row is None or row.get("config_sha") != c.sha or unmeasured
+                or (rerun_failed and not row.get("passed"))):
             out.append(c)
     return out
 
@@ -485,6 +527,7 @@ def main(argv=None) -> int:
     ap.add_argument("--jobs", type=int, default=1, metavar="N", help="compositions at once (default 1)")
     ap.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT, metavar="S",
                     help=f"seconds before a composition is killed (default {DEFAULT_TIMEOUT:g})")
+    ap.add_argument("--no-blender", action="store_true", help="leave out the Blender round trip of each output")
     ap.add_argument("--out", type=Path, default=SCRATCH, help="configs, GLBs and reports (default out/corpus)")
     ap.add_argument("--results", type=Path, default=RESULTS, help="corpus.json and corpus.md (default "
                                                                     "benchmarks/results)")
@@ -509,7 +552,7 @@ def main(argv=None) -> int:
     configs = write_configs(cases, args.out / "configs")
     results_json = args.results / "corpus.json"
     rows = load_rows(results_json)
-    pending = to_run(chosen, rows, fresh=args.fresh, rerun_failed=args.rerun_failed)
+    pending = to_run(chosen, rows, fresh=args.fresh, rerun_failed=args.rerun_failed, blender=not args.no_blender)
     if args.limit is not None:
         pending = pending[:args.limit]
     if args.tables:
@@ -522,7 +565,8 @@ def main(argv=None) -> int:
         print(f"corpus: reference operation {reference['seconds']:.2f} s ({reference['operation']})", flush=True)
     commit = git_commit()
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        futures = {pool.submit(run_case, c, configs[c.name], args.out, timeout=args.timeout): c for c in pending}
+        futures = {pool.submit(run_case, c, configs[c.name], args.out, timeout=args.timeout,
+                               blender=not args.no_blender): c for c in pending}
         for i, fut in enumerate(as_completed(futures), 1):
             row = fut.result()
             row["commit"] = commit

@@ -10,7 +10,7 @@ import tomllib
 from itertools import combinations
 
 import pytest
-from conftest import CHARACTERS, CORPUS_CHARACTERS, asset, corpus
+from conftest import CHARACTERS, CORPUS_CHARACTERS, asset, corpus, require
 
 from benchmarks import corpus as runner
 from benchmarks.corpus_matrix import KINDS, ci_slice, generate_matrix, load_subjects, write_configs
@@ -145,9 +145,11 @@ def fake_reference(monkeypatch):
 
 
 def _fake_row(calls):
-    def run_case(case, config, scratch, *, timeout):
+    def run_case(case, config, scratch, *, timeout, blender=True):
         calls.append(case.name)
         gates = runner.runner_gates(0, 1.0)
+        if blender:
+            gates.append(runner.measured(runner.BLENDER_GATE, 1e-7, "<=", runner.BLENDER_BOUND))
         return {"name": case.name, "kind": case.kind, "characters": list(case.characters), "config_sha": case.sha,
                 "rc": 0, "timed_out": False, "stderr_last": "", "wall_s": 1.0, "gates": gates, "failed": [],
                 "passed": True, "message": "", "timings": {"fusion": 0.5, "total": 1.0}}
@@ -182,6 +184,20 @@ def test_runner_resumes_unchanged_rows(tmp_path, monkeypatch, subjects, fake_ref
     assert "| fusion | 7 | 0.50 | 0.25 | 0.50 | 0.25 |" in md and "| process | 7 | 1.00 | 0.5 | 1.00 | 0.5 |" in md
 
 
+def test_a_row_without_the_blender_gate_is_composed_again_unless_it_is_left_out(tmp_path, monkeypatch, subjects,
+                                                                               fake_reference):
+    calls = []
+    monkeypatch.setattr(runner, "load_subjects", lambda: subjects)
+    monkeypatch.setattr(runner, "run_case", _fake_row(calls))
+    args = ["--kind", "three", "--results", str(tmp_path / "results"), "--out", str(tmp_path / "out")]
+    assert runner.main(args + ["--no-blender"]) == 0 and len(calls) == 7
+    assert runner.main(args + ["--no-blender"]) == 0 and len(calls) == 7  # kept: the gate is not asked for
+    assert runner.main(args) == 0 and len(calls) == 14  # asked for: every row lacked it
+    rows = runner.load_rows(tmp_path / "results" / "corpus.json").values()
+    assert all(runner.BLENDER_GATE in {g["name"] for g in r["gates"]} for r in rows)
+    assert runner.main(args) == 0 and len(calls) == 14
+
+
 def test_tables_divide_rows_without_a_reference_by_the_one_timed_now(tmp_path, monkeypatch, subjects, fake_reference):
     """``--tables`` composes nothing; rows of a run that did not time the reference are divided by the
     one timed now, and the table says which."""
@@ -209,6 +225,9 @@ def test_tables_divide_rows_without_a_reference_by_the_one_timed_now(tmp_path, m
 
 
 def test_runner_composes_a_case_and_records_its_gates(tmp_path, monkeypatch, subjects, fake_reference):
+    from rigmix.io.blender_check import blender_available
+
+    require("Blender (Debian package blender)", blender_available())
     monkeypatch.setattr(runner, "load_subjects", lambda: subjects)
     results = tmp_path / "results"
     rc = runner.main(["--only", "identity__SimpleSkin__*", "--results", str(results), "--out", str(tmp_path / "out")])
@@ -219,6 +238,9 @@ def test_runner_composes_a_case_and_records_its_gates(tmp_path, monkeypatch, sub
     assert (tmp_path / "out" / "glb" / f"{row['name']}.glb").is_file()
     names = [g["name"] for g in row["gates"]]
     assert names[:2] == ["exit_status", "process_seconds"] and len(names) > 2
+    blender = next(g for g in row["gates"] if g["name"] == runner.BLENDER_GATE)  # issue 25: the round trip
+    assert blender["pass"] is True and 0 <= blender["value"] <= runner.BLENDER_BOUND, blender
+    assert row["blender_s"] > 0
     assert all({"name", "value", "op", "bound", "pass"} <= set(g) for g in row["gates"])
     assert set(row["timings"]) >= {"load", "fusion", "weights", "total"}
     assert rc == (0 if row["passed"] else 1)
