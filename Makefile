@@ -47,13 +47,17 @@ demo: env
 # ruff first (line length, import order, pyflakes); then the OpenVDB parity tests run in the NumPy 1.x
 # environment (required there: a missing
 # pyopenvdb fails), then the whole suite in the main environment. No test may take more than
-# TEST_TIMEOUT seconds (issue 26: 60 on 2 idle cores; `make test TEST_TIMEOUT=300` on a loaded machine).
+# TEST_TIMEOUT seconds: by default issue 26's 60 s on 2 idle cores of the machine it was set on, in this
+# machine's seconds (benchmarks/calibrate.py: scaled by the reference operation, never below 60);
+# `make test TEST_TIMEOUT=300` sets it. A test past it fails alone: its worker is stopped (thread method)
+# and replaced, and the run goes on.
 # --dist loadgroup: the tests sharing a composition (tests/conftest.py, `composed`) run in one worker.
-TEST_TIMEOUT ?= 60
+TEST_TIMEOUT ?= auto
 test: env
 	$(BIN)/ruff check .
 	RIGMIX_REQUIRE_OPENVDB=1 $(VDB_VENV)/bin/python -m pytest -q -p no:cacheprovider tests/test_fusion_fields.py
-	$(BIN)/python -m pytest -q -n 2 --dist loadgroup --timeout=$(TEST_TIMEOUT) --durations=15
+	t=$(TEST_TIMEOUT); if [ "$$t" = auto ]; then t=$$($(BIN)/python -m benchmarks.calibrate 60); fi; \
+	$(BIN)/python -m pytest -q -n 2 --dist loadgroup --timeout=$$t --timeout-method=thread --durations=15
 
 bench: env
 	$(BIN)/python -m benchmarks.run

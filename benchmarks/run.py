@@ -24,7 +24,7 @@ RESULTS = HERE / "results"
 
 #: Modules that are not timing or quality benchmarks: the hostile-input corpus (``make fuzz``) and the
 #: composition matrix (``make corpus``) have their own targets, each longer than the whole ``make bench``.
-NOT_BENCHMARKS = {"__init__", "run", "common", "fuzz", "corpus", "corpus_matrix"}
+NOT_BENCHMARKS = {"__init__", "run", "common", "calibrate", "fuzz", "corpus", "corpus_matrix"}
 
 
 def discover() -> list[str]:

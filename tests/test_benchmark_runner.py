@@ -34,3 +34,22 @@ def test_partial_run_updates_its_entries_and_keeps_the_others(tmp_path, monkeypa
     summary = (tmp_path / "SUMMARY.md").read_text()
     assert "| a | 1 |" in summary and "| b | 2 |" in summary and "| b | 1 |" not in summary
     assert "| gamma | failed |" in summary
+
+
+def test_a_time_bound_scales_with_the_reference_operation_and_never_shrinks(monkeypatch, capsys):
+    from benchmarks import calibrate, common, run
+
+    base = calibrate.TARGET_REFERENCE_SECONDS
+    assert calibrate.scaled_bound(60, base) == 60.0
+    assert calibrate.scaled_bound(60, 3 * base) == 180.0  # a machine three times slower
+    assert calibrate.scaled_bound(60, base / 2) == 60.0  # a faster one keeps the bound
+    monkeypatch.setattr(common, "reference_operation", lambda repeats: {"seconds": 2.5 * base})
+    assert calibrate.main(["60"]) == 0 and capsys.readouterr().out.strip() == "150"
+
+    def missing(repeats):
+        raise FileNotFoundError("no Horse")
+
+    monkeypatch.setattr(common, "reference_operation", missing)
+    assert calibrate.main(["60"]) == 0 and capsys.readouterr().out.strip() == "60"
+    assert calibrate.main(["soon"]) == 2
+    assert "calibrate" not in run.discover()  # a helper, not a benchmark
