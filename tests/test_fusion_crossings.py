@@ -44,12 +44,15 @@ def test_a_fold_through_the_surface_is_smoothed_open(capped_sphere):
     assert np.array_equal(again.V, rep.V)  # deterministic
 
 
-def _crumpled(capped_sphere, seed):
-    """The cap's top and its ring shrunk to a speck and scattered: tiny triangles folded through
-    each other (a knot), one ring apart."""
+def _crumpled(capped_sphere, seed, rings=1):
+    """The cap's top and ``rings`` rings around it shrunk to a speck and scattered: tiny triangles
+    folded through each other (a knot), one ring apart."""
     V, F, cap, movable = capped_sphere
+    A = vertex_adjacency(F, len(V)).tocsr()
     top = int(np.argmax(V[:, 2]))
-    inner = np.concatenate([[top], vertex_adjacency(F, len(V)).tocsr()[top].indices])
+    inner = np.array([top])
+    for _ in range(rings):
+        inner = np.union1d(inner, np.concatenate([A[v].indices for v in inner]))
     U = V.copy()
     scatter = np.random.default_rng(seed).normal(scale=0.01, size=(len(inner), 3))
     U[inner] = V[top] + 0.03 * (V[inner] - V[top]) + scatter
@@ -87,9 +90,11 @@ def test_a_knot_with_a_fixed_inner_vertex_is_not_taken(capped_sphere):
     assert knot_regions(F, len(U), fixed, pairs) == []
 
 
-def test_repair_junction_unties_the_knot_and_maps_its_faces(capped_sphere):
+def test_repair_junction_unties_a_knot_no_vertex_move_undoes(capped_sphere):
     V, F, cap, movable = capped_sphere
-    U, _ = _crumpled(capped_sphere, 3)
+    U, _ = _crumpled(capped_sphere, 3, rings=2)
+    found = len(intersecting_face_pairs(U, F, np.flatnonzero(cap)))
+    assert repair_crossings(U, F, movable, cap, target=0.15).left == found > 0  # moves alone undo nothing
     kept = np.flatnonzero(~cap)
 
     def compact(faces):
@@ -101,15 +106,26 @@ def test_repair_junction_unties_the_knot_and_maps_its_faces(capped_sphere):
     KV, KF = compact(kept)
     JV, JF = compact(np.flatnonzero(cap))
     rep = repair_junction(KV, KF, JV, JF, counted=np.zeros(len(KF), bool))
-    assert rep.found >= len(intersecting_face_pairs(U, F, np.flatnonzero(cap))) and rep.left == 0
+    assert rep.left == 0 and rep.found >= found
     assert rep.moved and len(rep.JF) < len(JF) and len(rep.made) == len(JF) and not rep.made.any()
-    V2 = np.concatenate([KV, rep.JV])
     from rigmix.geometry import weld
 
-    Vw, _, Fw = weld(V2, np.concatenate([KF, rep.JF + len(KV)]))
+    Vw, _, Fw = weld(np.concatenate([KV, rep.JV]), np.concatenate([KF, rep.JF + len(KV)]))
     assert len(intersecting_face_pairs(Vw, Fw)) == 0
     _, count = edge_counts(Fw)
     assert count.max() == 2 and count.min() == 2  # the sphere is closed again, every edge twice
+
+
+def test_repair_junction_refills_no_knot_where_moves_suffice(capped_sphere):
+    """A crumple the vertex moves undo keeps its faces: the knots are a fallback."""
+    V, F, cap, movable = capped_sphere
+    U, _ = _crumpled(capped_sphere, 3)
+    assert repair_crossings(U, F, movable, cap, target=0.15).left == 0
+    used_k, used_j = np.unique(F[~cap]), np.unique(F[cap])
+    kmap, jmap = np.full(len(U), -1), np.full(len(U), -1)
+    kmap[used_k], jmap[used_j] = np.arange(len(used_k)), np.arange(len(used_j))
+    rep = repair_junction(U[used_k], kmap[F[~cap]], U[used_j], jmap[F[cap]], counted=np.zeros(int((~cap).sum()), bool))
+    assert rep.left == 0 and len(rep.JF) == int(cap.sum())
 
 
 def test_a_kept_part_in_the_way_joins_the_junction(capped_sphere):

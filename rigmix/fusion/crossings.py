@@ -26,11 +26,13 @@ the junction's triangles stay as good (5th percentile of the minimum angles):
 Only vertices move: faces, and so the surface's closedness and manifoldness, never change. A
 vertex on a kept face, on an open border or on a non-manifold edge never moves.
 
-Before those steps, :func:`repair_junction` takes out the knots of the junction: where two
-junction faces one ring apart cross (a crumpled cluster of tiny triangles, folded over itself,
-that no vertex move untangles), the ring of faces around them (:func:`knot_regions`) is filled
-again as a fan from one new vertex (:func:`fan_fill`), where that lowers the junction's crossings,
-shares no edge more than twice and keeps its triangles as good. Pairs with a
+Where those steps leave crossings the inputs did not have, :func:`repair_junction` looks for
+knots of the junction: where two junction faces one ring apart cross (a crumpled cluster of tiny
+triangles, folded over itself, that no vertex move untangles), the ring of faces around them
+(:func:`knot_regions`) is filled again as a fan from one new vertex (:func:`fan_fill`), where that
+lowers the junction's crossings, shares no edge more than twice and keeps its triangles as good;
+the repair then runs again on the refilled junction, which is kept only if it leaves fewer such
+crossings than the first. Pairs with a
 kept face that crosses its own input (overlapping parts of a modular character: a shoulder
 pad through the arm it covered, which the junction replaces) are counted but not worked on.
 Every step is deterministic (no threads, no random choice).
@@ -819,22 +821,29 @@ def repair_junction(KV, KF, JV, JF, *, counted, layered=None, rounds=6, min_angl
                          np.concatenate([KF, JF + nK]))
     movable = np.ones(len(Vw), bool)
     movable[index[:nK]] = False
-    origin, untied = np.arange(len(JF)), 0
-    uE, cnt = edge_counts(Fw)
-    fixed = ~movable
-    fixed[uE[cnt != 2].ravel()] = True
-    knots = _untie_knots(Vw, Fw, mK, fixed, min_angle)
-    if knots is not None:
-        before = len(intersecting_face_pairs(Vw, Fw[mK:]))
-        Vw, Fw, origin = knots
-        untied = before - len(intersecting_face_pairs(Vw, Fw[mK:]))
-        movable = np.concatenate([movable, np.ones(len(Vw) - len(movable), bool)])
-    check = np.concatenate([np.asarray(counted, bool), np.ones(len(Fw) - mK, bool)])
     E = np.concatenate([JF[:, [0, 1]], JF[:, [1, 2]], JF[:, [2, 0]]])
     target = float(np.median(np.linalg.norm(JV[E[:, 0]] - JV[E[:, 1]], axis=1)))
-    kept = np.arange(len(Fw)) < mK
-    rep = repair_crossings(Vw, Fw, movable, check, target=target, releasable=kept, layered=layered, rounds=rounds,
-                           min_angle=min_angle)
+
+    def repair(V_, F_, movable_):
+        check = np.concatenate([np.asarray(counted, bool), np.ones(len(F_) - mK, bool)])
+        return repair_crossings(V_, F_, movable_, check, target=target, releasable=np.arange(len(F_)) < mK,
+                                layered=layered, rounds=rounds, min_angle=min_angle)
+
+    rep = repair(Vw, Fw, movable)
+    origin, untied, knots = np.arange(len(JF)), 0, None
+    if rep.left > rep.layered:  # crossings the inputs did not have are left: are some knots?
+        uE, cnt = edge_counts(Fw)
+        fixed = ~movable
+        fixed[uE[cnt != 2].ravel()] = True
+        knots = _untie_knots(Vw, Fw, mK, fixed, min_angle)
+    if knots is not None:
+        Vk, Fk, origin_k = knots
+        rep_k = repair(Vk, Fk, np.concatenate([movable, np.ones(len(Vk) - len(Vw), bool)]))
+        if rep_k.left - rep_k.layered < rep.left - rep.layered:  # kept where it leaves fewer made pairs
+            untied = len(intersecting_face_pairs(Vw, Fw[mK:])) - len(intersecting_face_pairs(Vk, Fk[mK:]))
+            Vw, Fw, origin, rep = Vk, Fk, origin_k, rep_k
+        else:
+            knots = None
     made = np.zeros(len(JF), bool)
     made[origin[rep.made[mK:]]] = True  # on the given junction's faces, a refilled knot's on its first
     counts = {"found": rep.found + untied, "left": rep.left, "layered": rep.layered, "made": made}
