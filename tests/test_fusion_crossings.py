@@ -59,6 +59,18 @@ def _crumpled(capped_sphere, seed, rings=1):
     return U, inner
 
 
+def _kept_and_junction(U, F, cap):
+    """``(KV, KF, JV, JF)``: the kept faces (outside ``cap``) and the junction (``cap``), each over
+    its own vertices, as :func:`repair_junction` takes them."""
+    out = []
+    for faces in (~cap, cap):
+        used = np.unique(F[faces])
+        new = np.full(len(U), -1)
+        new[used] = np.arange(len(used))
+        out += [U[used], new[F[faces]]]
+    return tuple(out)
+
+
 @pytest.mark.parametrize("seed", [1, 3, 4])
 def test_a_knot_is_filled_again_as_a_fan_without_crossings(capped_sphere, seed):
     V, F, cap, movable = capped_sphere
@@ -66,7 +78,7 @@ def test_a_knot_is_filled_again_as_a_fan_without_crossings(capped_sphere, seed):
     pairs = intersecting_face_pairs(U, F, np.flatnonzero(cap))
     assert len(pairs) > 0
     _, count = edge_counts(F)
-    regions = knot_regions(F, len(U), ~movable | np.isin(np.arange(len(U)), F[~cap]), pairs)
+    regions = knot_regions(F, len(U), ~movable, pairs)
     assert len(regions) == 1
     R, loop = regions[0]
     assert cap[R].all() and set(inner) <= set(F[R].ravel())  # the knot, inside the junction
@@ -95,16 +107,7 @@ def test_repair_junction_unties_a_knot_no_vertex_move_undoes(capped_sphere):
     U, _ = _crumpled(capped_sphere, 3, rings=2)
     found = len(intersecting_face_pairs(U, F, np.flatnonzero(cap)))
     assert repair_crossings(U, F, movable, cap, target=0.15).left == found > 0  # moves alone undo nothing
-    kept = np.flatnonzero(~cap)
-
-    def compact(faces):
-        used = np.unique(F[faces])
-        new = np.full(len(U), -1)
-        new[used] = np.arange(len(used))
-        return U[used], new[F[faces]]
-
-    KV, KF = compact(kept)
-    JV, JF = compact(np.flatnonzero(cap))
+    KV, KF, JV, JF = _kept_and_junction(U, F, cap)
     rep = repair_junction(KV, KF, JV, JF, counted=np.zeros(len(KF), bool))
     assert rep.left == 0 and rep.found >= found
     assert rep.moved and len(rep.JF) < len(JF) and len(rep.made) == len(JF) and not rep.made.any()
@@ -121,11 +124,9 @@ def test_repair_junction_refills_no_knot_where_moves_suffice(capped_sphere):
     V, F, cap, movable = capped_sphere
     U, _ = _crumpled(capped_sphere, 3)
     assert repair_crossings(U, F, movable, cap, target=0.15).left == 0
-    used_k, used_j = np.unique(F[~cap]), np.unique(F[cap])
-    kmap, jmap = np.full(len(U), -1), np.full(len(U), -1)
-    kmap[used_k], jmap[used_j] = np.arange(len(used_k)), np.arange(len(used_j))
-    rep = repair_junction(U[used_k], kmap[F[~cap]], U[used_j], jmap[F[cap]], counted=np.zeros(int((~cap).sum()), bool))
-    assert rep.left == 0 and len(rep.JF) == int(cap.sum())
+    KV, KF, JV, JF = _kept_and_junction(U, F, cap)
+    rep = repair_junction(KV, KF, JV, JF, counted=np.zeros(len(KF), bool))
+    assert rep.left == 0 and len(rep.JF) == len(JF)
 
 
 def test_a_kept_part_in_the_way_joins_the_junction(capped_sphere):

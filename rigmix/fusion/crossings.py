@@ -41,7 +41,7 @@ Every step is deterministic (no threads, no random choice).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import sparse
@@ -762,7 +762,7 @@ class JunctionRepair:
     released : (mK,) bool
         Kept faces that joined the junction.
     found, left, layered : int
-        As :class:`CrossingRepair`; ``found`` also counts the pairs the refilled knots had.
+        As :class:`CrossingRepair`; ``found`` counts the pairs before any repair (knots included).
     moved : bool
         Whether anything changed (else ``JV``, ``JF`` are the input's).
     largest_move : float
@@ -830,7 +830,7 @@ def repair_junction(KV, KF, JV, JF, *, counted, layered=None, rounds=6, min_angl
                                 layered=layered, rounds=rounds, min_angle=min_angle)
 
     rep = repair(Vw, Fw, movable)
-    origin, untied, knots = np.arange(len(JF)), 0, None
+    origin, knots = np.arange(len(JF)), None
     if rep.left > rep.layered:  # crossings the inputs did not have are left: are some knots?
         uE, cnt = edge_counts(Fw)
         fixed = ~movable
@@ -840,13 +840,13 @@ def repair_junction(KV, KF, JV, JF, *, counted, layered=None, rounds=6, min_angl
         Vk, Fk, origin_k = knots
         rep_k = repair(Vk, Fk, np.concatenate([movable, np.ones(len(Vk) - len(Vw), bool)]))
         if rep_k.left - rep_k.layered < rep.left - rep.layered:  # kept where it leaves fewer made pairs
-            untied = len(intersecting_face_pairs(Vw, Fw[mK:])) - len(intersecting_face_pairs(Vk, Fk[mK:]))
-            Vw, Fw, origin, rep = Vk, Fk, origin_k, rep_k
+            found = rep.found  # the pairs before any repair, knots included
+            Vw, Fw, origin, rep = Vk, Fk, origin_k, replace(rep_k, found=found)
         else:
             knots = None
     made = np.zeros(len(JF), bool)
     made[origin[rep.made[mK:]]] = True  # on the given junction's faces, a refilled knot's on its first
-    counts = {"found": rep.found + untied, "left": rep.left, "layered": rep.layered, "made": made}
+    counts = {"found": rep.found, "left": rep.left, "layered": rep.layered, "made": made}
     if rep.steps == 0 and knots is None:
         return JunctionRepair(JV=JV, JF=JF, released=np.zeros(mK, bool), moved=False, **counts)
     faces = np.concatenate([np.arange(mK, len(Fw)), np.flatnonzero(rep.released)])
