@@ -483,3 +483,48 @@ def test_an_edge_two_fans_share_is_flipped_apart():
 
     assert area(G) == pytest.approx(area(F))  # each quad split the other way covers the same (planar) quad
     assert np.array_equal(flip_doubled_edges(V, G), G)  # nothing left to flip
+
+
+def _edge_through_triangle(p, q, T):
+    """Whether the segment ``p``-``q`` passes through the inside of triangle ``T`` (3, 3)
+    (Möller-Trumbore on the segment: an independent test of the separating axis one)."""
+    d = q - p
+    e1, e2 = T[1] - T[0], T[2] - T[0]
+    h = np.cross(d, e2)
+    det = e1 @ h
+    if abs(det) < 1e-12:
+        return False
+    s = p - T[0]
+    u = (s @ h) / det
+    w = np.cross(s, e1)
+    v = (d @ w) / det
+    t = (e2 @ w) / det
+    return 0 < u < 1 and 0 < v < 1 and u + v < 1 and 0 < t < 1
+
+
+def test_intersecting_face_pairs_match_a_brute_force_on_random_triangles():
+    """Random triangles in a box (no two sharing a corner, none coplanar): a pair crosses
+    exactly when an edge of one passes through the other; every pair is found, from any subset
+    of faces, and none is found twice."""
+    rng = np.random.default_rng(7)
+    n = 300
+    centres = rng.uniform(0, 4, (n, 1, 3))
+    V = (centres + rng.normal(scale=0.35, size=(n, 3, 3))).reshape(-1, 3)
+    F = np.arange(3 * n).reshape(n, 3)
+    T = V[F]
+    truth = set()
+    for a in range(n):
+        for b in range(a + 1, n):
+            if np.any(T[a].min(axis=0) > T[b].max(axis=0)) or np.any(T[b].min(axis=0) > T[a].max(axis=0)):
+                continue
+            if any(_edge_through_triangle(X[i], X[(i + 1) % 3], Y) for X, Y in ((T[a], T[b]), (T[b], T[a]))
+                   for i in range(3)):
+                truth.add((a, b))
+    assert len(truth) > 50  # the box is crowded enough to test something
+    pairs = intersecting_face_pairs(V, F)
+    assert len(pairs) == len(truth)
+    assert {tuple(sorted(p)) for p in pairs.tolist()} == truth
+    subset = rng.choice(n, size=n // 3, replace=False)
+    pairs = intersecting_face_pairs(V, F, faces=subset)
+    assert all(a in set(subset.tolist()) for a, _ in pairs.tolist())
+    assert {tuple(sorted(p)) for p in pairs.tolist()} == {p for p in truth if p[0] in subset or p[1] in subset}

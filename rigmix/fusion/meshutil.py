@@ -390,24 +390,43 @@ def intersecting_face_pairs(V, F, faces=None, *, tol=1e-9, max_candidates=None):
     a, b = a[keep], b[keep]
     if len(a) == 0:
         return np.zeros((0, 2), np.int64)
-    A, B = T[a], T[b]  # (p, 3, 3)
+    return _crossing(T[a], T[b], a, b, eps)
+
+
+def _crossing(A, B, a, b, eps):
+    """The pairs ``(a, b)`` whose triangles ``A``, ``B`` ``(p, 3, 3)`` no axis separates (by more
+    than ``eps``): the two normals, the nine edge-edge cross products and the six in-plane edge
+    normals. A pair leaves the test at the first axis that separates it, so most pairs (boxes
+    that overlap, triangles that do not) cost one or two axes.
+
+    Returns
+    -------
+    (q, 2) int64
+    """
     ea = np.roll(A, -1, axis=1) - A
     eb = np.roll(B, -1, axis=1) - B
-    na = np.cross(ea[:, 0], ea[:, 1])
-    nb = np.cross(eb[:, 0], eb[:, 1])
-    axes = [na, nb]
-    axes += [np.cross(ea[:, i], eb[:, j]) for i in range(3) for j in range(3)]
-    axes += [np.cross(na, ea[:, i]) for i in range(3)] + [np.cross(nb, eb[:, j]) for j in range(3)]
-    separated = np.zeros(len(a), bool)
-    for ax in axes:
-        norm = np.linalg.norm(ax, axis=1)
-        ok = norm > 1e-12 * np.maximum(
-            np.linalg.norm(ea, axis=2).max(axis=1) * np.linalg.norm(eb, axis=2).max(axis=1), 1e-300)
+    na = cross3(ea[:, 0], ea[:, 1])
+    nb = cross3(eb[:, 0], eb[:, 1])
+    # an axis shorter than this (parallel edges) separates nothing
+    scale = 1e-12 * np.maximum(np.sqrt((ea * ea).sum(axis=2)).max(axis=1) * np.sqrt((eb * eb).sum(axis=2)).max(axis=1),
+                               1e-300)
+    axes = [lambda: na, lambda: nb]
+    axes += [lambda i=i, j=j: cross3(ea[:, i], eb[:, j]) for i in range(3) for j in range(3)]
+    axes += [lambda i=i: cross3(na, ea[:, i]) for i in range(3)] + [lambda j=j: cross3(nb, eb[:, j]) for j in range(3)]
+    alive = np.arange(len(a))
+    for axis in axes:
+        ax = axis()
+        norm = np.sqrt((ax * ax).sum(axis=1))
         u = ax / np.maximum(norm, 1e-300)[:, None]
         pa = np.einsum("pkc,pc->pk", A, u)
         pb = np.einsum("pkc,pc->pk", B, u)
-        separated |= ok & ((pa.max(axis=1) <= pb.min(axis=1) + eps) | (pb.max(axis=1) <= pa.min(axis=1) + eps))
-    return np.stack([a[~separated], b[~separated]], axis=1)
+        separated = (norm > scale) & ((pa.max(axis=1) <= pb.min(axis=1) + eps) | (pb.max(axis=1) <= pa.min(axis=1) + eps))
+        if separated.any():
+            keep = ~separated
+            alive, A, B, ea, eb, na, nb, scale = (x[keep] for x in (alive, A, B, ea, eb, na, nb, scale))
+        if not len(alive):
+            break
+    return np.stack([a[alive], b[alive]], axis=1)
 
 
 def dihedral_angles(V, F, faces=None):
