@@ -21,7 +21,7 @@ Roles, from the classifier's counts of limbs
 
 Joints, from the skeleton
 -------------------------
-* *pelvis*: the lowest common ancestor of the leg roots (where a tail is grafted);
+* *pelvis*: where the leg roots meet (where a tail is grafted; :attr:`Subject.pelvis`);
 * *chest*: the lowest common ancestor of the arm and head roots;
 * *waist*: the joint above the chest on the path from the pelvis (the root of a centaur's upper
   body: the chest alone would leave the belly behind, the pelvis would bring the hips);
@@ -174,8 +174,23 @@ class Subject:
 
     @property
     def pelvis(self) -> str:
-        """Where the legs meet (a tail is attached there)."""
-        return self.lca([lb.root for lb in self.limbs("leg")])
+        """Where the legs meet (a tail is attached there): the lowest common ancestor of the leg
+        roots, or the first joint below it on the way to the chest that lies among them (no
+        farther from their midpoint than they are apart). An armature root on the floor is the
+        legs' common ancestor in some rigs, and a tail grafted there comes out between the feet."""
+        roots = [lb.root for lb in self.limbs("leg")]
+        lca = self.lca(roots)
+        R = self.positions[[self.names.index(j) for j in roots]]
+        mid = R.mean(axis=0)
+        spread = float(np.linalg.norm(R[:, None] - R[None], axis=2).max())
+        path = [lca]
+        if self.limbs("arm") and self.head is not None:
+            up = self.ancestors(self.chest)
+            path = up[up.index(lca):-1] if lca in up else path  # the chest is no pelvis
+        for j in path:
+            if np.linalg.norm(self.positions[self.names.index(j)] - mid) <= spread:
+                return j
+        return lca
 
     @property
     def chest(self) -> str:

@@ -254,3 +254,23 @@ def test_the_report_gates_are_used_when_the_report_has_them(matrix, tmp_path):
     assert source == "report" and got == gates
     row = {"rc": 0}
     assert runner.failure_message(row, runner.failed_gates(got)) == "validator_errors = 3 (needs <= 0) [ACCESSOR_X]"
+
+
+def test_a_tail_is_grafted_where_the_legs_meet(subjects, matrix):
+    """Every humanoid's pelvis lies among its leg roots, also where the legs hang from an
+    armature root on the floor (Witch): the tail cases attach there."""
+    import numpy as np
+
+    by = {s.name: s for s in subjects}
+    for name in HUMANOIDS:
+        s = by[name]
+        roots = [lb.root for lb in s.limbs("leg")]
+        R = s.positions[[s.names.index(j) for j in roots]]
+        spread = np.linalg.norm(R[0] - R[1])
+        assert np.linalg.norm(s.positions[s.names.index(s.pelvis)] - R.mean(axis=0)) <= spread, name
+        # on the trunk, at or below the legs' common ancestor
+        assert s.lca(roots) in s.ancestors(s.pelvis) and s.pelvis in s.ancestors(s.chest)[:-1], name
+    assert by["Witch"].pelvis == "Hips"  # its legs' common ancestor is Root, on the floor
+    for case in of_kind(matrix, "tail"):
+        body = by[case.characters[0]]
+        assert actions(case)[0]["target_joint"] == body.pelvis
