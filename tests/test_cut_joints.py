@@ -36,6 +36,55 @@ def test_a_far_cut_joint_follows_the_nearest_kept_one():
     assert np.array_equal(t2, target) and np.array_equal(c2, confidence)
 
 
+def test_a_cut_joint_of_another_root_follows_the_nearest_kept_joint_at_rest():
+    """A modular rig hangs its head from a root of its own (the corpus's Bee): cut off, with no
+    bone path to a kept joint, it follows the kept joint nearest it at rest, not the image the
+    mapping chose (the other body's armature root, on the floor)."""
+    # input: 0 body (kept, fused) -> 1 mouth (kept); 2 head, a second root -> 3 wing
+    parents = np.array([-1, 0, -1, 2])
+    used = np.array([True, True, False, False])
+    positions = np.array([[0, 1, 0], [0, 1, 0.3], [0, 1.1, 0.5], [0.4, 1.2, 0.5]], float)
+    # output: 0 the other body's root on the floor, 1 fused body, 2 mouth
+    output = np.array([[0, 0, -2], [0, 1, 0], [0, 1, 0.3]], float)
+    target = np.array([1, 2, 0, 0])
+    confidence = np.array([1.0, 1.0, 0.3, 0.2])
+    t, c = cut_joints_to_nearest_kept(target, confidence, used, parents, positions, output, reach=0.2)
+    assert t[2] == 2 and c[2] == 1.0  # the head: 0.22 from the mouth, 0.51 from the body
+    assert t[3] == 2 and c[3] == 1.0  # the wing too: its own tree keeps nothing
+    assert np.array_equal(t[:2], [1, 2])
+
+
+def test_a_corpus_head_of_another_root_weighs_nothing_on_the_floor():
+    """head_swap Apatosaurus/Bee: no vertex of the fused surface is weighted on the
+    Apatosaurus's armature root (the Bee's Head tree, cut off, follows its nearest kept joint)."""
+    import tomllib
+
+    from conftest import corpus
+
+    from rigmix.config import parse_config
+    from rigmix.pipeline import compose
+
+    text = f"""name = "head_swap_apatosaurus_bee"
+[characters.body]
+path = "{corpus('Apatosaurus').as_posix()}"
+[characters.donor]
+path = "{corpus('Bee').as_posix()}"
+scale = "auto"
+[[actions]]
+op = "replace"
+source = "donor"
+source_joint = "Body"
+target = "body"
+target_joint = "Neck"
+mode = "blend"
+"""
+    comp = compose(parse_config(tomllib.loads(text), source="head_swap_apatosaurus_bee"), until="weights")
+    W = comp.weights.W
+    root = comp.skeleton.index("root")
+    on_root = np.asarray(W[:, root].todense()).ravel() if hasattr(W, "todense") else np.asarray(W)[:, root]
+    assert on_root.max() < 1e-6
+
+
 def test_the_built_in_centaurs_rider_hips_follow_its_spine():
     """The centaur of ``make demo``: the rider's hips and legs, cut off below its spine, map onto
     the quadruped's hips and back legs; at the junction they follow the fused spine."""

@@ -69,8 +69,8 @@ def retarget_weights(W, target, num_output_joints, *, confidence=None):
 def cut_joints_to_nearest_kept(target, confidence, used, parents, positions, output_positions, *, reach):
     """The bone map with each joint the input does not keep, and whose image lies farther than
     ``reach`` from it at rest (or that has none), sent to the output joint of its nearest kept
-    joint (fewest bones away in the input skeleton; ties: the lower index), with that joint's
-    confidence.
+    joint (fewest bones away in the input skeleton, ties: the lower index; a joint with no bone
+    path to a kept one: the nearest kept joint at rest), with that joint's confidence.
 
     Parameters
     ----------
@@ -112,10 +112,15 @@ def cut_joints_to_nearest_kept(target, confidence, used, parents, positions, out
     child = np.flatnonzero(parents >= 0)
     A = sp.csr_matrix((np.ones(len(child)), (child, parents[child])), shape=(J, J))
     hops = shortest_path(A, directed=False, unweighted=True, indices=cut)[:, kept]  # (c, k)
-    reach_ok = np.isfinite(hops).any(axis=1)
+    linked = np.isfinite(hops).any(axis=1)
     nearest = kept[np.argmin(np.where(np.isfinite(hops), hops, np.inf), axis=1)]
-    target[cut[reach_ok]] = target[nearest[reach_ok]]
-    confidence[cut[reach_ok]] = confidence[nearest[reach_ok]]
+    # a joint of another root's tree (modular rigs hang the head or the wings from a root of
+    # their own) has no bone path to a kept joint: the nearest one at rest
+    P = np.asarray(positions, np.float64)
+    apart = np.linalg.norm(P[cut[~linked], None, :] - P[None, kept, :], axis=2)
+    nearest[~linked] = kept[np.argmin(apart, axis=1)] if len(apart) else nearest[~linked]
+    target[cut] = target[nearest]
+    confidence[cut] = confidence[nearest]
     return target, confidence
 
 
