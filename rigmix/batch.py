@@ -47,6 +47,11 @@ files. When the calling process is interrupted (``KeyboardInterrupt``, or SIGTER
 :func:`rigmix.safety.signals_raise` in the command line), the jobs not started are cancelled,
 the workers are sent SIGTERM (SIGKILL after :data:`STOP_TIMEOUT` seconds) and waited for, and
 the exception propagates: no worker outlives the batch.
+
+Threads: the numerical libraries each start a thread per core (OpenBLAS, OpenMP in torch,
+libigl); ``n`` workers on as many cores would run ``n`` times too many threads, which then wait
+on each other. Each worker of the pool limits them to its share of the cores,
+``cpu_count // n`` (at least 1; :func:`limit_threads`), as joblib does for its workers.
 """
 
 from __future__ import annotations
@@ -71,8 +76,8 @@ from .export import config_inputs, json_default, write_outputs
 from .gates import failure_items
 from .safety import Interrupted, check_outputs, file_digest
 
-__all__ = ["MANIFEST", "LOCAL_DASK", "STOP_TIMEOUT", "BUILTIN_WAIT", "run_one", "run_batch", "read_manifest",
-           "plan_batch", "exit_status", "builtin_names", "share_builtins"]
+__all__ = ["MANIFEST", "LOCAL_DASK", "STOP_TIMEOUT", "BUILTIN_WAIT", "THREAD_VARIABLES", "run_one", "run_batch",
+           "read_manifest", "plan_batch", "exit_status", "builtin_names", "share_builtins", "limit_threads"]
 
 logger = logging.getLogger(__name__)
 
@@ -85,6 +90,10 @@ STOP_TIMEOUT = 20.0
 #: Seconds a worker waits for a built-in character another worker builds (:func:`share_builtins`)
 #: before its jobs build it themselves.
 BUILTIN_WAIT = 120.0
+
+#: Environment variables that set the thread count of a library loaded after they are set
+#: (OpenMP, which torch's intra-op pool follows; OpenBLAS; MKL; libigl's ``parallel_for``).
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "IGL_NUM_THREADS")
 
 #: ``progress(done, total, entry)``: called in the calling process as each job ends (skipped
 #: jobs included); the CLI turns it into a progress bar.
@@ -426,12 +435,33 @@ def share_builtins(folder, names) -> None:
                 keep_builtin(name, pickle.load(fh))
 
 
-def _init_worker(builtins: str | None = None, names: tuple = ()) -> None:
+def limit_threads(threads: int) -> None:
+    """Limit this process's numerical thread pools to ``threads`` (a worker's share of the cores).
+
+    Libraries loaded later read :data:`THREAD_VARIABLES`; those loaded already (numpy's and
+    scipy's OpenBLAS are, by the time a spawned worker runs its initializer) are limited through
+    ``threadpoolctl`` where it is installed. For a worker process only: it sets this process's
+    environment.
+    """
+    threads = max(1, int(threads))
+    for name in THREAD_VARIABLES:
+        os.environ[name] = str(threads)
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # an optional dependency: the libraries loaded later are limited all the same
+        return
+    threadpool_limits(limits=threads)
+
+
+def _init_worker(builtins: str | None = None, names: tuple = (), threads: int | None = None) -> None:
     """Worker start-up: SIGINT is the calling process's business (it stops the workers); SIGTERM
     raises :class:`Interrupted`, so that the job's temporary files are removed (:func:`_job`).
+    With ``threads``, the numerical thread pools are limited to that many (:func:`limit_threads`).
     With ``builtins`` (a folder), the built-in characters ``names`` are shared with the other
     workers (:func:`share_builtins`); a failure there is logged and leaves them to the jobs."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if threads is not None:
+        limit_threads(threads)
 
     def stop(signum, frame):
         signal.signal(signal.SIGTERM, signal.SIG_IGN)  # one clean-up, not two
@@ -476,7 +506,8 @@ def _run_pool(todo: list[Path], out_dir: Path, workers: int | None, finish, *, j
     an internal error, and its slot is rebuilt. ``job`` must be a module-level function (it is
     pickled by name into the workers). With more than one slot, the built-in characters of the
     configs are shared (:func:`share_builtins`, slot ``i`` taking the names rotated by ``i``)
-    through a private folder removed afterwards.
+    through a private folder removed afterwards. Each worker's numerical threads are limited to
+    its share of the cores (:func:`limit_threads`).
     """
     import multiprocessing
 
@@ -484,7 +515,8 @@ def _run_pool(todo: list[Path], out_dir: Path, workers: int | None, finish, *, j
     ctx = multiprocessing.get_context("spawn")  # no fork of a threaded parent
     names = builtin_names(todo) if n > 1 else []
     shared = tempfile.mkdtemp(prefix="rigmix-builtins-") if names else None  # mode 0700
-    initargs = [(shared, tuple(names[i % len(names):] + names[:i % len(names)])) if names else ()
+    threads = max(1, (os.cpu_count() or 1) // n)
+    initargs = [(shared, tuple(names[i % len(names):] + names[:i % len(names)]) if names else (), threads)
                 for i in range(n)]
     queue = list(reversed(todo))
     slots: list[ProcessPoolExecutor | None] = [None] * n

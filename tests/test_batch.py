@@ -209,3 +209,24 @@ def test_batch_cli_reports_failures(tmp_path):
     assert "Traceback" not in r.stderr and "NoSuchJoint" in r.stderr
     assert "1 failed" in r.stdout + r.stderr
     assert read_manifest(out)[str(cfg.resolve())]["status"] == "failed"
+
+
+def test_pool_workers_share_the_cores_out_among_their_threads(tmp_path):
+    """Two workers on this machine each run at most ``cpu_count // 2`` numerical threads: the
+    OpenBLAS that numpy loaded before the worker's start-up, and the libraries loaded later
+    through the thread variables. Without the limit, each worker starts a thread per core."""
+    import os
+
+    from batch_probe import thread_limits
+
+    from rigmix.batch import THREAD_VARIABLES, _run_pool
+
+    configs = make_configs(tmp_path / "configs", n=4, broken=-1)
+    entries = []
+    _run_pool(configs, tmp_path / "out", 2, entries.append, job=thread_limits)
+    share = str(max(1, (os.cpu_count() or 1) // 2))
+    assert len(entries) == 4 and len({e["pid"] for e in entries}) == 2
+    for e in entries:
+        assert e["variables"] == {name: share for name in THREAD_VARIABLES}
+        blas = {k: v for k, v in e["pools"].items() if k.startswith("openblas")}
+        assert blas and all(v <= int(share) for v in blas.values()), e["pools"]
