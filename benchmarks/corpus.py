@@ -222,10 +222,17 @@ def _last_line(text: str) -> str:
     return lines[-1].strip() if lines else ""
 
 
-def _env() -> dict:
+def _env(threads: int | None = None) -> dict:
+    """The compositions' environment: the asset folders, and with ``threads`` the numerical
+    libraries' thread count (``--jobs N`` compositions at once share the cores out, as the
+    batch's workers do: :data:`rigmix.batch.THREAD_VARIABLES`)."""
+    from rigmix.batch import THREAD_VARIABLES
+
     env = dict(os.environ)
     env.setdefault("RIGMIX_ASSETS", str(ASSETS))
     env.setdefault("RIGMIX_CORPUS", str(CORPUS))
+    if threads is not None:
+        env.update({name: str(max(1, int(threads))) for name in THREAD_VARIABLES})
     return env
 
 
@@ -238,10 +245,11 @@ def _input_clips(case: Case) -> int:
 
 
 def run_case(case: Case, config: Path, scratch: Path, *, timeout: float = DEFAULT_TIMEOUT,
-             blender: bool = True) -> dict:
+             blender: bool = True, threads: int | None = None) -> dict:
     """Compose one case in a subprocess and return its row (see the module docstring); with
     ``blender``, a composed file also goes through the Blender round trip (:func:`blender_gate`,
-    killed after ``timeout`` seconds too)."""
+    killed after ``timeout`` seconds too); ``threads``: the composition's numerical threads
+    (:func:`_env`; default: the libraries' own, one per core)."""
     glb = scratch / "glb" / f"{case.name}.glb"
     report_path = scratch / "reports" / f"{case.name}.json"
     for p in (glb, report_path):
@@ -250,7 +258,7 @@ def run_case(case: Case, config: Path, scratch: Path, *, timeout: float = DEFAUL
     cmd = [sys.executable, "-m", "rigmix.cli", "compose", str(config), "-o", str(glb), "--report",
            str(report_path), "--no-progress"]
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(),
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(threads),
                             cwd=ROOT, start_new_session=True)
     try:
         _, err = proc.communicate(timeout=timeout)
@@ -564,9 +572,11 @@ def main(argv=None) -> int:
         reference = reference_operation()
         print(f"corpus: reference operation {reference['seconds']:.2f} s ({reference['operation']})", flush=True)
     commit = git_commit()
-    with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+    jobs = max(1, args.jobs)
+    threads = max(1, (os.cpu_count() or 1) // jobs) if jobs > 1 else None
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
         futures = {pool.submit(run_case, c, configs[c.name], args.out, timeout=args.timeout,
-                               blender=not args.no_blender): c for c in pending}
+                               blender=not args.no_blender, threads=threads): c for c in pending}
         for i, fut in enumerate(as_completed(futures), 1):
             row = fut.result()
             row["commit"] = commit

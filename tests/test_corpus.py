@@ -145,7 +145,7 @@ def fake_reference(monkeypatch):
 
 
 def _fake_row(calls):
-    def run_case(case, config, scratch, *, timeout, blender=True):
+    def run_case(case, config, scratch, *, timeout, blender=True, threads=None):
         calls.append(case.name)
         gates = runner.runner_gates(0, 1.0)
         if blender:
@@ -274,3 +274,15 @@ def test_a_tail_is_grafted_where_the_legs_meet(subjects, matrix):
     for case in of_kind(matrix, "tail"):
         body = by[case.characters[0]]
         assert actions(case)[0]["target_joint"] == body.pelvis
+
+
+def test_compositions_run_at_once_share_the_cores_out(monkeypatch):
+    """``--jobs N``: each composition's numerical libraries get ``cpu_count // N`` threads; one at
+    a time, the libraries' own defaults."""
+    from rigmix.batch import THREAD_VARIABLES
+
+    for name in THREAD_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    assert all(name not in runner._env() for name in THREAD_VARIABLES)
+    assert all(runner._env(1)[name] == "1" for name in THREAD_VARIABLES)
+    assert runner._env(3)["OMP_NUM_THREADS"] == "3"
