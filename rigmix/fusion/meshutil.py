@@ -420,7 +420,8 @@ def _crossing(A, B, a, b, eps):
         u = ax / np.maximum(norm, 1e-300)[:, None]
         pa = np.einsum("pkc,pc->pk", A, u)
         pb = np.einsum("pkc,pc->pk", B, u)
-        separated = (norm > scale) & ((pa.max(axis=1) <= pb.min(axis=1) + eps) | (pb.max(axis=1) <= pa.min(axis=1) + eps))
+        apart = (pa.max(axis=1) <= pb.min(axis=1) + eps) | (pb.max(axis=1) <= pa.min(axis=1) + eps)
+        separated = (norm > scale) & apart
         if separated.any():
             keep = ~separated
             alive, A, B, ea, eb, na, nb, scale = (x[keep] for x in (alive, A, B, ea, eb, na, nb, scale))
