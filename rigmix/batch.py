@@ -77,7 +77,8 @@ from .gates import failure_items
 from .safety import Interrupted, check_outputs, file_digest
 
 __all__ = ["MANIFEST", "LOCAL_DASK", "STOP_TIMEOUT", "BUILTIN_WAIT", "THREAD_VARIABLES", "run_one", "run_batch",
-           "read_manifest", "plan_batch", "exit_status", "builtin_names", "share_builtins", "limit_threads"]
+           "read_manifest", "plan_batch", "exit_status", "builtin_names", "share_builtins", "limit_threads",
+           "run_pool"]
 
 logger = logging.getLogger(__name__)
 
@@ -369,7 +370,7 @@ def run_batch(configs, out_dir, *, workers: int | None = None, scheduler: str | 
             for p in todo:
                 finish(run_one(p, out_dir))
         else:
-            _run_pool(todo, out_dir, workers, finish)
+            run_pool(todo, out_dir, workers, finish)
     return [results[c] for c in order]
 
 
@@ -499,7 +500,7 @@ def _new_slot(ctx, initargs: tuple = ()) -> ProcessPoolExecutor:
     return ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_init_worker, initargs=initargs)
 
 
-def _run_pool(todo: list[Path], out_dir: Path, workers: int | None, finish, *, job=_job) -> None:
+def run_pool(todo: list[Path], out_dir: Path, workers: int | None, finish, *, job=_job) -> None:
     """Run ``job(config, out_dir)`` for each config on ``workers`` one-process pools (slots).
 
     One job at a time per slot, so the job of a worker that dies is known: it alone fails, with

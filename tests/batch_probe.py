@@ -1,4 +1,4 @@
-"""A job for the batch pool's tests (``rigmix.batch._run_pool(..., job=...)``): what a worker
+"""A job for the batch pool's tests (``rigmix.batch.run_pool(..., job=...)``): what a worker
 process sees, instead of a composition. A module of its own, so that spawned workers import it."""
 
 from __future__ import annotations

@@ -219,11 +219,11 @@ def test_pool_workers_share_the_cores_out_among_their_threads(tmp_path):
 
     from batch_probe import thread_limits
 
-    from rigmix.batch import THREAD_VARIABLES, _run_pool
+    from rigmix.batch import THREAD_VARIABLES, run_pool
 
     configs = make_configs(tmp_path / "configs", n=4, broken=-1)
     entries = []
-    _run_pool(configs, tmp_path / "out", 2, entries.append, job=thread_limits)
+    run_pool(configs, tmp_path / "out", 2, entries.append, job=thread_limits)
     share = str(max(1, (os.cpu_count() or 1) // 2))
     assert len(entries) == 4 and len({e["pid"] for e in entries}) == 2
     for e in entries:
