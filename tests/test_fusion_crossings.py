@@ -309,3 +309,46 @@ def test_crossing_gate_counts_what_the_inputs_did_not_have():
     assert not crossing_gate({"junction_self_intersections": 82, "junction_crossings_inherited": 79}).passed
     assert crossing_gate({"junction_self_intersections": 0}).passed
     assert crossing_gate({}).value is None
+
+
+def _sphere_and_sheet(z):
+    """A unit sphere whose cap above z = 0.5 is replaced, and a kept flat sheet (12 x 12 squares
+    over [-0.6, 0.6]^2) at height ``z``, apart from it: ``(V, F, kept, sheet faces)``."""
+    V, F = sphere(3)
+    g = np.linspace(-0.6, 0.6, 13)
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    Vs = np.stack([X.ravel(), Y.ravel(), np.full(X.size, z)], axis=1)
+    i = np.arange(12)[:, None] * 13 + np.arange(12)[None, :]
+    a, b, c, d = i.ravel(), i.ravel() + 13, i.ravel() + 14, i.ravel() + 1
+    Fs = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]) + len(V)
+    kept = np.concatenate([~(V[F][:, :, 2] > 0.5).all(axis=1), np.ones(len(Fs), bool)])
+    return np.concatenate([V, Vs]), np.concatenate([F, Fs]), kept, np.arange(len(F), len(F) + len(Fs))
+
+
+def test_a_kept_sheet_through_the_replaced_surface_is_layered_where_it_lies_against_it():
+    """A sheet through the replaced cap (a sleeve through the arm the junction replaces): its
+    faces within reach of the cap, around the circle where it crosses, are its layering; its
+    faces further from the cap, and the sphere's own faces, are not."""
+    from rigmix.fusion.crossings import layer_faces
+
+    V, F, kept, sheet = _sphere_and_sheet(0.9)
+    reach = 0.05
+    layered = layer_faces(V, F, kept, sheet, reach=reach)
+    C = V[F[sheet]].mean(axis=1)
+    r = np.linalg.norm(C[:, :2], axis=1)
+    gap = np.abs(np.sqrt(r ** 2 + 0.81) - 1.0)  # centre's distance to the sphere
+    crossing = np.isin(sheet, intersecting_face_pairs(V, F, sheet).ravel())
+    assert crossing.any() and layered[crossing].all()
+    assert layered.any() and not layered[gap > reach + 0.1].any()  # a face is about 0.14 wide
+    assert layered[gap < 0.5 * reach].all()
+    assert not layer_faces(V, F, kept, np.flatnonzero(kept[:len(F) - len(sheet)]), reach=reach).any()
+
+
+@pytest.mark.parametrize("z", [-0.9, 1.02], ids=["through_the_kept_surface", "near_but_apart"])
+def test_a_kept_sheet_that_does_not_pass_through_the_replaced_surface_is_not_layered(z):
+    """Through the kept part of the sphere only, or a hair above the cap without crossing it: a
+    junction that crosses it there made the crossing."""
+    from rigmix.fusion.crossings import layer_faces
+
+    V, F, kept, sheet = _sphere_and_sheet(z)
+    assert not layer_faces(V, F, kept, sheet, reach=0.05).any()

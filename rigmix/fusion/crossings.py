@@ -45,6 +45,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import sparse
+from scipy.sparse.csgraph import connected_components
 
 from .meshutil import (
     boundary_halfedges,
@@ -59,8 +60,8 @@ from .meshutil import (
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CrossingRepair", "JunctionRepair", "fan_fill", "kept_parts", "knot_regions", "repair_crossings",
-           "repair_junction"]
+__all__ = ["CrossingRepair", "JunctionRepair", "fan_fill", "kept_parts", "knot_regions", "layer_faces",
+           "repair_crossings", "repair_junction"]
 
 #: Faces within this many target edges of the junction are looked at (the broad phase's reach:
 #: a repair moves vertices by about an edge).
@@ -401,6 +402,74 @@ def kept_parts(F, n, fixed):
     uE, cnt = edge_counts(F)
     closed[labels[uE[cnt != 2, 0]]] = False
     return np.where(moving[face_label], -1, face_label), closed & ~moving
+
+
+def layer_faces(V, F, kept, faces, *, reach):
+    """The faces of wholly kept pieces that lie against the replaced surface where they pass
+    through it: the layering of a modular character (a sleeve through the arm it covers).
+
+    A kept piece (a connected component of ``(V, F)`` whose faces are all ``kept``) that crosses a
+    replaced face passes through the surface the junction replaces; the junction, within
+    ``reach`` of that surface, crosses the piece along the same intersection curve, but at the
+    piece's faces beside the ones that crossed, since the junction is remeshed. Those faces are
+    the piece's faces within ``reach`` of the replaced surface and connected, through such
+    faces, to one that crosses it.
+
+    Parameters
+    ----------
+    V : (n, 3) float array, F : (m, 3) int array
+        An input mesh welded by position.
+    kept : (m,) bool
+        Faces kept in the output; the others are the replaced surface.
+    faces : (k,) int array
+        Faces asked about: only the pieces holding them are looked at.
+    reach : float
+        Same unit as ``V``: how far from the replaced surface the junction lies where it crosses
+        the pieces.
+
+    Returns
+    -------
+    (k,) bool
+        Whether each of ``faces`` is such a face.
+    """
+    import igl
+
+    V = np.asarray(V, np.float64)
+    F = np.asarray(F, np.int64).reshape(-1, 3)
+    kept = np.asarray(kept, bool)
+    faces = np.asarray(faces, np.int64)
+    out = np.zeros(len(faces), bool)
+    if not len(faces) or kept.all() or not kept.any():
+        return out
+    labels = vertex_components(F, len(V))
+    face_label = labels[F[:, 0]]
+    whole = np.ones(int(labels.max()) + 1, bool)
+    whole[face_label[~kept]] = False  # a component with a replaced face is no piece
+    asked = np.unique(face_label[faces])
+    asked = asked[whole[asked]]
+    if not len(asked):
+        return out
+    piece = np.flatnonzero(np.isin(face_label, asked))
+    own = intersecting_face_pairs(V, F, piece)
+    crossing = np.zeros(len(F), bool)
+    crossing[own[~kept[own[:, 1]], 0]] = True
+    crossing[own[~kept[own[:, 0]], 1]] = True
+    crossing &= np.isin(face_label, asked)
+    if not crossing.any():
+        return out
+    # distance of each piece face to the replaced surface: the least of its corners' and centre's
+    P = np.concatenate([V[F[piece]], V[F[piece]].mean(axis=1, keepdims=True)], axis=1)
+    d2, _, _ = igl.point_mesh_squared_distance(P.reshape(-1, 3), V, F[~kept])
+    near = np.zeros(len(F), bool)
+    near[piece[np.sqrt(d2).reshape(-1, 4).min(axis=1) <= reach]] = True
+    near |= crossing
+    # the near faces connected to a crossing one (through shared vertices)
+    sub = np.flatnonzero(near)
+    _, vlab = connected_components(vertex_adjacency(F[sub], len(V)), directed=False)
+    seeded = np.unique(vlab[F[crossing, 0]])
+    region = np.zeros(len(F), bool)
+    region[sub[np.isin(vlab[F[sub, 0]], seeded)]] = True
+    return region[faces]
 
 
 def _evict(S: _State, pairs, work, *, margin, floor):

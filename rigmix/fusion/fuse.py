@@ -992,7 +992,11 @@ def _inherited_crossings(surface, part: _Partition, pairs) -> int:
     A pair is inherited when its face outside the junction is a kept input face that, in its own
     input, crosses a face the junction replaced: overlapping parts of a modular character (a head
     shell through the neck, a backpack through the back) pass through the junction that remeshed
-    what they passed through. Pairs of two junction faces are never inherited.
+    what they passed through. A face of a wholly kept piece that passes through the replaced
+    surface also is, where it lies against that surface (:func:`.crossings.layer_faces`, within
+    as far from it as the junction faces it crosses): the remeshed junction crosses the piece
+    along the same intersection curve, at the piece's faces beside those that crossed. Pairs of
+    two junction faces are never inherited.
 
     Parameters
     ----------
@@ -1002,22 +1006,33 @@ def _inherited_crossings(surface, part: _Partition, pairs) -> int:
     part : _Partition
         The partition the surface was assembled from (``kept`` after the crossing repair).
     """
+    import igl
+
+    from .crossings import layer_faces
     from .meshutil import intersecting_face_pairs
 
     junction = surface.junction_faces & ~surface.copied_faces
+    pairs = pairs[~(junction[pairs[:, 0]] & junction[pairs[:, 1]])]  # two junction faces: never inherited
     outside = np.where(junction[pairs[:, 0]], pairs[:, 1], pairs[:, 0])
-    outside = outside[~junction[outside]]  # pairs of two junction faces are never inherited
+    inside = np.where(junction[pairs[:, 0]], pairs[:, 0], pairs[:, 1])
     inherited = np.zeros(len(surface.F), bool)
     for i, P in enumerate(part.pres):
-        faces = np.unique(outside[surface.face_origin_input[outside] == i])
+        mine = surface.face_origin_input[outside] == i
+        faces = np.unique(outside[mine])
         if not len(faces):
             continue
         src = surface.face_origin_face[faces]
         own = intersecting_face_pairs(P.welded.V, P.welded.F, src)
-        mine = np.isin(own[:, 0], src)
-        me, other = np.where(mine, own[:, 0], own[:, 1]), np.where(mine, own[:, 1], own[:, 0])
+        first = np.isin(own[:, 0], src)
+        me, other = np.where(first, own[:, 0], own[:, 1]), np.where(first, own[:, 1], own[:, 0])
         crossed_replaced = np.unique(me[~part.kept[i][other]])
         inherited[faces[np.isin(src, crossed_replaced)]] = True
+        replaced = P.welded.F[~part.kept[i]]
+        if len(replaced):
+            corners = surface.V[surface.F[np.unique(inside[mine])]].reshape(-1, 3)
+            d2, _, _ = igl.point_mesh_squared_distance(corners, P.welded.V, replaced)
+            inherited[faces[layer_faces(P.welded.V, P.welded.F, part.kept[i], src,
+                                        reach=float(np.sqrt(d2.max())))]] = True
     return int(inherited[outside].sum())
 
 
