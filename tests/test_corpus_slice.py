@@ -54,13 +54,10 @@ _LAYERED = ("crossing pairs the composition made and the repair cannot undo (tho
 #: case -> {gate: why it fails}; see the module docstring
 KNOWN_FAILURES: dict[str, dict[str, str]] = {
     "arm_swap__CesiumMan__CyberpunkCharacter": {"junction_self_intersections": _LAYERED},
-    "head_swap__Bee__Bull": {"junction_self_intersections": _LAYERED},
     "wings__Deer__Wasp": {"grafted_visible": "the wings' roots, fused to a joint inside the Deer's torso, are "
                                              "partly inside it (0.89)",
                           "junction_stretch_ratio": "the wings' root junction on the Deer's back stretches as the "
                                                     "back bends (1.55)"},
-    "torso__Wasp__PlatformerCharacter": {"junction_self_intersections": _LAYERED},
-    "torso__Frog__PlatformerCharacter": {"junction_self_intersections": _LAYERED},
 }
 
 
