@@ -311,11 +311,11 @@ def test_crossing_gate_counts_what_the_inputs_did_not_have():
     assert crossing_gate({}).value is None
 
 
-def _sphere_and_sheet(z):
+def _sphere_and_sheet(z, half=0.6):
     """A unit sphere whose cap above z = 0.5 is replaced, and a kept flat sheet (12 x 12 squares
-    over [-0.6, 0.6]^2) at height ``z``, apart from it: ``(V, F, kept, sheet faces)``."""
+    over [-half, half]^2) at height ``z``, apart from it: ``(V, F, kept, sheet faces)``."""
     V, F = sphere(3)
-    g = np.linspace(-0.6, 0.6, 13)
+    g = np.linspace(-half, half, 13)
     X, Y = np.meshgrid(g, g, indexing="ij")
     Vs = np.stack([X.ravel(), Y.ravel(), np.full(X.size, z)], axis=1)
     i = np.arange(12)[:, None] * 13 + np.arange(12)[None, :]
@@ -344,10 +344,26 @@ def test_a_kept_sheet_through_the_replaced_surface_is_layered_where_it_lies_agai
     assert not layer_faces(V, F, kept, np.flatnonzero(kept[:len(F) - len(sheet)]), reach=reach).any()
 
 
-@pytest.mark.parametrize("z", [-0.9, 1.02], ids=["through_the_kept_surface", "near_but_apart"])
-def test_a_kept_sheet_that_does_not_pass_through_the_replaced_surface_is_not_layered(z):
-    """Through the kept part of the sphere only, or a hair above the cap without crossing it: a
-    junction that crosses it there made the crossing."""
+def test_a_kept_sheet_through_the_kept_surface_beside_the_replaced_one_is_layered_within_reach():
+    """A sheet through the sphere just below the replaced cap (a plate through the hip of a leg
+    the junction replaces) is layered into the surface the junction continues, where it lies
+    within reach of the cap; further from the cap than the reach, it is not."""
+    from rigmix.fusion.crossings import layer_faces
+
+    V, F, kept, sheet = _sphere_and_sheet(0.45, half=1.0)
+    cap = V[F[~kept]]
+    crossing = np.isin(sheet, intersecting_face_pairs(V, F, sheet).ravel())
+    C = V[F[sheet[crossing]]].mean(axis=1)
+    gap = np.linalg.norm(C[:, None] - cap.reshape(-1, 3)[None], axis=2).min(axis=1)
+    assert crossing.any() and gap.max() < 0.3  # through the kept sphere, beside the cap
+    assert layer_faces(V, F, kept, sheet, reach=0.3)[crossing].all()
+    assert not layer_faces(V, F, kept, sheet, reach=0.02).any()
+
+
+@pytest.mark.parametrize("z", [-0.9, 1.02], ids=["through_the_kept_surface_far", "near_but_apart"])
+def test_a_kept_sheet_that_does_not_pass_through_the_surface_near_the_replaced_one_is_not_layered(z):
+    """Through the kept part of the sphere far from the cap, or a hair above the cap without
+    crossing it: a junction that crosses it there made the crossing."""
     from rigmix.fusion.crossings import layer_faces
 
     V, F, kept, sheet = _sphere_and_sheet(z)

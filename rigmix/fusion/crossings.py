@@ -405,15 +405,16 @@ def kept_parts(F, n, fixed):
 
 
 def layer_faces(V, F, kept, faces, *, reach):
-    """The faces of wholly kept pieces that lie against the replaced surface where they pass
-    through it: the layering of a modular character (a sleeve through the arm it covers).
+    """The faces of wholly kept pieces layered into their input's surface where the junction
+    replaced it: a modular character's sleeve through the arm it covers, a plate through the hip.
 
-    A kept piece (a connected component of ``(V, F)`` whose faces are all ``kept``) that crosses a
-    replaced face passes through the surface the junction replaces; the junction, within
-    ``reach`` of that surface, crosses the piece along the same intersection curve, but at the
-    piece's faces beside the ones that crossed, since the junction is remeshed. Those faces are
-    the piece's faces within ``reach`` of the replaced surface and connected, through such
-    faces, to one that crosses it.
+    A kept piece (a connected component of ``(V, F)`` whose faces are all ``kept``) that passes
+    through its input's surface (a face of another component, or a replaced face) within
+    ``reach`` of the replaced surface is layered into the surface the junction continues there;
+    the junction, within ``reach`` of that surface, crosses the piece along about the same curve,
+    but at the piece's faces beside the ones that crossed, since the junction is remeshed and
+    blended. Those faces are the piece's faces within ``reach`` of the replaced surface and
+    connected, through such faces, to one that passes through its input's surface there.
 
     Parameters
     ----------
@@ -450,23 +451,25 @@ def layer_faces(V, F, kept, faces, *, reach):
     if not len(asked):
         return out
     piece = np.flatnonzero(np.isin(face_label, asked))
-    own = intersecting_face_pairs(V, F, piece)
-    crossing = np.zeros(len(F), bool)
-    crossing[own[~kept[own[:, 1]], 0]] = True
-    crossing[own[~kept[own[:, 0]], 1]] = True
-    crossing &= np.isin(face_label, asked)
-    if not crossing.any():
-        return out
     # distance of each piece face to the replaced surface: the least of its corners' and centre's
     P = np.concatenate([V[F[piece]], V[F[piece]].mean(axis=1, keepdims=True)], axis=1)
     d2, _, _ = igl.point_mesh_squared_distance(P.reshape(-1, 3), V, F[~kept])
     near = np.zeros(len(F), bool)
     near[piece[np.sqrt(d2).reshape(-1, 4).min(axis=1) <= reach]] = True
-    near |= crossing
-    # the near faces connected to a crossing one (through shared vertices)
+    if not near.any():
+        return out
+    own = intersecting_face_pairs(V, F, np.flatnonzero(near))
+    through = ~kept[own] | (face_label[own] != face_label[own[:, ::-1]])  # the other face: replaced or not the piece's
+    layered = np.zeros(len(F), bool)
+    layered[own[:, 0][through[:, 1]]] = True
+    layered[own[:, 1][through[:, 0]]] = True
+    layered &= near
+    if not layered.any():
+        return out
+    # the near faces connected to one layered (through shared vertices)
     sub = np.flatnonzero(near)
     _, vlab = connected_components(vertex_adjacency(F[sub], len(V)), directed=False)
-    seeded = np.unique(vlab[F[crossing, 0]])
+    seeded = np.unique(vlab[F[layered, 0]])
     region = np.zeros(len(F), bool)
     region[sub[np.isin(vlab[F[sub, 0]], seeded)]] = True
     return region[faces]
