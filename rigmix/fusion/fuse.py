@@ -992,11 +992,12 @@ def _inherited_crossings(surface, part: _Partition, pairs) -> int:
     A pair is inherited when its face outside the junction is a kept input face that, in its own
     input, crosses a face the junction replaced: overlapping parts of a modular character (a head
     shell through the neck, a backpack through the back) pass through the junction that remeshed
-    what they passed through. A face of a wholly kept piece that passes through the replaced
-    surface also is, where it lies against that surface (:func:`.crossings.layer_faces`, within
-    as far from it as the junction faces it crosses): the remeshed junction crosses the piece
-    along the same intersection curve, at the piece's faces beside those that crossed. Pairs of
-    two junction faces are never inherited.
+    what they passed through. A face of a wholly kept piece that passes through its input's
+    surface near the replaced one also is, where it lies against the replaced surface
+    (:func:`.crossings.layer_faces`, within as far from it as the junction faces it crosses):
+    the remeshed junction, which continues that surface, crosses the piece along about the same
+    curve, at the piece's faces beside those that crossed. Pairs of two junction faces are never
+    inherited.
 
     Parameters
     ----------
