@@ -166,15 +166,21 @@ def test_an_overlapping_part_of_an_input_is_counted_not_worked_on(capped_sphere)
     assert np.array_equal(rep.V, V2) and not rep.released.any()
 
 
+def _grid(g, z):
+    """A flat square grid over ``g x g`` (``(k,)`` coordinates) at height ``z``, each square two
+    triangles: ``(V (k^2, 3), F (2 (k-1)^2, 3))``."""
+    k = len(g)
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    V = np.stack([X.ravel(), Y.ravel(), np.full(X.size, float(z))], axis=1)
+    i = (np.arange(k - 1)[:, None] * k + np.arange(k - 1)[None, :]).ravel()
+    a, b, c, d = i, i + k, i + k + 1, i + 1
+    return V, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+
+
 def _sheet_and_piece(half, centre):
     """A flat junction sheet (5 x 5 unit squares at z = 0, its border fixed) and a kept closed
     box ``(2 half)`` wide around ``centre``, apart from it: ``(V, F, junction, movable)``."""
-    g = np.arange(6.0)
-    X, Y = np.meshgrid(g, g, indexing="ij")
-    Vs = np.stack([X.ravel(), Y.ravel(), np.zeros(36)], axis=1)
-    i = np.arange(5)[:, None] * 6 + np.arange(5)[None, :]
-    a, b, c, d = i.ravel(), i.ravel() + 6, i.ravel() + 7, i.ravel() + 1
-    Fs = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    Vs, Fs = _grid(np.arange(6.0), 0.0)
     corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
     Vb = np.asarray(centre) + half * corners
     Fb = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
@@ -315,12 +321,8 @@ def _sphere_and_sheet(z, half=0.6):
     """A unit sphere whose cap above z = 0.5 is replaced, and a kept flat sheet (12 x 12 squares
     over [-half, half]^2) at height ``z``, apart from it: ``(V, F, kept, sheet faces)``."""
     V, F = sphere(3)
-    g = np.linspace(-half, half, 13)
-    X, Y = np.meshgrid(g, g, indexing="ij")
-    Vs = np.stack([X.ravel(), Y.ravel(), np.full(X.size, z)], axis=1)
-    i = np.arange(12)[:, None] * 13 + np.arange(12)[None, :]
-    a, b, c, d = i.ravel(), i.ravel() + 13, i.ravel() + 14, i.ravel() + 1
-    Fs = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]) + len(V)
+    Vs, Fs = _grid(np.linspace(-half, half, 13), z)
+    Fs = Fs + len(V)
     kept = np.concatenate([~(V[F][:, :, 2] > 0.5).all(axis=1), np.ones(len(Fs), bool)])
     return np.concatenate([V, Vs]), np.concatenate([F, Fs]), kept, np.arange(len(F), len(F) + len(Fs))
 
