@@ -11,7 +11,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rigmix.fusion.meshutil import cross3, triangle_corner_angles, unique_ints, unique_rows
+from dfd.mesh import weld
+from rigmix.fusion.fields import prepare_surface
+from rigmix.fusion.meshutil import (
+    cross3,
+    stable_argsort,
+    triangle_corner_angles,
+    undirected_edges,
+    unique_ints,
+    unique_rows,
+)
 from rigmix.fusion.remesh import insert_points
 
 
@@ -61,6 +70,57 @@ def test_unique_ints_and_rows_equal_numpy_unique(n):
         r, rinv = unique_rows(P, return_inverse=True)
         r0, rinv0 = np.unique(P, axis=0, return_inverse=True)
         assert np.array_equal(r, r0.reshape(-1, 2)) and np.array_equal(rinv, rinv0.ravel())
+
+
+@pytest.mark.parametrize("bits", [3, 20, 40, 62])
+def test_stable_argsort_equals_numpy_stable_argsort(bits):
+    # 62 bits leave no room for the positions: the plain stable argsort answers then
+    rng = np.random.default_rng(bits)
+    for n in (0, 1, 2, 17, 20000):
+        a = rng.integers(0, 2 ** bits, size=n)
+        assert np.array_equal(stable_argsort(a), np.argsort(a, kind="stable"))
+    a = rng.integers(-50, 50, size=1000)  # negative values: the plain argsort
+    assert np.array_equal(stable_argsort(a), np.argsort(a, kind="stable"))
+
+
+def _weld_by_numpy_unique(V, F):
+    _, first, inverse = np.unique(V, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    index = rank[inverse.reshape(-1)]
+    return V[np.sort(first)], index, index[F]
+
+
+def test_weld_equals_the_numpy_unique_form():
+    """Split copies, signed zeros (equal to zeros as numbers) and a NaN row (equal to none)."""
+    rng = np.random.default_rng(3)
+    base = rng.integers(-3, 4, size=(400, 3)) * 0.25
+    V = base[rng.integers(0, 400, size=3000)].astype(np.float64)
+    V[rng.integers(0, 3000, size=60), rng.integers(0, 3, size=60)] *= -1.0  # -0.0 where zero
+    V[7] = [np.nan, 0.0, 0.0]
+    V[9] = [np.nan, 0.0, 0.0]
+    F = rng.integers(0, 3000, size=(2000, 3))
+    for got, want in zip(weld(V, F), _weld_by_numpy_unique(V, F)):
+        assert np.array_equal(got, want, equal_nan=True)
+
+
+def test_edges_and_prepared_surface_equal_the_numpy_unique_forms():
+    """Undirected edges and the duplicate faces of a doubled surface, as np.unique gives them."""
+    rng = np.random.default_rng(4)
+    F = rng.integers(0, 3000, size=(4000, 3))  # so many vertices that no two random faces coincide
+    F = np.concatenate([F, F[:500], F[500:900, ::-1]])  # same-orientation and opposite copies
+    E, uE, emap = undirected_edges(F)
+    u0, inv0 = np.unique(np.sort(E, axis=1), axis=0, return_inverse=True)
+    assert np.array_equal(uE, u0) and np.array_equal(emap, inv0.ravel())
+    G = prepare_surface(rng.random((3000, 3)), F)
+    key = lambda X: [tuple(r) for r in np.sort(X, axis=1)]  # noqa: E731
+    got = key(G)
+    assert len(set(got)) == len(got)  # each face once
+    cancelled = set(key(F[500:900]))  # one copy each way: a tie, no face kept
+    doubled = set(key(F[:500])) - cancelled
+    assert not cancelled & set(got)
+    assert doubled <= set(got)
 
 
 def _insert_points_by_concatenation(V, F, fixed, X, *, max_dist, passes=4, snap=0.75, edge_bary=0.15):

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry import MAX_GRID_VOXELS, check_coordinates, check_grid_voxels
-from .meshutil import nondegenerate
+from .meshutil import nondegenerate, stable_argsort
 
 log = logging.getLogger(__name__)
 
@@ -131,8 +131,7 @@ def _resolve_duplicates(F):
     pos = np.zeros(len(F), bool)
     for r in range(3):
         pos |= np.all(np.roll(F, r, axis=1) == S, axis=1)
-    _, first, inv = np.unique(S, axis=0, return_index=True, return_inverse=True)
-    inv = inv.reshape(-1)
+    first, inv = _group_rows(S)
     net = np.bincount(inv, weights=np.where(pos, 1.0, -1.0), minlength=len(first))
     want_pos = net > 0
     keep = np.zeros(len(F), bool)
@@ -142,6 +141,25 @@ def _resolve_duplicates(F):
     _, firsts = np.unique(inv[idx], return_index=True)
     keep[idx[firsts]] = True
     return F[keep]
+
+
+def _group_rows(S):
+    """``np.unique(S, axis=0, return_index=True, return_inverse=True)[1:]`` of non-negative
+    integer rows ``S`` ``(m, 3)``: the first row of each distinct row, in sorted order, and the
+    group of each row. One int64 key per row where it fits (a stable sort of a million keys is
+    several times faster than numpy's row-wise unique)."""
+    S = np.asarray(S, np.int64)
+    n = int(S.max(initial=0)) + 1
+    if n ** 3 >= 2 ** 62:
+        _, first, inv = np.unique(S, axis=0, return_index=True, return_inverse=True)
+        return first, inv.reshape(-1)
+    key = (S[:, 0] * n + S[:, 1]) * n + S[:, 2]
+    order = stable_argsort(key)
+    k = key[order]
+    new = np.r_[True, k[1:] != k[:-1]] if len(k) else np.zeros(0, bool)
+    inv = np.empty(len(S), np.int64)
+    inv[order] = np.cumsum(new) - 1
+    return order[new], inv
 
 
 class FieldBackend(Protocol):

@@ -13,6 +13,7 @@ from scipy.sparse.csgraph import connected_components
 from dfd.mesh import face_normals, weld
 
 __all__ = [
+    "stable_argsort",
     "nondegenerate",
     "undirected_edges",
     "face_adjacency",
@@ -42,12 +43,36 @@ def unique_ints(a, *, return_inverse=False):
     if not return_inverse:
         s = np.sort(a)
         return s[np.r_[True, s[1:] != s[:-1]]] if len(s) else s
-    order = np.argsort(a, kind="stable")
+    order = stable_argsort(a)
     s = a[order]
     first = np.r_[True, s[1:] != s[:-1]] if len(s) else np.zeros(0, bool)
     inv = np.empty(len(a), np.int64)
     inv[order] = np.cumsum(first) - 1
     return s[first], inv
+
+
+def stable_argsort(a):
+    """``np.argsort(a, kind="stable")`` of a 1-d integer array, ``(n,)`` int64.
+
+    Where the values and the positions fit in one int64 together (non-negative values), each
+    value is packed above its position and the packed keys are sorted in place: equal values
+    then come in order of position, as a stable sort leaves them, and numpy's plain sort of
+    int64 keys is several times faster than its stable argsort (the edge keys of a mesh of a
+    million faces: 0.06 s against 0.5 s).
+    """
+    a = np.asarray(a).ravel()
+    n = len(a)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    if a.dtype.kind not in "iu":
+        return np.argsort(a, kind="stable").astype(np.int64)
+    lo, hi = int(a.min()), int(a.max())
+    shift = max(int(n - 1).bit_length(), 1)
+    if lo < 0 or hi.bit_length() + shift > 62:
+        return np.argsort(a, kind="stable").astype(np.int64)
+    packed = (a.astype(np.int64) << shift) | np.arange(n, dtype=np.int64)
+    packed.sort()
+    return packed & np.int64((1 << shift) - 1)
 
 
 def unique_rows(P, *, return_inverse=False):
@@ -82,7 +107,7 @@ def undirected_edges(F):
     """
     F = np.asarray(F, dtype=np.int64).reshape(-1, 3)
     E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    S = np.sort(E, axis=1)
+    S = np.stack([E.min(axis=1), E.max(axis=1)], axis=1)
     uE, emap = unique_rows(S, return_inverse=True)
     return E, uE.reshape(-1, 2), emap.reshape(-1)
 
