@@ -319,32 +319,35 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
     matrices = {None: clip_skinning_matrices(ch.skeleton, ch.clips, fps=fps, max_frames=max_frames)}
     s_out = band_stretch(ch.skeleton, ch.clips, V, J, W, surface.F, band, rest=V, matrices=matrices[None])
     samples, nsrc = {}, 0  # per input: stretch samples of its band, under its own clips
+    bands = {}  # (input, joint, reach) -> its band's samples: a character composed with itself is sampled once
+    rests_of = {}  # input -> rest positions of its skinned meshes
     for p in pairs:
         for cid, j in ((p.target, p.target_joint), (p.source, p.source_joint)):
             src = composition.inputs[cid]
-            if not src.clips:
+            meshes = [m for m in src.meshes if m.skinned and len(m.faces) and len(m.positions)]
+            if not src.clips or not meshes:
                 continue
-            if cid not in matrices:
-                matrices[cid] = clip_skinning_matrices(src.skeleton, src.clips, fps=fps, max_frames=max_frames)
+            if id(src) not in matrices:
+                matrices[id(src)] = clip_skinning_matrices(src.skeleton, src.clips, fps=fps, max_frames=max_frames)
+                M0 = rest_skinning_matrices(src.skeleton)
+                rests_of[id(src)] = [linear_blend_skinning(m.positions, m.joints, m.weights, M0) for m in meshes]
+            rests = rests_of[id(src)]
             scale = float(plan.scales.get(cid, 1.0)) or 1.0
             c = src.skeleton.rest_worlds()[j, :3, 3]
-            M0 = rest_skinning_matrices(src.skeleton)
-            meshes = [m for m in src.meshes if m.skinned and len(m.faces) and len(m.positions)]
-            if not meshes:
-                continue
-            rests = [linear_blend_skinning(m.positions, m.joints, m.weights, M0) for m in meshes]
             dists = [np.linalg.norm(x - c, axis=1) for x in rests]
             # the input's band, at least its nearest vertex (not each mesh's: a prop or a far
             # part of a modular character has no vertex near the joint)
             reach = max(r / scale, min(float(d.min()) for d in dists))
-            for m, rest, d in zip(meshes, rests, dists):
-                b = np.flatnonzero(d <= reach)
-                if not len(b):
-                    continue
-                nsrc += len(b)
-                samples.setdefault(cid, []).append(
-                    band_stretch(src.skeleton, src.clips, m.positions, m.joints, m.weights, m.faces, b,
-                                 rest=rest, matrices=matrices[cid]))
+            key = (id(src), j, reach)
+            if key not in bands:
+                inside = [np.flatnonzero(d <= reach) for d in dists]
+                bands[key] = ([band_stretch(src.skeleton, src.clips, m.positions, m.joints, m.weights, m.faces, b,
+                                            rest=rest, matrices=matrices[id(src)])
+                               for m, rest, b in zip(meshes, rests, inside) if len(b)],
+                              sum(len(b) for b in inside))
+            band_samples, count = bands[key]
+            nsrc += count
+            samples.setdefault(cid, []).extend(band_samples)
     # an input without clips moves only as completion animates it: its figure is that of its
     # own vertices in the output band, which keep its weights, under the output's clips
     for cid in dict.fromkeys(c for p in pairs for c in (p.target, p.source)):

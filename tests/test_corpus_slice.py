@@ -48,12 +48,8 @@ def kill_after(config) -> float:
     return max(1.0, limit - 5.0) if limit > 0 else TIMEOUT
 
 
-_LAYERED = ("crossing pairs the composition made and the repair cannot undo (those inherited from a "
-            "modular character's overlapping parts are not counted): the remeshed junction folds through "
-            "itself, or through small closed parts of the other character at the seam")
 #: case -> {gate: why it fails}; see the module docstring
 KNOWN_FAILURES: dict[str, dict[str, str]] = {
-    "arm_swap__CesiumMan__CyberpunkCharacter": {"junction_self_intersections": _LAYERED},
     "wings__Deer__Wasp": {"grafted_visible": "the wings' roots, fused to a joint inside the Deer's torso, are "
                                              "partly inside it (0.89)",
                           "junction_stretch_ratio": "the wings' root junction on the Deer's back stretches as the "

@@ -12,7 +12,7 @@ import pytest
 from conftest import ROOT, asset, corpus, fused_twice
 from fusion_shapes import sphere
 
-from rigmix.fusion.crossings import fan_fill, knot_regions, repair_crossings, repair_junction
+from rigmix.fusion.crossings import fan_fill, flip_apart, knot_regions, repair_crossings, repair_junction
 from rigmix.fusion.meshutil import edge_counts, intersecting_face_pairs, vertex_adjacency
 
 
@@ -306,6 +306,49 @@ def test_crossings_with_overlapping_input_parts_are_inherited_not_new(tmp_path):
     own = intersecting_face_pairs(V, F)
     overlapping = set(part[F[own[part[F[own[:, 0], 0]] != part[F[own[:, 1], 0]]].ravel(), 0]].tolist())
     assert set(part[F[out.face_origin_face[kept], 0]].tolist()) <= overlapping
+
+
+def _folded_quad():
+    """A quad folded along its diagonal A-C into a valley (two junction faces, all four corners
+    on its border, so none can move), and a small level kept triangle the valley cuts through
+    and the ridge of the other diagonal B-D clears: ``(Q, valley, T)``."""
+    Q = np.array([[0, 0, 0], [1, 0, 1], [1, 1, 0], [0, 1, 1]], float)
+    valley = np.array([[0, 1, 2], [0, 2, 3]])
+    T = np.array([[0.85, 0.15, 0.5], [0.15, 0.85, 0.5], [0.55, 0.55, 0.5]])
+    return Q, valley, T
+
+
+def test_a_fold_with_the_wrong_diagonal_is_flipped_apart():
+    Q, valley, T = _folded_quad()
+    V, F = np.concatenate([Q, T]), np.concatenate([valley, [[4, 5, 6]]])
+    assert len(intersecting_face_pairs(V, F)) == 2  # both halves of the valley cut the triangle
+    rep = repair_junction(T, np.array([[0, 1, 2]]), Q, valley, counted=np.zeros(1, bool))
+    assert rep.found == 2 and rep.left == 0 and rep.moved and not rep.made.any()
+    assert np.array_equal(rep.JV, Q)  # no vertex moved: the faces took the other diagonal
+    assert {tuple(sorted(f)) for f in rep.JF} == {(0, 1, 3), (1, 2, 3)}
+    uE, cnt = edge_counts(rep.JF)
+    assert len(uE) == 5 and (cnt == 1).sum() == 4  # still one quad with its border
+    out = np.concatenate([rep.JF, [[4, 5, 6]]])
+    assert len(intersecting_face_pairs(V, out)) == 0
+
+
+@pytest.mark.parametrize("case", ["kept face", "ignored", "edge exists"])
+def test_a_flip_stands_only_between_two_junction_faces_and_for_counted_crossings(case):
+    Q, valley, T = _folded_quad()
+    V, F = np.concatenate([Q, T]), np.concatenate([valley, [[4, 5, 6]]])
+    flippable, ignored = np.array([True, True, False]), None
+    if case == "kept face":  # half of the quad is a kept face: its corners cannot change
+        flippable[1] = False
+    elif case == "ignored":  # the triangle crosses its own input: its pairs are not worked on
+        ignored = np.array([False, False, True])
+    else:  # B-D is an edge already (a face beside the quad): the flip would double it
+        V = np.concatenate([V, [[2.0, 2.0, 1.0]]])
+        F = np.concatenate([F, [[3, 1, 7]]])
+        flippable, ignored = np.append(flippable, False), None
+    made = np.ones(len(F), bool)
+    F2, flipped, removed, made2 = flip_apart(V, F, flippable, made, ignored=ignored, reach=0.5, floor=0.0)
+    assert np.array_equal(F2, F) and not flipped.any() and removed == 0
+    assert made2[0] == (case != "ignored")  # the valley's first half still crosses what counts
 
 
 def test_crossing_gate_counts_what_the_inputs_did_not_have():

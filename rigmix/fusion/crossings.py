@@ -32,7 +32,10 @@ triangles, folded over itself, that no vertex move untangles), the ring of faces
 (:func:`knot_regions`) is filled again as a fan from one new vertex (:func:`fan_fill`), where that
 lowers the junction's crossings, shares no edge more than twice and keeps its triangles as good;
 the repair then runs again on the refilled junction, which is kept only if it leaves fewer such
-crossings than the first. Pairs with a
+crossings than the first. Where some are still left, edge flips (:func:`flip_apart`) give two
+junction faces of a pair the other diagonal of their quad where that takes them out of
+crossings and keeps the junction's triangles as good: a fold of two slivers between vertices
+that cannot move (all on the junction's border) has no other way out. Pairs with a
 kept face that crosses its own input (overlapping parts of a modular character: a shoulder
 pad through the arm it covered, which the junction replaces) are counted but not worked on.
 Every step is deterministic (no threads, no random choice).
@@ -60,8 +63,8 @@ from .meshutil import (
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CrossingRepair", "JunctionRepair", "fan_fill", "kept_parts", "knot_regions", "layer_faces",
-           "repair_crossings", "repair_junction"]
+__all__ = ["CrossingRepair", "JunctionRepair", "fan_fill", "flip_apart", "kept_parts", "knot_regions",
+           "layer_faces", "repair_crossings", "repair_junction"]
 
 #: Faces within this many target edges of the junction are looked at (the broad phase's reach:
 #: a repair moves vertices by about an edge).
@@ -85,6 +88,11 @@ EVICT_MARGIN = 0.25
 #: A knot (:func:`knot_regions`) is looked for within at most this many rings around its pair.
 KNOT_RINGS = 3
 
+#: Passes of :func:`flip_apart` at most; and how many rings of faces around the crossings left
+#: may flip.
+FLIP_PASSES = 16
+FLIP_RINGS = 3
+
 
 @dataclass(frozen=True)
 class CrossingRepair:
@@ -104,6 +112,8 @@ class CrossingRepair:
         Rounds run; smoothing and push steps that stood.
     made : (m,) bool
         Faces in a pair left that is not layered (a crossing the inputs did not have).
+    layered_faces : (m,) bool
+        Kept faces that cross their own input (their pairs are not worked on).
     """
 
     V: np.ndarray
@@ -114,6 +124,7 @@ class CrossingRepair:
     rounds: int
     steps: int
     made: np.ndarray
+    layered_faces: np.ndarray | None = None
 
 
 class _State:
@@ -705,7 +716,7 @@ def repair_crossings(V, F, movable, check, *, target, releasable=None, layered=N
                  "%d rounds, %d steps, %d kept faces released)", found, left, n_layered, done, n_steps,
                  int(released.sum()))
     return CrossingRepair(V=S.V, released=released, found=int(found), left=int(left), layered=int(n_layered),
-                          rounds=done, steps=n_steps, made=made)
+                          rounds=done, steps=n_steps, made=made, layered_faces=S.layered.copy())
 
 
 def knot_regions(F, n, fixed, pairs, *, rings=KNOT_RINGS) -> list:
@@ -821,6 +832,175 @@ def _untie_knots(Vw, Fw, mK, fixed, min_angle):
     return V2, F2, origin
 
 
+def _face_normals(T):
+    n = np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0])
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+
+def flip_apart(V, F, flippable, made, *, ignored=None, reach, floor, passes=FLIP_PASSES, rings=FLIP_RINGS):
+    """Edge flips that take faces out of the crossing pairs left: a fold of two slivers that no
+    vertex move opens often has the wrong diagonal.
+
+    Each edge of a ``made`` face (and, once a flip stands, of the flipped faces) shared by
+    exactly two ``flippable`` faces is a candidate, if its flip (the other diagonal of the two
+    faces' quad) gives no edge of ``F`` twice, turns neither new face by 90 degrees or more from
+    the old pair's mean normal, and folds the new pair by no more than 90 degrees or no more than
+    the old one. A pass tests every candidate at once against the surface as the pass found it
+    (how many crossing pairs its two new faces have, against the old two's); flips then stand in
+    order of the most pairs removed, then the larger minimum angle, where they remove some, keep
+    the ``flippable`` faces' 5th percentile of minimum angles at least ``floor``, and their quad
+    meets no quad flipped in the same pass (tested without it). Passes repeat while one flip
+    stands, at most ``passes``; only faces within ``rings`` rings of the ``made`` ones flip.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+        Positions (welded by position); never change.
+    F : (m, 3) int array
+    flippable : (m,) bool
+        Faces whose connectivity may change (generated junction faces).
+    made : (m,) bool
+        Faces in the crossing pairs to resolve.
+    ignored : (m,) bool, optional
+        Faces whose pairs do not count (kept faces that cross their own input).
+    reach : float
+        Faces within about this distance of the flipped ones are tested (same unit as ``V``).
+    floor : float
+        Degrees.
+
+    Returns
+    -------
+    F2 : (m, 3) int64
+        ``F`` with the flipped faces rewritten in place (same count, same order).
+    flipped : (m,) bool
+        Faces whose corners changed.
+    removed : int
+        Crossing pairs (without an ``ignored`` face) the flips removed.
+    made2 : (m,) bool
+        ``made`` after the flips: exact on the ``flippable`` faces (a face of ``made`` that is
+        not ``flippable`` keeps its mark where its pairs are not known to have gone).
+    """
+    V = np.asarray(V, np.float64)
+    F = np.array(F, np.int64).reshape(-1, 3)
+    flippable = np.asarray(flippable, bool)
+    ignored = np.zeros(len(F), bool) if ignored is None else np.asarray(ignored, bool)
+    made = np.asarray(made, bool)
+    # the faces within `rings` rings of the made ones may flip, and those within `reach` of them
+    # (what they may cross, every face on their corners) are all a flip is tested against
+    A = vertex_adjacency(F, len(V)).tocsr()
+    ring = np.zeros(len(V))
+    ring[F[made & flippable].ravel()] = 1.0
+    for _ in range(rings):
+        ring = np.maximum(ring, (A @ ring > 0).astype(np.float64))
+    core = (ring[F] > 0).any(axis=1)
+    window = np.flatnonzero(_near_faces(V, F, core, reach))
+    W = F[window]
+    can = flippable[window] & core[window]
+    skip = ignored[window]
+    angles = triangle_min_angles(V, F[flippable])  # of all flippable faces, updated in place
+    slot = np.full(len(F), -1)
+    slot[flippable] = np.arange(len(angles))
+    slot = slot[window]
+    flipped = np.zeros(len(W), bool)
+    removed = 0
+    pad = 1e-8 * float(np.ptp(V, axis=0).max() or 1.0)
+
+    def crossing(faces, extra=None):
+        """Crossing pairs ``(p, 2)`` (window faces; ``len(W) + i`` the face ``extra[i]``) with a
+        face of ``faces``, none ``ignored``, none between two ``extra`` faces."""
+        X = W if extra is None else np.concatenate([W, extra])
+        q = np.zeros(len(X), bool)
+        q[faces] = True
+        sub = np.flatnonzero(_near_faces(V, X, q, reach))
+        p = sub[intersecting_face_pairs(V, X[sub], np.flatnonzero(q[sub]))]
+        out = np.concatenate([skip, np.zeros(len(X) - len(W), bool)])
+        p = p[~(out[p[:, 0]] | out[p[:, 1]])]
+        return p[(p < len(W)).any(axis=1)]
+
+    def candidates(work):
+        """``(f, g, new)`` for each flip of an edge of a ``work`` face that is allowed at all."""
+        n = len(V)
+        half = np.stack([W, np.roll(W, -1, axis=1)], axis=2).reshape(-1, 2)  # edge e of face f at row 3 f + e
+        key = half[:, 0] * n + half[:, 1]
+        order = np.argsort(key, kind="stable")
+        sorted_key = key[order]
+        undirected = np.sort(np.minimum(half[:, 0], half[:, 1]) * n + np.maximum(half[:, 0], half[:, 1]))
+        found = []
+        for h in np.flatnonzero(np.repeat(work, 3)):
+            f, e = divmod(int(h), 3)
+            u, v, w = W[f, e], W[f, (e + 1) % 3], W[f, (e + 2) % 3]
+            a, b = min(u, v) * n + max(u, v), v * n + u
+            if np.searchsorted(undirected, a, "right") - np.searchsorted(undirected, a) != 2:
+                continue  # a border or non-manifold edge
+            i = np.searchsorted(sorted_key, b)
+            if i >= len(key) or sorted_key[i] != b:
+                continue
+            g = int(order[i]) // 3
+            if not can[g]:
+                continue
+            x = int(W[g][(W[g] != u) & (W[g] != v)][0])
+            c = min(w, x) * n + max(w, x)
+            if x == w or np.searchsorted(undirected, c, "right") > np.searchsorted(undirected, c):
+                continue  # the other diagonal is an edge already
+            new = np.array([[w, u, x], [x, v, w]])
+            n_old, n_new = _face_normals(V[W[[f, g]]]), _face_normals(V[new])
+            if (n_new @ n_old.sum(axis=0)).min() <= 0 or n_new[0] @ n_new[1] < min(0.0, n_old[0] @ n_old[1]):
+                continue
+            found.append((f, g, new))
+        return found
+
+    work = made[window] & can
+    todo = work.copy()  # the work faces whose candidates may have changed since last tested
+    for _ in range(passes):
+        # every candidate of the pass is tested at once, against the surface as the pass found it
+        at_work = np.zeros(len(V), bool)
+        at_work[W[todo].ravel()] = True
+        pairs = crossing(np.flatnonzero(can & at_work[W].any(axis=1)))  # every face a candidate changes
+        count = np.bincount(pairs.ravel(), minlength=len(W))
+        cands = [c for c in candidates(todo) if count[c[0]] + count[c[1]] > 0]
+        if not cands:
+            break
+        extra = np.concatenate([c[2] for c in cands])
+        p = crossing(np.arange(len(W), len(W) + len(extra)), extra)
+        after = np.bincount((p.max(axis=1) - len(W)) // 2, minlength=len(cands))
+        gain = np.array([count[f] + count[g] for f, g, _ in cands]) - after
+        angle = np.array([triangle_min_angles(V, new).min() for _, _, new in cands])
+        boxes = []  # the quads flipped in this pass: a flip beside one was tested without it
+        stood = False
+        for c in np.lexsort((-angle, -gain)):
+            f, g, new = cands[c]
+            if gain[c] <= 0:
+                break
+            qlo, qhi = V[new].min(axis=(0, 1)), V[new].max(axis=(0, 1))
+            if any(np.all(qlo <= b_hi) and np.all(b_lo <= qhi) for b_lo, b_hi in boxes):
+                continue
+            old = angles[slot[[f, g]]].copy()
+            angles[slot[[f, g]]] = triangle_min_angles(V, new)
+            if float(np.percentile(angles, 5)) < floor:
+                angles[slot[[f, g]]] = old
+                continue
+            W[[f, g]] = new
+            flipped[[f, g]] = work[[f, g]] = True
+            boxes.append((qlo, qhi))
+            removed += int(gain[c])
+            stood = True
+        if not stood:
+            break
+        # a candidate's test looks at the faces whose boxes meet its quad's: only those beside a
+        # flip of this pass can come out differently
+        lo, hi = V[W].min(axis=1), V[W].max(axis=1)
+        beside = np.zeros(len(W), bool)
+        for qlo, qhi in boxes:
+            beside |= np.all((lo <= qhi + pad) & (hi >= qlo - pad), axis=1)
+        todo = work & beside
+    F[window] = W
+    out = np.zeros(len(F), bool)
+    out[window[flipped]] = True
+    made2 = made & ~core  # their pairs with no face of the core are as they were
+    made2[window[crossing(np.flatnonzero(core[window])).ravel()]] = True
+    return F, out, removed, made2
+
+
 @dataclass(frozen=True)
 class JunctionRepair:
     """A junction surface after :func:`repair_junction`.
@@ -916,10 +1096,19 @@ def repair_junction(KV, KF, JV, JF, *, counted, layered=None, rounds=6, min_angl
             Vw, Fw, origin, rep = Vk, Fk, origin_k, replace(rep_k, found=found)
         else:
             knots = None
+    flipped = False
+    if rep.left > rep.layered:  # folds of slivers with the wrong diagonal?
+        generated = np.arange(len(Fw)) >= mK
+        floor = min(min_angle, float(np.percentile(triangle_min_angles(rep.V, Fw[generated]), 5)))
+        F2, _, removed, made2 = flip_apart(rep.V, Fw, generated, rep.made, ignored=rep.layered_faces, reach=target,
+                                           floor=floor)
+        if removed:
+            log.info("fusion: %d crossing face pairs at the junction removed by edge flips", removed)
+            Fw, rep, flipped = F2, replace(rep, left=rep.left - removed, made=made2), True
     made = np.zeros(len(JF), bool)
     made[origin[rep.made[mK:]]] = True  # on the given junction's faces, a refilled knot's on its first
     counts = {"found": rep.found, "left": rep.left, "layered": rep.layered, "made": made}
-    if rep.steps == 0 and knots is None:
+    if rep.steps == 0 and knots is None and not flipped:
         return JunctionRepair(JV=JV, JF=JF, released=np.zeros(mK, bool), moved=False, **counts)
     faces = np.concatenate([np.arange(mK, len(Fw)), np.flatnonzero(rep.released)])
     JV2, JF2, _ = remove_unreferenced(rep.V, Fw[faces])
