@@ -177,16 +177,16 @@ def test_a_leg_whose_junction_creases_is_fused_again_with_the_replaced_region_wh
 
 
 def test_a_fusion_that_passes_is_not_retried_and_a_retry_is_kept_only_when_it_fails_less(tmp_path):
-    """The Platformer's upper body on the Wasp's head: the junction crosses only the Platformer's
-    modular pieces where they pass through its own body (inherited,
+    """RiggedFigure's arm on the Platformer: the junction crosses only the Platformer's modular
+    pieces where they pass through its own body (inherited,
     :func:`rigmix.fusion.crossings.layer_faces`), so the first fusion passes every fusion gate and
     is kept as made, with the retry allowed. The rule a retry is kept by: some of the failed
     gates only, or the same ones, none farther and one nearer."""
     from rigmix.gates import Gate, fails_less
 
-    action = ('op = "replace"\nsource = "donor"\nsource_joint = "Abdomen"\n'
-              'target = "body"\ntarget_joint = "Head"\nmode = "blend"')
-    path = _config(tmp_path, "wasp_torso", asset("Wasp"), corpus("PlatformerCharacter"), action)
+    action = ('op = "replace"\nsource = "donor"\nsource_joint = "arm_joint_L_1"\n'
+              'target = "body"\ntarget_joint = "UpperArm.L"\nmode = "blend"')
+    path = _config(tmp_path, "platformer_arm", corpus("PlatformerCharacter"), asset("RiggedFigure"), action)
     mesh = compose(path, until="fusion").report["mesh"]
     assert 0 < mesh["junction_self_intersections"] == mesh["junction_crossings_inherited"]  # the case's point
     assert not failed_mesh_gates(mesh)
