@@ -52,10 +52,12 @@ from scipy.sparse.csgraph import connected_components
 
 from .meshutil import (
     boundary_halfedges,
+    cross3,
     edge_counts,
     edges_to_loops,
     intersecting_face_pairs,
     triangle_min_angles,
+    undirected_edges,
     unique_rows,
     vertex_adjacency,
     vertex_components,
@@ -833,7 +835,7 @@ def _untie_knots(Vw, Fw, mK, fixed, min_angle):
 
 
 def _face_normals(T):
-    n = np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0])
+    n = cross3(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0])
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
 
@@ -919,28 +921,27 @@ def flip_apart(V, F, flippable, made, *, ignored=None, reach, floor, passes=FLIP
 
     def candidates(work):
         """``(f, g, new)`` for each flip of an edge of a ``work`` face that is allowed at all."""
-        n = len(V)
-        half = np.stack([W, np.roll(W, -1, axis=1)], axis=2).reshape(-1, 2)  # edge e of face f at row 3 f + e
-        key = half[:, 0] * n + half[:, 1]
-        order = np.argsort(key, kind="stable")
-        sorted_key = key[order]
-        undirected = np.sort(np.minimum(half[:, 0], half[:, 1]) * n + np.maximum(half[:, 0], half[:, 1]))
+        m = len(W)
+        _, uE, emap = undirected_edges(W)  # half-edge e of face f at row e m + f
+        count = np.bincount(emap, minlength=len(uE))
+        by_edge = np.argsort(emap, kind="stable")
+        mate = np.full(3 * m, -1)  # the other half-edge of an edge of two faces
+        two = np.flatnonzero(count[emap[by_edge]] == 2)
+        first = two[::2] if len(two) else two
+        mate[by_edge[first]], mate[by_edge[first + 1]] = by_edge[first + 1], by_edge[first]
+        ukey = uE[:, 0] * len(V) + uE[:, 1]  # sorted, as uE is
         found = []
-        for h in np.flatnonzero(np.repeat(work, 3)):
-            f, e = divmod(int(h), 3)
-            u, v, w = W[f, e], W[f, (e + 1) % 3], W[f, (e + 2) % 3]
-            a, b = min(u, v) * n + max(u, v), v * n + u
-            if np.searchsorted(undirected, a, "right") - np.searchsorted(undirected, a) != 2:
-                continue  # a border or non-manifold edge
-            i = np.searchsorted(sorted_key, b)
-            if i >= len(key) or sorted_key[i] != b:
-                continue
-            g = int(order[i]) // 3
+        halves = np.flatnonzero(np.tile(work, 3) & (mate >= 0))
+        for h in halves[np.argsort((halves % m) * 3 + halves // m)]:  # face by face, edge by edge
+            e, f = divmod(int(h), m)
+            g = int(mate[h]) % m
             if not can[g]:
                 continue
+            u, v, w = W[f, e], W[f, (e + 1) % 3], W[f, (e + 2) % 3]
             x = int(W[g][(W[g] != u) & (W[g] != v)][0])
-            c = min(w, x) * n + max(w, x)
-            if x == w or np.searchsorted(undirected, c, "right") > np.searchsorted(undirected, c):
+            diagonal = min(w, x) * len(V) + max(w, x)
+            i = np.searchsorted(ukey, diagonal)
+            if x == w or (i < len(ukey) and ukey[i] == diagonal):
                 continue  # the other diagonal is an edge already
             new = np.array([[w, u, x], [x, v, w]])
             n_old, n_new = _face_normals(V[W[[f, g]]]), _face_normals(V[new])
