@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import asset
+from conftest import asset, corpus
 
 from rigmix.animation import sample_clip
 from rigmix.character import Character, Mesh, Skeleton
@@ -15,9 +15,15 @@ from rigmix.errors import InputError
 from rigmix.io import load_character
 from rigmix.operations import plan_operations
 from rigmix.operations.positioning import (
+    AGREEMENT,
     chain_length,
+    cut_section,
+    limb_kind,
+    pair_scale,
     part_weights,
     position_character,
+    rebase,
+    rest_world_faces,
     rest_world_mesh,
     skeleton_adjacency,
     smooth_translations,
@@ -329,11 +335,22 @@ def test_centaur_real(real):
     assert np.allclose(plan.positioned["knight"].skeleton.rest_worlds()[knight.index("Abdomen"), :3, 3],
                        Wr[fused.output, :3, 3])
     assert "knight_Torso" in sk.names  # the knight's Torso after the horse's
-    s = plan.scales["knight"]
+    # a torso is no limb: its scale fills the ring where the horse's neck leaves the body, whatever
+    # the chains (the horse's neck and head against the knight's spine and arm, about half of it)
+    assert limb_kind(real["Knight"], knight.index("Abdomen")) is None
+    assert plan.report["characters"]["knight"]["scale_method"] == "cross-section"
+
+    def cut(c, j):
+        c = rebase(c)
+        V, W = rest_world_mesh(c)
+        return cut_section(V, rest_world_faces(c), W, c.skeleton.subtree(j))
+
+    ratio = cut(real["Horse"], horse.index("Neck1")) / cut(real["Knight"], knight.index("Abdomen"))
+    assert plan.scales["knight"] == pytest.approx(ratio, rel=1e-9)
     Ph, Pk = horse.rest_worlds()[:, :3, 3], knight.rest_worlds()[:, :3, 3]
-    ratio = (chain_length(horse.parents, Ph, horse.index("Neck1"))
+    chain = (chain_length(horse.parents, Ph, horse.index("Neck1"))
              / chain_length(knight.parents, Pk, knight.index("Abdomen")))
-    assert s == pytest.approx(ratio)
+    assert 1.5 < ratio / chain <= AGREEMENT
 
 
 def _limb(sk, names):
@@ -492,3 +509,35 @@ def test_compose_until_rejects_unknown_stages():
     cfg = Config(characters={"x": {"path": "x.glb"}})
     with pytest.raises(ValueError, match="unknown stage"):
         pipeline.compose(cfg, until="render")
+
+
+@pytest.mark.parametrize("target, target_joint, source, source_joint, kind, method", [
+    # a neck's chain runs up into the skull: CesiumMan's is twice the Bull's for the same neck
+    (("corpus", "Bull"), "Neck1", ("asset", "CesiumMan"), "Skeleton_neck_joint_1", "head", "cross-section"),
+    # an arm's chain is its length: the Platformer's is 2.1 times the Adventurer's cut ratio
+    (("corpus", "Adventurer"), "UpperArm.L", ("corpus", "PlatformerCharacter"), "UpperArm.L", "arm",
+     "limb-length"),
+])
+def test_replace_scale_takes_the_chain_only_along_a_limb(target, target_joint, source, source_joint, kind,
+                                                        method):
+    """Where the chain ratio and the cut's ratio differ but agree within AGREEMENT, a head takes
+    the cut's (it fills the neck's hole) and an arm the chain's."""
+    def load(where, name):
+        return rebase(load_character(corpus(name) if where == "corpus" else asset(name)))
+
+    t, s = load(*target), load(*source)
+    jt, js = t.skeleton.names.index(target_joint), s.skeleton.names.index(source_joint)
+    assert limb_kind(t, jt) == kind and limb_kind(s, js) == kind
+
+    def chain(c, j):
+        return chain_length(c.skeleton.parents, c.skeleton.rest_worlds()[:, :3, 3], j)
+
+    def cut(c, j):
+        V, W = rest_world_mesh(c)
+        return cut_section(V, rest_world_faces(c), W, c.skeleton.subtree(j))
+
+    chain, cut = chain(t, jt) / chain(s, js), cut(t, jt) / cut(s, js)
+    assert 1.3 < max(chain / cut, cut / chain) <= AGREEMENT  # they differ, within the agreement
+    scale, how = pair_scale("replace", t, jt, s, js)
+    assert how == method
+    assert scale == pytest.approx(cut if method == "cross-section" else chain, rel=1e-12)

@@ -21,12 +21,14 @@ in each character's rest pose, world space, in its own units (Y already scaled):
   old one leaves and is not swallowed by the body around it. A part modelled as a rigid piece
   has no such ring; the ratio of the parts' sizes (:func:`part_size`: bounding-box diagonals)
   stands in for it. The ratio of the longest bone chains from the fused joints down to a leaf
-  (:func:`chain_length`, the replaced limb against the new limb) is taken instead where the two
-  agree within :data:`AGREEMENT` (a factor of 2.5): then both measure the same limb, and the
-  chain is the steadier measure of a limb's length. They disagree where the chains mean
-  different things (a torso's chain runs out along an arm, a neck's up into the head) or where
-  a rig's bones do not follow its surface; the surface's measure is kept there. Without either
-  (a part driven by no vertex) the chain ratio is used alone;
+  (:func:`chain_length`, the replaced limb against the new limb) is taken instead where both
+  fused joints are on limbs whose bones run along them (:data:`CHAIN_KINDS` by
+  :func:`rigmix.limbs.classify_limbs`: every limb but a head) and the two measures agree
+  within :data:`AGREEMENT` (a factor of 2.5): then both measure the same limb, and the chain is
+  the steadier measure of a limb's length. A head's or a torso's chain means something else (a
+  neck's runs up into the head, a torso's out along an arm), and the two disagree where a rig's
+  bones do not follow its surface: the surface's measure is kept there. Without either (a part
+  driven by no vertex) the chain ratio is used alone;
 * ``attach``: the median of three estimates of how the two bodies compare where the part
   hangs (:func:`attach_scale`): the depths of the joints in their bodies (:func:`thickness`,
   the target's joint against the one the part hung from), the median distances from the fused
@@ -57,6 +59,8 @@ from ..transforms import matrix_to_trs, quat_multiply, quat_to_matrix
 
 __all__ = [
     "AGREEMENT",
+    "CHAIN_KINDS",
+    "limb_kind",
     "skeleton_adjacency",
     "smooth_translations",
     "rest_world_mesh",
@@ -85,6 +89,12 @@ logger = logging.getLogger(__name__)
 #: species differ in thickness by up to about 2.4 for the same length (a fox's foreleg on a human's
 #: shoulder); a torso's chain against a neck's is off by 4 to 10.
 AGREEMENT = 2.5
+
+#: Limb kinds (:data:`rigmix.limbs.KINDS`) whose bone chain runs along the part from the fused
+#: joint to its tip, so that the chain's length is the part's: a replace between two of them may
+#: match chain lengths (:func:`pair_scale`). Every chain leaving the trunk but a head's (whose
+#: chain ends where the skull begins); ``other`` is such a chain the classifier could not name.
+CHAIN_KINDS = ("arm", "leg", "tail", "wing", "other")
 
 
 # --------------------------------------------------------------------------------------------
@@ -374,6 +384,18 @@ def size(V, joint_positions):
     return float(np.linalg.norm(P.max(axis=0) - P.min(axis=0)))
 
 
+def limb_kind(character, j) -> str | None:
+    """The kind of the limb (:func:`rigmix.limbs.classify_limbs`) whose joints hold joint ``j``
+    of ``character`` (its detached ones too: an IK foot); None for a joint on no limb (the trunk)."""
+    from ..limbs import classify_limbs
+
+    name = character.skeleton.names[j]
+    for limb in classify_limbs(character).limbs:
+        if name == limb.root or name in limb.joints or name in limb.detached:
+            return limb.kind
+    return None
+
+
 def pair_scale(op, target, target_joint, source, source_joint, *, eps=1e-9):
     """Scale to apply to ``source`` so that it matches ``target`` around one fused pair (see the
     module docstring).
@@ -409,7 +431,9 @@ def pair_scale(op, target, target_joint, source, source_joint, *, eps=1e-9):
     else:
         pt, ps = part_size(Vt, Wt, sub_t), part_size(Vs, Ws, sub_s)
         surface, method = (pt / ps, "part-size") if pt is not None and ps is not None else (None, "")
-    if surface is not None and (chain is None or max(chain / surface, surface / chain) > AGREEMENT):
+    if surface is not None and (chain is None or max(chain / surface, surface / chain) > AGREEMENT
+                                or limb_kind(target, target_joint) not in CHAIN_KINDS
+                                or limb_kind(source, source_joint) not in CHAIN_KINDS):
         return surface, method
     if chain is not None:
         return chain, "limb-length"
