@@ -12,8 +12,15 @@ import pytest
 from conftest import ROOT, asset, corpus, fused_twice
 from fusion_shapes import sphere
 
-from rigmix.fusion.crossings import fan_fill, flip_apart, knot_regions, repair_crossings, repair_junction
-from rigmix.fusion.meshutil import edge_counts, intersecting_face_pairs, vertex_adjacency
+from rigmix.fusion.crossings import (
+    fan_fill,
+    flip_apart,
+    flip_for_angles,
+    knot_regions,
+    repair_crossings,
+    repair_junction,
+)
+from rigmix.fusion.meshutil import edge_counts, intersecting_face_pairs, triangle_min_angles, vertex_adjacency
 
 
 @pytest.fixture(scope="module")
@@ -349,6 +356,48 @@ def test_a_flip_stands_only_between_two_junction_faces_and_for_counted_crossings
     F2, flipped, removed, made2 = flip_apart(V, F, flippable, made, ignored=ignored, reach=0.5, floor=0.0)
     assert np.array_equal(F2, F) and not flipped.any() and removed == 0
     assert made2[0] == (case != "ignored")  # the valley's first half still crosses what counts
+
+
+
+def _sliver_quad(lift=0.0):
+    """A long thin rhombus split along its long diagonal A-C (two slivers of about 11 degrees),
+    the short diagonal B-D lifted by ``lift`` out of the plane: ``(Q, slivers)``."""
+    Q = np.array([[0, 0, 0], [1, -0.1, lift], [2, 0, 0], [1, 0.1, lift]], float)
+    return Q, np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def test_slivers_of_a_flat_quad_take_the_diagonal_with_larger_angles():
+    Q, F = _sliver_quad()
+    before = triangle_min_angles(Q, F).min()
+    F2, flipped = flip_for_angles(Q, F, np.ones(2, bool), floor=20.0, reach=0.5)
+    assert flipped.all() and {tuple(sorted(f)) for f in F2} == {(0, 1, 3), (1, 2, 3)}
+    assert triangle_min_angles(Q, F2).min() > 2 * before
+    # the same quad, oriented the same way (the normals of the new faces agree with the old)
+    n = np.cross(Q[F[:, 1]] - Q[F[:, 0]], Q[F[:, 2]] - Q[F[:, 0]]).sum(axis=0)
+    n2 = np.cross(Q[F2[:, 1]] - Q[F2[:, 0]], Q[F2[:, 2]] - Q[F2[:, 0]])
+    assert (n2 @ n > 0).all()
+    uE, cnt = edge_counts(F2)
+    assert len(uE) == 5 and (cnt == 1).sum() == 4
+
+
+@pytest.mark.parametrize("case", ["bent", "kept face", "crossing", "no sliver"])
+def test_an_angle_flip_keeps_the_shape_the_kept_faces_and_the_crossings(case):
+    # bent: the halves fold by 53 degrees along A-C; else by 11 (B, D lifted by 0.01)
+    Q, F = _sliver_quad(lift={"bent": 0.05, "crossing": 0.01}.get(case, 0.0))
+    V, flippable, floor = Q, np.ones(2, bool), 20.0
+    if case == "kept face":
+        flippable[1] = False
+    elif case == "crossing":  # a kept fin standing on the valley A-C, through the ridge B-D would make
+        V = np.concatenate([Q, [[0.9, 0, 0.005], [1.1, 0, 0.005], [1.0, 0, 0.2]]])
+        F = np.concatenate([F, [[4, 5, 6]]])
+        flippable = np.array([True, True, False])
+        assert len(intersecting_face_pairs(V, F)) == 0
+        ridge = np.concatenate([[[0, 1, 3], [1, 2, 3]], F[2:]])
+        assert len(intersecting_face_pairs(V, ridge)) > 0
+    elif case == "no sliver":
+        floor = 5.0  # both faces are above it
+    F2, flipped = flip_for_angles(V, F, flippable, floor=floor, reach=0.5)
+    assert np.array_equal(F2, F) and not flipped.any()
 
 
 def test_crossing_gate_counts_what_the_inputs_did_not_have():

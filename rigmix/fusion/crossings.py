@@ -35,7 +35,10 @@ the repair then runs again on the refilled junction, which is kept only if it le
 crossings than the first. Where some are still left, edge flips (:func:`flip_apart`) give two
 junction faces of a pair the other diagonal of their quad where that takes them out of
 crossings and keeps the junction's triangles as good: a fold of two slivers between vertices
-that cannot move (all on the junction's border) has no other way out. Pairs with a
+that cannot move (all on the junction's border) has no other way out. Last, where the junction's
+triangles are worse than the floor (5th percentile of minimum angles), edge flips of nearly flat
+quads (:func:`flip_for_angles`) give its slivers the diagonal with larger angles, crossing no
+more than before. Pairs with a
 kept face that crosses its own input (overlapping parts of a modular character: a shoulder
 pad through the arm it covered, which the junction replaces) are counted but not worked on.
 Every step is deterministic (no threads, no random choice).
@@ -65,8 +68,8 @@ from .meshutil import (
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CrossingRepair", "JunctionRepair", "fan_fill", "flip_apart", "kept_parts", "knot_regions",
-           "layer_faces", "repair_crossings", "repair_junction"]
+__all__ = ["CrossingRepair", "JunctionRepair", "fan_fill", "flip_apart", "flip_for_angles", "kept_parts",
+           "knot_regions", "layer_faces", "repair_crossings", "repair_junction"]
 
 #: Faces within this many target edges of the junction are looked at (the broad phase's reach:
 #: a repair moves vertices by about an edge).
@@ -94,6 +97,12 @@ KNOT_RINGS = 3
 #: may flip.
 FLIP_PASSES = 16
 FLIP_RINGS = 3
+
+#: Passes of :func:`flip_for_angles` at most; and the most a quad it flips may bend (degrees
+#: between its two faces' normals, before and after): a flip of a flatter quad changes the
+#: triangles and not the surface's shape.
+ANGLE_FLIP_PASSES = 8
+ANGLE_FLIP_BEND = 20.0
 
 
 @dataclass(frozen=True)
@@ -839,6 +848,54 @@ def _face_normals(T):
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
 
+def _window_crossings(V, W, skip, reach, faces, extra=None):
+    """Crossing pairs ``(p, 2)`` among the window faces ``W`` (``len(W) + i`` the face
+    ``extra[i]``) with a face of ``faces``, none ``skip``, none between two ``extra`` faces."""
+    X = W if extra is None else np.concatenate([W, extra])
+    q = np.zeros(len(X), bool)
+    q[faces] = True
+    sub = np.flatnonzero(_near_faces(V, X, q, reach))
+    p = sub[intersecting_face_pairs(V, X[sub], np.flatnonzero(q[sub]))]
+    out = np.concatenate([skip, np.zeros(len(X) - len(W), bool)])
+    p = p[~(out[p[:, 0]] | out[p[:, 1]])]
+    return p[(p < len(W)).any(axis=1)]
+
+
+def _flip_candidates(V, W, can, work):
+    """``(f, g, new)`` for each flip of an edge of a ``work`` face of ``W`` with a ``can`` face
+    ``g`` across it: ``new`` ``(2, 3)``, the two faces over the quad's other diagonal, oriented as
+    the old, where that diagonal is no edge yet, neither new face turns by 90 degrees or more from
+    the old pair's mean normal, and the new pair folds by no more than 90 degrees or the old one."""
+    m = len(W)
+    _, uE, emap = undirected_edges(W)  # half-edge e of face f at row e m + f
+    count = np.bincount(emap, minlength=len(uE))
+    by_edge = np.argsort(emap, kind="stable")
+    mate = np.full(3 * m, -1)  # the other half-edge of an edge of two faces
+    two = np.flatnonzero(count[emap[by_edge]] == 2)
+    first = two[::2] if len(two) else two
+    mate[by_edge[first]], mate[by_edge[first + 1]] = by_edge[first + 1], by_edge[first]
+    ukey = uE[:, 0] * len(V) + uE[:, 1]  # sorted, as uE is
+    found = []
+    halves = np.flatnonzero(np.tile(work, 3) & (mate >= 0))
+    for h in halves[np.argsort((halves % m) * 3 + halves // m)]:  # face by face, edge by edge
+        e, f = divmod(int(h), m)
+        g = int(mate[h]) % m
+        if not can[g]:
+            continue
+        u, v, w = W[f, e], W[f, (e + 1) % 3], W[f, (e + 2) % 3]
+        x = int(W[g][(W[g] != u) & (W[g] != v)][0])
+        diagonal = min(w, x) * len(V) + max(w, x)
+        i = np.searchsorted(ukey, diagonal)
+        if x == w or (i < len(ukey) and ukey[i] == diagonal):
+            continue  # the other diagonal is an edge already
+        new = np.array([[w, u, x], [x, v, w]])
+        n_old, n_new = _face_normals(V[W[[f, g]]]), _face_normals(V[new])
+        if (n_new @ n_old.sum(axis=0)).min() <= 0 or n_new[0] @ n_new[1] < min(0.0, n_old[0] @ n_old[1]):
+            continue
+        found.append((f, g, new))
+    return found
+
+
 def flip_apart(V, F, flippable, made, *, ignored=None, reach, floor, passes=FLIP_PASSES, rings=FLIP_RINGS):
     """Edge flips that take faces out of the crossing pairs left: a fold of two slivers that no
     vertex move opens often has the wrong diagonal.
@@ -908,47 +965,10 @@ def flip_apart(V, F, flippable, made, *, ignored=None, reach, floor, passes=FLIP
     pad = 1e-8 * float(np.ptp(V, axis=0).max() or 1.0)
 
     def crossing(faces, extra=None):
-        """Crossing pairs ``(p, 2)`` (window faces; ``len(W) + i`` the face ``extra[i]``) with a
-        face of ``faces``, none ``ignored``, none between two ``extra`` faces."""
-        X = W if extra is None else np.concatenate([W, extra])
-        q = np.zeros(len(X), bool)
-        q[faces] = True
-        sub = np.flatnonzero(_near_faces(V, X, q, reach))
-        p = sub[intersecting_face_pairs(V, X[sub], np.flatnonzero(q[sub]))]
-        out = np.concatenate([skip, np.zeros(len(X) - len(W), bool)])
-        p = p[~(out[p[:, 0]] | out[p[:, 1]])]
-        return p[(p < len(W)).any(axis=1)]
+        return _window_crossings(V, W, skip, reach, faces, extra)
 
     def candidates(work):
-        """``(f, g, new)`` for each flip of an edge of a ``work`` face that is allowed at all."""
-        m = len(W)
-        _, uE, emap = undirected_edges(W)  # half-edge e of face f at row e m + f
-        count = np.bincount(emap, minlength=len(uE))
-        by_edge = np.argsort(emap, kind="stable")
-        mate = np.full(3 * m, -1)  # the other half-edge of an edge of two faces
-        two = np.flatnonzero(count[emap[by_edge]] == 2)
-        first = two[::2] if len(two) else two
-        mate[by_edge[first]], mate[by_edge[first + 1]] = by_edge[first + 1], by_edge[first]
-        ukey = uE[:, 0] * len(V) + uE[:, 1]  # sorted, as uE is
-        found = []
-        halves = np.flatnonzero(np.tile(work, 3) & (mate >= 0))
-        for h in halves[np.argsort((halves % m) * 3 + halves // m)]:  # face by face, edge by edge
-            e, f = divmod(int(h), m)
-            g = int(mate[h]) % m
-            if not can[g]:
-                continue
-            u, v, w = W[f, e], W[f, (e + 1) % 3], W[f, (e + 2) % 3]
-            x = int(W[g][(W[g] != u) & (W[g] != v)][0])
-            diagonal = min(w, x) * len(V) + max(w, x)
-            i = np.searchsorted(ukey, diagonal)
-            if x == w or (i < len(ukey) and ukey[i] == diagonal):
-                continue  # the other diagonal is an edge already
-            new = np.array([[w, u, x], [x, v, w]])
-            n_old, n_new = _face_normals(V[W[[f, g]]]), _face_normals(V[new])
-            if (n_new @ n_old.sum(axis=0)).min() <= 0 or n_new[0] @ n_new[1] < min(0.0, n_old[0] @ n_old[1]):
-                continue
-            found.append((f, g, new))
-        return found
+        return _flip_candidates(V, W, can, work)
 
     work = made[window] & can
     todo = work.copy()  # the work faces whose candidates may have changed since last tested
@@ -1000,6 +1020,99 @@ def flip_apart(V, F, flippable, made, *, ignored=None, reach, floor, passes=FLIP
     made2 = made & ~core  # their pairs with no face of the core are as they were
     made2[window[crossing(np.flatnonzero(core[window])).ravel()]] = True
     return F, out, removed, made2
+
+
+def flip_for_angles(V, F, flippable, *, floor, reach, ignored=None, passes=ANGLE_FLIP_PASSES,
+                    max_bend=ANGLE_FLIP_BEND):
+    """Edge flips that raise the smallest angles of the ``flippable`` faces whose minimum angle is
+    under ``floor``: the slivers the cut and the repair leave where the remesher cannot reach.
+
+    An edge of such a face shared with another ``flippable`` face is a candidate where its flip
+    (:func:`_flip_candidates`: the other diagonal of the two faces' quad) raises the pair's
+    smaller minimum angle, the quad is nearly flat (its two faces' normals within ``max_bend``
+    degrees of each other, before and after: the surface keeps its shape) and the two new faces
+    cross no more faces than the old two (pairs with an ``ignored`` face aside). A pass tests
+    every candidate at once against the surface as the pass found it; flips then stand in order
+    of the larger minimum angle, where their quad meets no quad flipped in the same pass. Passes
+    repeat while one stands, at most ``passes``. Vertices never move and the face count stays.
+
+    Parameters
+    ----------
+    V : (n, 3) float array
+        Positions (welded by position).
+    F : (m, 3) int array
+    flippable : (m,) bool
+        Faces whose connectivity may change (generated junction faces in no crossing pair).
+    floor : float
+        Degrees: the faces under it are worked on.
+    reach : float
+        Faces within about this distance of a flipped quad are tested for crossings (same unit
+        as ``V``).
+    ignored : (m,) bool, optional
+        Faces whose crossing pairs do not count.
+
+    Returns
+    -------
+    F2 : (m, 3) int64
+        ``F`` with the flipped faces rewritten in place (same count, same order).
+    flipped : (m,) bool
+        Faces whose corners changed.
+    """
+    V = np.asarray(V, np.float64)
+    F = np.array(F, np.int64).reshape(-1, 3)
+    flippable = np.asarray(flippable, bool)
+    flipped_all = np.zeros(len(F), bool)
+    angles = triangle_min_angles(V, F)
+    bad = flippable & (angles < floor)
+    if not bad.any():
+        return F, flipped_all
+    # the slivers, the faces across their edges, and what those may cross
+    A = vertex_adjacency(F, len(V)).tocsr()
+    at = np.zeros(len(V))
+    at[F[bad].ravel()] = 1.0
+    core = ((A @ at > 0) | (at > 0))[F].any(axis=1)
+    window = np.flatnonzero(_near_faces(V, F, core, reach))
+    W = F[window]
+    can = flippable[window]
+    skip = np.zeros(len(W), bool) if ignored is None else np.asarray(ignored, bool)[window]
+    a = angles[window]
+    flipped = np.zeros(len(W), bool)
+    cos_bend = np.cos(np.radians(max_bend))
+    for _ in range(passes):
+        cands = []
+        for f, g, new in _flip_candidates(V, W, can, can & (a < floor)):
+            n_old, n_new = _face_normals(V[W[[f, g]]]), _face_normals(V[new])
+            gain = triangle_min_angles(V, new).min() - min(a[f], a[g])
+            if gain > 1e-6 and n_old[0] @ n_old[1] >= cos_bend and n_new[0] @ n_new[1] >= cos_bend:
+                cands.append((f, g, new, gain))
+        if not cands:
+            break
+        changed = np.zeros(len(W), bool)
+        for f, g, _, _ in cands:
+            changed[[f, g]] = True
+        count = np.bincount(_window_crossings(V, W, skip, reach, np.flatnonzero(changed)).ravel(),
+                            minlength=len(W))
+        extra = np.concatenate([c[2] for c in cands])
+        p = _window_crossings(V, W, skip, reach, np.arange(len(W), len(W) + len(extra)), extra)
+        after = np.bincount((p.max(axis=1) - len(W)) // 2, minlength=len(cands))
+        order = np.argsort(-np.array([triangle_min_angles(V, c[2]).min() for c in cands]), kind="stable")
+        boxes = []
+        for c in order:
+            f, g, new, _ = cands[c]
+            if after[c] > count[f] + count[g]:
+                continue
+            qlo, qhi = V[new].min(axis=(0, 1)), V[new].max(axis=(0, 1))
+            if any(np.all(qlo <= b_hi) and np.all(b_lo <= qhi) for b_lo, b_hi in boxes):
+                continue
+            W[[f, g]] = new
+            a[[f, g]] = triangle_min_angles(V, new)
+            flipped[[f, g]] = True
+            boxes.append((qlo, qhi))
+        if not boxes:
+            break
+    F[window] = W
+    flipped_all[window[flipped]] = True
+    return F, flipped_all
 
 
 @dataclass(frozen=True)
@@ -1106,6 +1219,15 @@ def repair_junction(KV, KF, JV, JF, *, counted, layered=None, rounds=6, min_angl
         if removed:
             log.info("fusion: %d crossing face pairs at the junction removed by edge flips", removed)
             Fw, rep, flipped = F2, replace(rep, left=rep.left - removed, made=made2), True
+    junction = np.arange(len(Fw)) >= mK  # the junction out: its faces and the released kept ones
+    junction[:mK] = rep.released[:mK]
+    if junction.any() and float(np.percentile(triangle_min_angles(rep.V, Fw[junction]), 5)) < min_angle:
+        # slivers the remesher could not reach (at the cut, kept faces released, the moves' own)
+        F2, changed = flip_for_angles(rep.V, Fw, junction & ~rep.made, floor=min_angle, reach=target,
+                                      ignored=rep.layered_faces)
+        if changed.any():
+            log.info("fusion: %d junction faces flipped to larger angles", int(changed.sum()))
+            Fw, flipped = F2, True
     made = np.zeros(len(JF), bool)
     made[origin[rep.made[mK:]]] = True  # on the given junction's faces, a refilled knot's on its first
     counts = {"found": rep.found, "left": rep.left, "layered": rep.layered, "made": made}
