@@ -1025,7 +1025,9 @@ def flip_apart(V, F, flippable, made, *, ignored=None, reach, floor, passes=FLIP
 def flip_for_angles(V, F, flippable, *, floor, reach, ignored=None, passes=ANGLE_FLIP_PASSES,
                     max_bend=ANGLE_FLIP_BEND):
     """Edge flips that raise the smallest angles of the ``flippable`` faces whose minimum angle is
-    under ``floor``: the slivers the cut and the repair leave where the remesher cannot reach.
+    under ``floor``: the slivers the cut and the repair leave where the remesher cannot reach
+    (:func:`.remesh.flip_to_improve_angles` flips the remeshed junction before any repair,
+    blind to what it crosses).
 
     An edge of such a face shared with another ``flippable`` face is a candidate where its flip
     (:func:`_flip_candidates`: the other diagonal of the two faces' quad) raises the pair's
