@@ -99,8 +99,9 @@ from .skinning import (
 )
 from .sparse_weights import dense_rows
 
-__all__ = ["face_stretch", "vertex_stretch", "clip_skinning_matrices", "band_stretch", "junction_band_radius",
-           "junction_stretch_ratio", "weight_roughness", "junction_weight_roughness", "outside_area_share",
+__all__ = ["face_stretch", "vertex_stretch", "clip_skinning_matrices", "band_stretch", "merged_band",
+           "junction_band_radius", "junction_stretch_ratio", "weight_roughness", "junction_weight_roughness",
+           "outside_area_share",
            "face_owners", "grafted_visibility", "junction_dihedral", "self_composition_truth",
            "self_composition_errors", "skinned_surface", "identity_errors", "identity_origins"]
 
@@ -258,6 +259,33 @@ def band_stretch(skeleton, clips, V0, joints, weights, F, vertices, *, rest=None
     return np.concatenate(out).ravel()
 
 
+def merged_band(parts):
+    """Skinned meshes and their band vertices as one mesh, for :func:`band_stretch`.
+
+    ``parts``: ``(mesh, rest, vertices)`` per mesh (a :class:`rigmix.character.Mesh`, its rest
+    positions ``(n_i, 3)``, its band vertices ``(q_i,)``). Returns ``(V0, joints, weights, F,
+    vertices, rest)`` over the meshes' vertices in order (faces and band vertices offset, the
+    influences padded with zero weights to the widest): no face joins two meshes, so each
+    vertex's mean and each face's stretch are those of its own mesh.
+    """
+    if not parts:
+        return (np.zeros((0, 3)), np.zeros((0, 1), np.int64), np.zeros((0, 1)), np.zeros((0, 3), np.int64),
+                np.zeros(0, np.int64), np.zeros((0, 3)))
+    width = max(np.asarray(m.joints).reshape(len(m.positions), -1).shape[1] for m, _, _ in parts)
+
+    def padded(a, n, dtype):
+        a = np.asarray(a, dtype).reshape(n, -1)
+        return np.pad(a, ((0, 0), (0, width - a.shape[1])))
+
+    offsets = np.cumsum([0] + [len(m.positions) for m, _, _ in parts])
+    return (np.concatenate([np.asarray(m.positions, np.float64) for m, _, _ in parts]),
+            np.concatenate([padded(m.joints, len(m.positions), np.int64) for m, _, _ in parts]),
+            np.concatenate([padded(m.weights, len(m.positions), np.float64) for m, _, _ in parts]),
+            np.concatenate([np.asarray(m.faces, np.int64) + o for (m, _, _), o in zip(parts, offsets)]),
+            np.concatenate([np.asarray(b, np.int64) + o for (_, _, b), o in zip(parts, offsets)]),
+            np.concatenate([np.asarray(x, np.float64) for _, x, _ in parts]))
+
+
 def junction_band_radius(V, junction_vertices, centres) -> float:
     """Reach of the junction: the largest distance from a junction vertex to its nearest centre.
 
@@ -341,9 +369,11 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
             key = (id(src), j, reach)
             if key not in bands:
                 inside = [np.flatnonzero(d <= reach) for d in dists]
-                bands[key] = ([band_stretch(src.skeleton, src.clips, m.positions, m.joints, m.weights, m.faces, b,
-                                            rest=rest, matrices=matrices[id(src)])
-                               for m, rest, b in zip(meshes, rests, inside) if len(b)],
+                # the meshes with band vertices as one (each face and vertex sampled as on its own)
+                V0, joints, weights, faces, vertices, rest = merged_band(
+                    [(m, x, b) for m, x, b in zip(meshes, rests, inside) if len(b)])
+                bands[key] = ([band_stretch(src.skeleton, src.clips, V0, joints, weights, faces, vertices,
+                                            rest=rest, matrices=matrices[id(src)])] if len(vertices) else [],
                               sum(len(b) for b in inside))
             band_samples, count = bands[key]
             nsrc += count

@@ -174,6 +174,33 @@ def test_all_clips_through_one_forward_kinematics_pass_are_each_clip_on_its_own(
                               skinning_matrices(c.skeleton, T, R, S))  # the first frame is time 0
 
 
+
+def test_the_meshes_of_an_input_are_sampled_as_one_with_each_samples_own():
+    """A modular character's band spans several meshes: sampled as one merged mesh (influences
+    padded to the widest), its samples are every mesh's own, the same floats."""
+    from rigmix.io import load_character
+    from rigmix.quality import band_stretch, clip_skinning_matrices, merged_band
+    from rigmix.skinning import linear_blend_skinning, rest_skinning_matrices
+
+    c = load_character(corpus("CyberpunkCharacter"))
+    meshes = [m for m in c.meshes if m.skinned and len(m.faces)]
+    assert len(meshes) > 2
+    M = clip_skinning_matrices(c.skeleton, c.clips[:3])
+    M0 = rest_skinning_matrices(c.skeleton)
+    parts = []
+    for m in meshes:
+        rest = linear_blend_skinning(m.positions, m.joints, m.weights, M0)
+        band = np.flatnonzero(rest[:, 1] > np.median(rest[:, 1]))
+        if len(band):
+            parts.append((m, rest, band))
+    assert len(parts) > 2
+    own = np.concatenate([band_stretch(c.skeleton, c.clips[:3], m.positions, m.joints, m.weights, m.faces, b,
+                                       rest=rest, matrices=M) for m, rest, b in parts])
+    V0, J, W, F, vertices, rest = merged_band(parts)
+    merged = band_stretch(c.skeleton, c.clips[:3], V0, J, W, F, vertices, rest=rest, matrices=M)
+    assert len(merged) == len(own) and own.max() > 0
+    assert np.array_equal(np.sort(merged), np.sort(own))
+
 def test_band_stretch_is_the_mean_face_stretch_of_the_skinned_band():
     """The band's samples, taken from the posed edge vectors without posing the vertices, are the
     definition: each band vertex's area-weighted mean of the stretch of its faces, skinned by
