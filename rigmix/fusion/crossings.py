@@ -861,6 +861,24 @@ def _window_crossings(V, W, skip, reach, faces, extra=None):
     return p[(p < len(W)).any(axis=1)]
 
 
+def _new_pair_crossings(V, W, skip, reach, news):
+    """``(k,)`` int: for each of ``news`` (``(2, 3)`` face pairs, one per candidate flip), the
+    crossing pairs its two faces would have with the window faces ``W`` (:func:`_window_crossings`,
+    all candidates tested at once, none against another)."""
+    extra = np.concatenate(news)
+    p = _window_crossings(V, W, skip, reach, np.arange(len(W), len(W) + len(extra)), extra)
+    return np.bincount((p.max(axis=1) - len(W)) // 2, minlength=len(news))
+
+
+def _quad_box(V, new, boxes):
+    """The box ``(lo, hi)`` of the quad ``new`` ``(2, 3)``, or None where it meets one of
+    ``boxes`` (a quad flipped in the same pass: a candidate beside it was tested without it)."""
+    qlo, qhi = V[new].min(axis=(0, 1)), V[new].max(axis=(0, 1))
+    if any(np.all(qlo <= b_hi) and np.all(b_lo <= qhi) for b_lo, b_hi in boxes):
+        return None
+    return qlo, qhi
+
+
 def _flip_candidates(V, W, can, work):
     """``(f, g, new)`` for each flip of an edge of a ``work`` face of ``W`` with a ``can`` face
     ``g`` across it: ``new`` ``(2, 3)``, the two faces over the quad's other diagonal, oriented as
@@ -981,9 +999,7 @@ def flip_apart(V, F, flippable, made, *, ignored=None, reach, floor, passes=FLIP
         cands = [c for c in candidates(todo) if count[c[0]] + count[c[1]] > 0]
         if not cands:
             break
-        extra = np.concatenate([c[2] for c in cands])
-        p = crossing(np.arange(len(W), len(W) + len(extra)), extra)
-        after = np.bincount((p.max(axis=1) - len(W)) // 2, minlength=len(cands))
+        after = _new_pair_crossings(V, W, skip, reach, [c[2] for c in cands])
         gain = np.array([count[f] + count[g] for f, g, _ in cands]) - after
         angle = np.array([triangle_min_angles(V, new).min() for _, _, new in cands])
         boxes = []  # the quads flipped in this pass: a flip beside one was tested without it
@@ -992,8 +1008,8 @@ def flip_apart(V, F, flippable, made, *, ignored=None, reach, floor, passes=FLIP
             f, g, new = cands[c]
             if gain[c] <= 0:
                 break
-            qlo, qhi = V[new].min(axis=(0, 1)), V[new].max(axis=(0, 1))
-            if any(np.all(qlo <= b_hi) and np.all(b_lo <= qhi) for b_lo, b_hi in boxes):
+            box = _quad_box(V, new, boxes)
+            if box is None:
                 continue
             old = angles[slot[[f, g]]].copy()
             angles[slot[[f, g]]] = triangle_min_angles(V, new)
@@ -1002,7 +1018,7 @@ def flip_apart(V, F, flippable, made, *, ignored=None, reach, floor, passes=FLIP
                 continue
             W[[f, g]] = new
             flipped[[f, g]] = work[[f, g]] = True
-            boxes.append((qlo, qhi))
+            boxes.append(box)
             removed += int(gain[c])
             stood = True
         if not stood:
@@ -1081,12 +1097,12 @@ def flip_for_angles(V, F, flippable, *, floor, reach, ignored=None, passes=ANGLE
     flipped = np.zeros(len(W), bool)
     cos_bend = np.cos(np.radians(max_bend))
     for _ in range(passes):
-        cands = []
+        cands = []  # (f, g, new, the new pair's smaller minimum angle)
         for f, g, new in _flip_candidates(V, W, can, can & (a < floor)):
             n_old, n_new = _face_normals(V[W[[f, g]]]), _face_normals(V[new])
-            gain = triangle_min_angles(V, new).min() - min(a[f], a[g])
-            if gain > 1e-6 and n_old[0] @ n_old[1] >= cos_bend and n_new[0] @ n_new[1] >= cos_bend:
-                cands.append((f, g, new, gain))
+            angle = triangle_min_angles(V, new).min()
+            if angle - min(a[f], a[g]) > 1e-6 and n_old[0] @ n_old[1] >= cos_bend and n_new[0] @ n_new[1] >= cos_bend:
+                cands.append((f, g, new, angle))
         if not cands:
             break
         changed = np.zeros(len(W), bool)
@@ -1094,22 +1110,19 @@ def flip_for_angles(V, F, flippable, *, floor, reach, ignored=None, passes=ANGLE
             changed[[f, g]] = True
         count = np.bincount(_window_crossings(V, W, skip, reach, np.flatnonzero(changed)).ravel(),
                             minlength=len(W))
-        extra = np.concatenate([c[2] for c in cands])
-        p = _window_crossings(V, W, skip, reach, np.arange(len(W), len(W) + len(extra)), extra)
-        after = np.bincount((p.max(axis=1) - len(W)) // 2, minlength=len(cands))
-        order = np.argsort(-np.array([triangle_min_angles(V, c[2]).min() for c in cands]), kind="stable")
+        after = _new_pair_crossings(V, W, skip, reach, [c[2] for c in cands])
         boxes = []
-        for c in order:
+        for c in np.argsort(-np.array([c[3] for c in cands]), kind="stable"):
             f, g, new, _ = cands[c]
             if after[c] > count[f] + count[g]:
                 continue
-            qlo, qhi = V[new].min(axis=(0, 1)), V[new].max(axis=(0, 1))
-            if any(np.all(qlo <= b_hi) and np.all(b_lo <= qhi) for b_lo, b_hi in boxes):
+            box = _quad_box(V, new, boxes)
+            if box is None:
                 continue
             W[[f, g]] = new
             a[[f, g]] = triangle_min_angles(V, new)
             flipped[[f, g]] = True
-            boxes.append((qlo, qhi))
+            boxes.append(box)
         if not boxes:
             break
     F[window] = W

@@ -384,19 +384,25 @@ def size(V, joint_positions):
     return float(np.linalg.norm(P.max(axis=0) - P.min(axis=0)))
 
 
-def limb_kind(character, j) -> str | None:
+def limb_kind(character, j, plans=None) -> str | None:
     """The kind of the limb (:func:`rigmix.limbs.classify_limbs`) whose joints hold joint ``j``
-    of ``character`` (its detached ones too: an IK foot); None for a joint on no limb (the trunk)."""
+    of ``character`` (its detached ones too: an IK foot); None for a joint on no limb (the trunk).
+
+    ``plans``: a dict that keeps each character with its :class:`rigmix.limbs.BodyPlan` by
+    ``id``, so that a character with several fused pairs is classified once."""
     from ..limbs import classify_limbs
 
+    plans = {} if plans is None else plans
+    if id(character) not in plans:  # the character is kept with its plan: its id stays its own
+        plans[id(character)] = (character, classify_limbs(character))
     name = character.skeleton.names[j]
-    for limb in classify_limbs(character).limbs:
+    for limb in plans[id(character)][1].limbs:
         if name == limb.root or name in limb.joints or name in limb.detached:
             return limb.kind
     return None
 
 
-def pair_scale(op, target, target_joint, source, source_joint, *, eps=1e-9):
+def pair_scale(op, target, target_joint, source, source_joint, *, eps=1e-9, plans=None):
     """Scale to apply to ``source`` so that it matches ``target`` around one fused pair (see the
     module docstring).
 
@@ -407,6 +413,8 @@ def pair_scale(op, target, target_joint, source, source_joint, *, eps=1e-9):
         ``target`` already in its final units (positioned), ``source`` at its own scale, both
         with bind pose = rest pose (:func:`rebase`) so that equal characters measure equal.
     target_joint, source_joint : int
+    plans : dict, optional
+        Body plans kept by character (:func:`limb_kind`), shared by the pairs of one positioning.
 
     Returns
     -------
@@ -432,8 +440,8 @@ def pair_scale(op, target, target_joint, source, source_joint, *, eps=1e-9):
         pt, ps = part_size(Vt, Wt, sub_t), part_size(Vs, Ws, sub_s)
         surface, method = (pt / ps, "part-size") if pt is not None and ps is not None else (None, "")
     if surface is not None and (chain is None or max(chain / surface, surface / chain) > AGREEMENT
-                                or limb_kind(target, target_joint) not in CHAIN_KINDS
-                                or limb_kind(source, source_joint) not in CHAIN_KINDS):
+                                or limb_kind(target, target_joint, plans) not in CHAIN_KINDS
+                                or limb_kind(source, source_joint, plans) not in CHAIN_KINDS):
         return surface, method
     if chain is not None:
         return chain, "limb-length"
@@ -756,6 +764,7 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
         it was chosen, the pair ratios, role).
     """
     positioned, scales, transforms, translations, info = {}, {}, {}, {}, {}
+    plans = {}  # body plans of the characters measured (pair_scale), by id: each classified once
     for cid in config.characters:  # built-in and mirrored characters too, and files after rest_at_bind
         check_rig(inputs[cid], where=f"operations: {_label(inputs[cid], cid)}")
     for cid in positioning_order(actions, config):
@@ -771,7 +780,8 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
             # itself then measures exactly 1 and keeps its positions bit for bit (its faces are
             # the same faces, copied once: rigmix.fusion.seams.coincident_faces)
             rest = rebase(ch)
-            ratios = [pair_scale(a.op, positioned[a.target], a.target_joint, rest, a.source_joint) for a in moved]
+            ratios = [pair_scale(a.op, positioned[a.target], a.target_joint, rest, a.source_joint, plans=plans)
+                      for a in moved]
             s = float(np.exp(np.mean(np.log([r for r, _ in ratios]))))
             method = "+".join(sorted({m for _, m in ratios}))
             _check_scale(s, cid, method, config)
