@@ -29,7 +29,7 @@ saying why; every gate is always listed, in this order (:data:`GATE_NAMES`):
     when no junction triangle was generated (the junction faces were copied from the inputs).
 ``grafted_visible`` >= :data:`MIN_GRAFTED_VISIBLE`
     Report ``mesh.grafted_visible_min`` (:func:`rigmix.quality.grafted_visibility`): of each
-    grafted part, the share of its output area outside the other inputs' surfaces, over the
+    grafted part, the share of its output area outside the other inputs' kept surfaces, over the
     share of the same faces outside the rest of its own character (at most 1), the smallest over
     the parts; null (pass) without a grafted part (one character, or only bodies).
 ``junction_dihedral_ratio`` <= :data:`MAX_DIHEDRAL_RATIO`

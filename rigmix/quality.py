@@ -6,8 +6,12 @@ Per face, the deformation gradient from rest to a posed frame is
 ``G = [e1' e2' n'] [e1 e2 n]^-1`` (two edges and the unit normal, rest and posed); its stretch
 part (polar decomposition ``G = R U``) has the singular values ``s`` of ``G``, and the face's
 stretch is ``||log s||`` (0 for a rigid motion). A vertex's stretch is the rest-area-weighted
-mean over its faces. The figure of a band is the 95th percentile over its vertices and over
-every frame (30 fps, at most ``max_frames`` per clip, evenly spaced) of every clip.
+mean over its faces. The figure of a band is the 95th percentile over its surface and over
+every frame (30 fps, at most ``max_frames`` per clip, evenly spaced) of every clip: each vertex
+counts for a third of the rest area of its faces (:func:`vertex_areas`), so that a densely
+tessellated rigid piece (a head of thousands of vertices) weighs what its area does, in the
+input's band and in the output's alike, and a part replaced by a coarser one does not change
+the percentile by its vertex count.
 
 Bands. On the output: the vertices within ``r`` of a fused joint (rest pose), where ``r`` is the
 reach of the junction (the largest distance from a junction vertex to its nearest fused joint),
@@ -36,13 +40,17 @@ A grafted part can end up buried in the other body (a torso scaled down into a c
 left behind by a ``replace`` around the new one): every figure above passes and the output looks
 like the body alone. :func:`grafted_visibility` measures, for each grafted input (role
 ``source`` in the plan: it only gives subtrees), the share of the area of its output faces whose
-generalized winding number with respect to the output faces of every other input is below 0.5:
-outside them (the inputs' faces oriented outwards, as glTF front faces are; near a single-sided
-sheet of another input the front side reads outside, the back side inside). At rest, on the
-fused surface. An input's output faces (:func:`face_owners`) are those copied from it and the
-generated junction faces that follow its surface most: a low-poly limb rebuilt whole by the
-fusion keeps a surface, and a lump of the other body's junction over the part hides it. Each
-face is sampled at the centroids of its four midpoint sub-triangles (a quarter of its area each).
+generalized winding number with respect to the kept surface of every other input (the faces the
+output copies from it) is below 0.5: outside them (the inputs' faces oriented outwards, as glTF
+front faces are; near a single-sided sheet of another input the front side reads outside, the
+back side inside). At rest, on the fused surface. A grafted input's output faces
+(:func:`face_owners`) are those copied from it and the generated junction faces that follow its
+surface most: a low-poly limb rebuilt whole by the fusion keeps a surface. The other input's
+generated junction faces hide nothing: the junction is open where it meets the part, and the
+winding number of an open surface closes it across that opening, so beside a junction that
+narrows from the body's hole to a thinner part (a funnel) the part's own surface would read
+inside a surface it lies outside of. Each face is sampled at the centroids of its four midpoint
+sub-triangles (a quarter of its area each).
 
 Artists sink parts of a character into others (a leg's top into a shell, a neck into a collar),
 so a part does not show whole even in its own character: the same share is taken of the faces
@@ -100,6 +108,7 @@ from .skinning import (
 from .sparse_weights import dense_rows
 
 __all__ = ["face_stretch", "vertex_stretch", "clip_skinning_matrices", "band_stretch", "merged_band",
+           "vertex_areas", "weighted_percentile",
            "junction_band_radius", "junction_stretch_ratio", "weight_roughness", "junction_weight_roughness",
            "outside_area_share",
            "face_owners", "grafted_visibility", "junction_dihedral", "self_composition_truth",
@@ -159,6 +168,31 @@ def _stretch_from_forms(rest, posed):
     l1 = np.maximum(tr / 2.0 + disc, 1e-24)
     l2 = np.maximum(tr / 2.0 - disc, 1e-24)
     return np.where(ok, 0.5 * np.sqrt(np.log(l1) ** 2 + np.log(l2) ** 2), 0.0)
+
+
+def vertex_areas(V, F, vertices):
+    """A third of the area of the faces around each of ``vertices`` ``(q,)``: the share of
+    the surface each vertex stands for (units of ``V`` squared; a face counts once per corner
+    among them, as in :func:`band_stretch`'s means; 0 for a vertex on no face)."""
+    F = np.asarray(F, np.int64).reshape(-1, 3)
+    vertices = np.asarray(vertices, np.int64)
+    per_vertex = np.zeros(len(V))
+    np.add.at(per_vertex, F.ravel(), np.repeat(face_areas(np.asarray(V, np.float64), F) / 3.0, 3))
+    return per_vertex[vertices]
+
+
+def weighted_percentile(x, w, q) -> float:
+    """The ``q``-th percentile (0 to 100) of samples ``x`` ``(s,)`` weighted by ``w`` ``(s,)``
+    (non-negative): the smallest sample whose cumulative weight reaches ``q`` % of the total;
+    the unweighted percentile where the weights sum to 0."""
+    x, w = np.asarray(x, np.float64).ravel(), np.asarray(w, np.float64).ravel()
+    total = float(w.sum())
+    if total <= 0:
+        return float(np.percentile(x, q))
+    order = np.argsort(x, kind="stable")
+    cum = np.cumsum(w[order])
+    k = min(int(np.searchsorted(cum, q / 100.0 * total, side="left")), len(x) - 1)
+    return float(x[order][k])
 
 
 def _vertex_means(V0, F, vertices):
@@ -346,7 +380,8 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
     # each skeleton's clips are sampled once, whatever the number of bands and meshes under them
     matrices = {None: clip_skinning_matrices(ch.skeleton, ch.clips, fps=fps, max_frames=max_frames)}
     s_out = band_stretch(ch.skeleton, ch.clips, V, J, W, surface.F, band, rest=V, matrices=matrices[None])
-    samples, nsrc = {}, 0  # per input: stretch samples of its band, under its own clips
+    a_out = _sample_areas(V, surface.F, band, s_out)
+    samples, nsrc = {}, 0  # per input: (stretch samples, their areas) of its band, under its own clips
     bands = {}  # (input, joint, reach) -> its band's samples: a character composed with itself is sampled once
     rests_of = {}  # input -> rest positions of its skinned meshes
     for p in pairs:
@@ -372,8 +407,9 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
                 # the meshes with band vertices as one (each face and vertex sampled as on its own)
                 V0, joints, weights, faces, vertices, rest = merged_band(
                     [(m, x, b) for m, x, b in zip(meshes, rests, inside) if len(b)])
-                bands[key] = ([band_stretch(src.skeleton, src.clips, V0, joints, weights, faces, vertices,
-                                            rest=rest, matrices=matrices[id(src)])] if len(vertices) else [],
+                stretch = (band_stretch(src.skeleton, src.clips, V0, joints, weights, faces, vertices, rest=rest,
+                                        matrices=matrices[id(src)]) if len(vertices) else None)
+                bands[key] = ([(stretch, _sample_areas(rest, faces, vertices, stretch))] if len(vertices) else [],
                               sum(len(b) for b in inside))
             band_samples, count = bands[key]
             nsrc += count
@@ -386,16 +422,24 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
         own = band[(surface.origin_input[band] == composition.fusion_ids.index(cid))
                    & ~np.asarray(surface.junction_vertices)[band]]
         nsrc += len(own)
-        samples.setdefault(cid, []).append(band_stretch(ch.skeleton, ch.clips, V, J, W, surface.F, own, rest=V,
-                                                        matrices=matrices[None]))
-    figures = {cid: float(np.percentile(np.concatenate(x), percentile)) for cid, x in samples.items()
-               if sum(len(y) for y in x)}
+        stretch = band_stretch(ch.skeleton, ch.clips, V, J, W, surface.F, own, rest=V, matrices=matrices[None])
+        samples.setdefault(cid, []).append((stretch, _sample_areas(V, surface.F, own, stretch)))
+    figures = {cid: weighted_percentile(np.concatenate([s for s, _ in x]), np.concatenate([a for _, a in x]),
+                                        percentile)
+               for cid, x in samples.items() if sum(len(s) for s, _ in x)}
     out.update(band_radius=r, output_band_vertices=int(len(band)), source_band_vertices=int(nsrc),
                source_p95_by_input=figures)
     if len(s_out) and figures:
-        a, b = float(np.percentile(s_out, percentile)), max(figures.values())
+        a, b = weighted_percentile(s_out, a_out, percentile), max(figures.values())
         out.update(output_p95=a, source_p95=b, junction_stretch_ratio=a / max(b, 1e-12))
     return out
+
+
+def _sample_areas(V, F, vertices, stretch):
+    """The area each of :func:`band_stretch`'s samples ``stretch`` (frame-major over
+    ``vertices``) stands for: its vertex's, once per frame."""
+    per_vertex = vertex_areas(V, F, vertices)
+    return np.tile(per_vertex, len(stretch) // max(len(per_vertex), 1))
 
 
 def weight_roughness(V, F, W, rows=None):
@@ -588,7 +632,7 @@ def grafted_visibility(surface, inputs, ids, roles) -> dict:
     -------
     dict
         Per grafted input id: ``grafted_visible``, the share of the area of its output faces
-        outside the other inputs' output faces, in ``[0, 1]`` (0 when none of its surface is in
+        outside the other inputs' kept (copied) faces, in ``[0, 1]`` (0 when none of its surface is in
         the output: a part the union swallowed whole); ``grafted_visible_source``, the share of its
         faces copied into the output that is outside the rest of its own character (None when
         none is copied); ``grafted_visible_relative``, the first over the second, at most 1 (the
@@ -605,7 +649,7 @@ def grafted_visibility(surface, inputs, ids, roles) -> dict:
     for i, cid in enumerate(ids):
         if roles.get(cid) != "source":
             continue
-        others = [(V, F[owner == k]) for k in range(len(ids)) if k != i]
+        others = [(V, F[origin == k]) for k in range(len(ids)) if k != i]
         share = outside_area_share(V, F[owner == i], others)
         if share is None and _held_by_others(inputs[i], V, F):
             continue  # its faces are those both inputs share, kept once from the other (an identity)

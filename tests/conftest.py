@@ -86,6 +86,18 @@ def corpus(name: str) -> Path:
     return path
 
 
+def corpus_case(name: str, tmp_path) -> Path:
+    """The corpus matrix's config ``name`` (``kind__Character__...``), written under ``tmp_path``;
+    fails under CI=true, skips elsewhere, when one of its characters is missing."""
+    from benchmarks.corpus_matrix import GENERATORS, load_subjects, write_configs
+
+    characters = [p for p in name.split("__")[1:] if p in CHARACTERS or p in CORPUS_CHARACTERS]
+    for c in characters:
+        asset(c) if c in CHARACTERS else corpus(c)
+    case = next(c for c in GENERATORS[name.split("__")[0]](load_subjects(characters)) if c.name == name)
+    return write_configs([case], tmp_path)[name]
+
+
 def fused_twice(config, **changes):
     """``config`` composed up to its fusion, and its fusion inputs fused again with ``changes`` to
     its fusion parameters (``crossing_rounds=0``: the same fusion with a stage turned off).
