@@ -176,8 +176,11 @@ def vertex_areas(V, F, vertices):
     among them, as in :func:`band_stretch`'s means; 0 for a vertex on no face)."""
     F = np.asarray(F, np.int64).reshape(-1, 3)
     vertices = np.asarray(vertices, np.int64)
+    mark = np.zeros(len(V), bool)
+    mark[vertices] = True
+    around = F[mark[F].any(axis=1)]  # only the faces the band touches (the output is the whole surface)
     per_vertex = np.zeros(len(V))
-    np.add.at(per_vertex, F.ravel(), np.repeat(face_areas(np.asarray(V, np.float64), F) / 3.0, 3))
+    np.add.at(per_vertex, around.ravel(), np.repeat(face_areas(np.asarray(V, np.float64), around) / 3.0, 3))
     return per_vertex[vertices]
 
 
@@ -407,10 +410,12 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
                 # the meshes with band vertices as one (each face and vertex sampled as on its own)
                 V0, joints, weights, faces, vertices, rest = merged_band(
                     [(m, x, b) for m, x, b in zip(meshes, rests, inside) if len(b)])
-                stretch = (band_stretch(src.skeleton, src.clips, V0, joints, weights, faces, vertices, rest=rest,
-                                        matrices=matrices[id(src)]) if len(vertices) else None)
-                bands[key] = ([(stretch, _sample_areas(rest, faces, vertices, stretch))] if len(vertices) else [],
-                              sum(len(b) for b in inside))
+                measured = []
+                if len(vertices):
+                    stretch = band_stretch(src.skeleton, src.clips, V0, joints, weights, faces, vertices, rest=rest,
+                                           matrices=matrices[id(src)])
+                    measured.append((stretch, _sample_areas(rest, faces, vertices, stretch)))
+                bands[key] = (measured, sum(len(b) for b in inside))
             band_samples, count = bands[key]
             nsrc += count
             samples.setdefault(cid, []).extend(band_samples)

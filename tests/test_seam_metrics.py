@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from conftest import ROOT, asset, corpus, corpus_case
 
-from dfd.mesh import vertex_normals
+from dfd.mesh import face_areas, face_normals, vertex_normals
 from rigmix import examples
 from rigmix.fusion.meshutil import dihedral_angles
 from rigmix.gates import MAX_DIHEDRAL_RATIO, MIN_GRAFTED_VISIBLE, failure_text, mesh_gates
@@ -151,11 +151,9 @@ def test_a_part_beside_the_bodys_junction_shows(name, tmp_path):
     mine = F[face_owners(s) == comp.fusion_ids.index(graft)]
     # what a viewer sees, measured apart from the figure: just off each face, outwards, is
     # outside the whole output (its winding number with respect to every output face)
-    P = V[mine].mean(axis=1)
-    N = np.cross(V[mine[:, 1]] - V[mine[:, 0]], V[mine[:, 2]] - V[mine[:, 0]])
-    area = np.linalg.norm(N, axis=1)
-    off = P + 1e-3 * bounding_box_diagonal(V) * N / np.maximum(area, 1e-300)[:, None]
+    off = V[mine].mean(axis=1) + 1e-3 * bounding_box_diagonal(V) * face_normals(V, mine)
     w = igl.fast_winding_number(V, F, off)
+    area = face_areas(V, mine)
     assert area[w < 0.5].sum() / area.sum() > MIN_GRAFTED_VISIBLE
     assert by_name(mesh_gates(m))["grafted_visible"].passed is True, m["grafted_visible_relative"]
 

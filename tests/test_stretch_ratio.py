@@ -174,7 +174,6 @@ def test_all_clips_through_one_forward_kinematics_pass_are_each_clip_on_its_own(
                               skinning_matrices(c.skeleton, T, R, S))  # the first frame is time 0
 
 
-
 def test_the_meshes_of_an_input_are_sampled_as_one_with_each_samples_own():
     """A modular character's band spans several meshes: sampled as one merged mesh (influences
     padded to the widest), its samples are every mesh's own, the same floats."""
@@ -200,6 +199,7 @@ def test_the_meshes_of_an_input_are_sampled_as_one_with_each_samples_own():
     merged = band_stretch(c.skeleton, c.clips[:3], V0, J, W, F, vertices, rest=rest, matrices=M)
     assert len(merged) == len(own) and own.max() > 0
     assert np.array_equal(np.sort(merged), np.sort(own))
+
 
 def test_band_stretch_is_the_mean_face_stretch_of_the_skinned_band():
     """The band's samples, taken from the posed edge vectors without posing the vertices, are the
@@ -288,7 +288,6 @@ def test_the_band_figure_weighs_each_vertex_by_its_area():
     J = c.skeleton.num_joints
     W = np.zeros((len(V0), J))
     np.put_along_axis(W, np.asarray(m.joints, np.int64), np.asarray(m.weights, np.float64), axis=1)
-    joints = np.tile(np.arange(J), (len(V0), 1))
 
     def figures(V, W, F):
         band = np.arange(len(V))
@@ -298,7 +297,8 @@ def test_the_band_figure_weighs_each_vertex_by_its_area():
 
     base_area, base_count = figures(V0, W, F)
     # the faces whose corners stretch least over the clips
-    s = band_stretch(c.skeleton, c.clips, V0, joints, W, F, np.arange(len(V0))).reshape(-1, len(V0)).max(axis=0)
+    s = band_stretch(c.skeleton, c.clips, V0, np.tile(np.arange(J), (len(V0), 1)), W, F,
+                     np.arange(len(V0))).reshape(-1, len(V0)).max(axis=0)
     calm = s[F].max(axis=1) < np.percentile(s, 50.0)
     V1, W1, F1 = _split_faces(V0, W, F, calm)
     new = 4 * int(calm.sum())  # _split_faces puts the cut faces last: cut them again
