@@ -145,6 +145,11 @@ class BodyPlan:
         Joints that deform nothing: no weight on them or below them (IK and pole targets).
     symmetry_axis : int
         0, 1 or 2: the axis the mirror plane is perpendicular to.
+    counts : dict of str -> int
+        Limbs of each kind.
+    forward : (3,) tuple of float
+        The direction the character faces at rest, world space: a unit horizontal axis (the
+        glTF frame, +Y up), its sign from the head and the feet (step 7 above).
     """
 
     limbs: tuple[Limb, ...]
@@ -152,6 +157,7 @@ class BodyPlan:
     excluded: tuple[str, ...]
     symmetry_axis: int = 0
     counts: dict = field(default_factory=dict)
+    forward: tuple[float, float, float] = (0.0, 0.0, 1.0)
 
     def of_kind(self, kind: str) -> tuple[Limb, ...]:
         """The limbs of one kind."""
@@ -738,7 +744,7 @@ def classify_limbs(character: Character) -> BodyPlan:
     index = {n: i for i, n in enumerate(names)}
     limbs.sort(key=lambda lb: (order[lb.kind], lb.side or "", index[lb.root]))
     counts = {k: sum(1 for lb in limbs if lb.kind == k) for k in KINDS}
-    return BodyPlan(tuple(limbs), trunk_names, excluded, rig.axis, counts)
+    return BodyPlan(tuple(limbs), trunk_names, excluded, rig.axis, counts, tuple(float(x) for x in forward))
 
 
 def limbs_summary(character: Character) -> list[dict]:

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import asset, corpus, with_fusion
+from conftest import asset, corpus, corpus_case, with_fusion
 
 from rigmix.gates import MIN_GRAFTED_VISIBLE, failed_mesh_gates
 from rigmix.io import load_character
@@ -153,13 +153,14 @@ def test_an_arm_beside_the_old_shoulders_junction_shows_without_a_retry(tmp_path
 
 
 def test_a_leg_whose_junction_creases_is_fused_again_with_the_replaced_region_whole(tmp_path):
-    """The Wasp's left top leg on the Velociraptor's left hind leg (the corpus matrix's leg swap):
-    with the raptor's skin of its own upper leg kept, the junction creases between the seams
-    (dihedral p95 1.8 times the inputs'); fused again with that region taken away
-    (``retry_whole_region``), every fusion gate passes."""
+    """The Wasp's left top leg on the Velociraptor's left hind leg, the Wasp kept facing +X as it
+    is modelled (``face = false``; the raptor faces +Z): with the raptor's skin of its own upper
+    leg kept, the junction creases between the seams (dihedral p95 1.8 times the inputs'); fused
+    again with that region taken away (``retry_whole_region``), every fusion gate passes."""
     action = ('op = "replace"\nsource = "donor"\nsource_joint = "TopLeg1.L"\n'
               'target = "body"\ntarget_joint = "BackUpLeg.L"\nmode = "blend"\n'
-              '[[actions]]\nop = "remove"\ntarget = "body"\ntarget_joint = "BackFoot.L"')
+              '[[actions]]\nop = "remove"\ntarget = "body"\ntarget_joint = "BackFoot.L"\n'
+              '[positioning]\nface = false')
     path = _config(tmp_path, "raptor_wasp_leg", asset("Velociraptor"), asset("Wasp"), action)
     mesh = compose(path, until="fusion").report["mesh"]
     assert mesh["replaced_whole_region"] is True
@@ -200,3 +201,20 @@ def test_a_fusion_that_passes_is_not_retried_and_a_retry_is_kept_only_when_it_fa
                            {crossings: gate(crossings, 9), angle: gate(angle, 12.0, ">=")})
     assert fails_less({}, {angle: gate(angle, 12.0, ">=")})
     assert not fails_less({crossings: gate(crossings, 1)}, {angle: gate(angle, 12.0, ">=")})
+
+
+def test_wings_attached_at_one_chest_joint_show_on_the_bodys_sides(tmp_path):
+    """The Wasp's two wings attached at the Witch's chest joint (the corpus matrix's wings case).
+    Both wing roots fixed to the one joint put both wings in the chest, and the Wasp, modelled
+    facing +X, spread them front and back of a body facing +Z: 0.875 of their area showed. Turned
+    to face the Witch's way, with the pair's spacing kept, they hang on her sides and show."""
+    comp = compose(corpus_case("wings__Witch__Wasp", tmp_path), until="fusion")
+    mesh = comp.report["mesh"]
+    assert mesh["grafted_visible_min"] >= MIN_GRAFTED_VISIBLE
+    assert not failed_mesh_gates(mesh)
+    sk = comp.plan.positioned["donor"].skeleton
+    P = sk.rest_worlds()[:, :3, 3]
+    chest = comp.plan.positioned["body"].skeleton
+    x0 = chest.rest_worlds()[chest.index("Chest"), 0, 3]
+    # the Witch faces +Z: her left is +X
+    assert P[sk.index("Wing.L"), 0] > x0 > P[sk.index("Wing.R"), 0]

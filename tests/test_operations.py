@@ -6,18 +6,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import asset, corpus
+from conftest import asset, corpus, corpus_case
 
 from rigmix.animation import sample_clip
 from rigmix.character import Character, Mesh, Skeleton
 from rigmix.config import Config, load_config
 from rigmix.errors import InputError
 from rigmix.io import load_character
+from rigmix.limbs import classify_limbs
 from rigmix.operations import plan_operations
 from rigmix.operations.positioning import (
     AGREEMENT,
     chain_length,
     cut_section,
+    facing_turn,
     limb_kind,
     pair_scale,
     part_weights,
@@ -28,6 +30,7 @@ from rigmix.operations.positioning import (
     skeleton_adjacency,
     smooth_translations,
 )
+from rigmix.pipeline import load_characters
 from rigmix.skinning import linear_blend_skinning, rest_pose, skinning_matrices
 from rigmix.transforms import quat_to_matrix
 
@@ -541,3 +544,72 @@ def test_replace_scale_takes_the_chain_only_along_a_limb(target, target_joint, s
     scale, how = pair_scale("replace", t, jt, s, js)
     assert how == method
     assert scale == pytest.approx(cut if method == "cross-section" else chain, rel=1e-12)
+
+
+# --------------------------------------------------------------------------------------------
+# Facing: a source modelled facing another way is turned to face the way its target faces
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("source, target", [((1, 0, 0), (0, 0, 1)), ((0, 0, 1), (1, 0, 0)),
+                                            ((0, 0, 1), (0, 0, -1)), ((-1, 0, 0), (0, 0, 1)),
+                                            ((0.6, 0, 0.8), (0.6, 0, 0.8))])
+def test_facing_turn_maps_forward_onto_forward(source, target):
+    R = facing_turn(source, target)
+    assert np.allclose(R @ np.asarray(source, float), target, atol=1e-12)
+    assert np.allclose(R @ [0, 1, 0], [0, 1, 0])  # about +Y: up stays up
+    assert np.allclose(R.T @ R, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0)
+
+
+def test_facing_turn_of_a_vertical_direction_is_none():
+    assert np.array_equal(facing_turn((0, 1, 0), (0, 0, 1)), np.eye(3))
+
+
+@pytest.fixture(scope="module")
+def wasp_wings_on_cesiumman(tmp_path_factory):
+    """The corpus matrix's wings case: the Wasp (modelled facing +X) gives both wings, attached at
+    CesiumMan's (facing +Z) upper spine joint."""
+    cfg = load_config(corpus_case("wings__CesiumMan__Wasp", tmp_path_factory.mktemp("wings")))
+    inputs = load_characters(cfg)
+    return cfg, inputs, plan_operations(inputs, cfg)
+
+
+def test_a_source_facing_another_way_is_turned_to_face_its_target(wasp_wings_on_cesiumman):
+    cfg, inputs, plan = wasp_wings_on_cesiumman
+    body = plan.positioned["body"]
+    wasp = plan.positioned["donor"]
+    assert classify_limbs(inputs["donor"]).forward == (1.0, 0.0, 0.0)
+    assert classify_limbs(body).forward == (0.0, 0.0, 1.0)
+    # the positioned wasp faces the body's way: its head lies ahead (+Z) of its wings
+    sk = wasp.skeleton
+    P = sk.rest_worlds()[:, :3, 3]
+    head, wl, wr = sk.index("Head"), sk.index("Wing.L"), sk.index("Wing.R")
+    assert P[head, 2] - P[[wl, wr], 2].mean() > 0.5 * abs(P[head, 0] - P[[wl, wr], 0].mean())
+    assert plan.report["characters"]["donor"]["facing_turn_degrees"] == pytest.approx(-90.0)
+    # the wing on the wasp's left is on the body's left: +X for a character facing +Z
+    assert P[wl, 0] > P[wr, 0]
+
+
+def test_wings_attached_at_one_joint_keep_their_spacing(wasp_wings_on_cesiumman):
+    cfg, inputs, plan = wasp_wings_on_cesiumman
+    target = plan.positioned["body"].skeleton
+    chest = target.rest_worlds()[target.index(cfg.actions[0].target_joint), :3, 3]
+    sk = plan.positioned["donor"].skeleton
+    P = sk.rest_worlds()[:, :3, 3]
+    wl, wr = sk.index("Wing.L"), sk.index("Wing.R")
+    # the pair's mean lands on the joint; each root keeps its offset from it, scaled as the wasp
+    assert np.allclose(P[[wl, wr]].mean(axis=0), chest, atol=1e-9)
+    P0 = rebase(inputs["donor"]).skeleton.rest_worlds()[:, :3, 3]
+    s = plan.scales["donor"]
+    assert np.linalg.norm(P[wl] - P[wr]) == pytest.approx(s * np.linalg.norm(P0[wl] - P0[wr]), rel=1e-9)
+
+
+def test_turning_to_face_can_be_turned_off(tmp_path):
+    path = corpus_case("wings__CesiumMan__Wasp", tmp_path)
+    path.write_text(path.read_text() + "\n[positioning]\nface = false\n")
+    cfg = load_config(path)
+    plan = plan_operations(load_characters(cfg), cfg)
+    assert plan.report["characters"]["donor"]["facing_turn_degrees"] == 0.0
+    sk = plan.positioned["donor"].skeleton
+    P = sk.rest_worlds()[:, :3, 3]
+    assert P[sk.index("Head"), 0] - P[sk.index("Wing.L"), 0] > 0  # still facing +X

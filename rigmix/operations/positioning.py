@@ -61,6 +61,8 @@ __all__ = [
     "AGREEMENT",
     "CHAIN_KINDS",
     "limb_kind",
+    "body_plan",
+    "facing_turn",
     "skeleton_adjacency",
     "smooth_translations",
     "rest_world_mesh",
@@ -384,19 +386,25 @@ def size(V, joint_positions):
     return float(np.linalg.norm(P.max(axis=0) - P.min(axis=0)))
 
 
+def body_plan(character, plans=None):
+    """:func:`rigmix.limbs.classify_limbs` of ``character``, kept in ``plans`` (a dict by ``id``
+    that holds the character with its plan, so that its id stays its own) when one is given."""
+    from ..limbs import classify_limbs
+
+    plans = {} if plans is None else plans
+    if id(character) not in plans:
+        plans[id(character)] = (character, classify_limbs(character))
+    return plans[id(character)][1]
+
+
 def limb_kind(character, j, plans=None) -> str | None:
     """The kind of the limb (:func:`rigmix.limbs.classify_limbs`) whose joints hold joint ``j``
     of ``character`` (its detached ones too: an IK foot); None for a joint on no limb (the trunk).
 
-    ``plans``: a dict that keeps each character with its :class:`rigmix.limbs.BodyPlan` by
-    ``id``, so that a character with several fused pairs is classified once."""
-    from ..limbs import classify_limbs
-
-    plans = {} if plans is None else plans
-    if id(character) not in plans:  # the character is kept with its plan: its id stays its own
-        plans[id(character)] = (character, classify_limbs(character))
+    ``plans``: body plans kept by character (:func:`body_plan`), so that a character with several
+    fused pairs is classified once."""
     name = character.skeleton.names[j]
-    for limb in plans[id(character)][1].limbs:
+    for limb in body_plan(character, plans).limbs:
         if name == limb.root or name in limb.joints or name in limb.detached:
             return limb.kind
     return None
@@ -705,14 +713,65 @@ def _check_scale(s, cid, method, config):
             f"characters.{cid}.scale to a number")
 
 
-def _placement_matrix(placement):
-    if placement is None:
+def _placement_matrix(placement, facing=None):
+    """The placement's ``(4, 4)`` matrix; ``facing`` (a ``(3, 3)`` turn from :func:`facing_turn`)
+    comes first where the placement sets no rotation. None when neither moves anything."""
+    turn = None if facing is None or np.allclose(facing, np.eye(3)) else facing
+    if placement is None and turn is None:
         return None
     M = np.eye(4)
-    if placement.rotation is not None:
+    if placement is not None and placement.rotation is not None:
         M[:3, :3] = quat_to_matrix(np.asarray(placement.rotation.as_quaternion(), dtype=np.float64))
-    M[:3, 3] = placement.translation
+    elif turn is not None:
+        M[:3, :3] = turn
+    if placement is not None:
+        M[:3, 3] = placement.translation
     return M
+
+
+def facing_turn(source_forward, target_forward):
+    """Rotation ``(3, 3)`` about +Y (column vectors, ``R @ v``) that turns the horizontal
+    direction ``source_forward`` onto ``target_forward`` (world space, +Y up); the identity when
+    either has no horizontal part."""
+    a = np.array([source_forward[0], 0.0, source_forward[2]], dtype=np.float64)
+    b = np.array([target_forward[0], 0.0, target_forward[2]], dtype=np.float64)
+    na, nb = np.linalg.norm(a), np.linalg.norm(b)
+    if na < 1e-9 or nb < 1e-9:
+        return np.eye(3)
+    a, b = a / na, b / nb
+    # the angle about +Y from a to b: sin from the Y component of a x b
+    theta = np.arctan2(a[2] * b[0] - a[0] * b[2], float(a @ b))
+    c, s = np.cos(theta), np.sin(theta)
+    R = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    return np.where(np.abs(R) < 1e-12, 0.0, R)
+
+
+def _facing(rest, moved, positioned, config, cc, plans):
+    """The turn of a moved character onto the facing of the target of its first moved pair (see
+    ``positioning.face``), or None."""
+    if not moved or not config.positioning.face or (cc.placement is not None and cc.placement.rotation is not None):
+        return None
+    target = positioned[moved[0].target]
+    R = facing_turn(body_plan(rest, plans).forward, body_plan(target, plans).forward)
+    return None if np.allclose(R, np.eye(3)) else R
+
+
+def _group_goals(pairs, here, positioned, posed, cid):
+    """Where each fused joint of ``pairs`` goes: its target joint's rest position. Joints of one
+    source fused to the same target joint (a pair of wings attached at one chest joint) keep their
+    offsets from their mean: the group's mean lands on the target."""
+    goals = []
+    groups = {}
+    for a in pairs:
+        groups.setdefault((a.target, a.target_joint), []).append(a.source_joint)
+    for a in pairs:
+        tgt = positioned[a.target] if a.target != cid else posed
+        goal = tgt.skeleton.rest_worlds()[a.target_joint, :3, 3]
+        members = sorted(set(groups[(a.target, a.target_joint)]))
+        if len(members) > 1:
+            goal = goal + here[a.source_joint] - here[members].mean(axis=0)
+        goals.append(goal)
+    return goals
 
 
 def positioning_order(actions, config):
@@ -773,13 +832,13 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
         sk = ch.skeleton
         pairs = [a for a in actions if a.grafts and a.source == cid and not a.identity]
         moved = [a for a in pairs if a.target != cid]
+        # measured at rest in world space, as the targets are: a character matched with itself
+        # then measures exactly 1 and keeps its positions bit for bit (its faces are the same
+        # faces, copied once: rigmix.fusion.seams.coincident_faces)
+        rest = rebase(ch) if moved else None
         if cc.scale != "auto":
             s, method, ratios = float(cc.scale), "override", []
         elif moved:
-            # measured at rest in world space, as the targets are: a character matched with
-            # itself then measures exactly 1 and keeps its positions bit for bit (its faces are
-            # the same faces, copied once: rigmix.fusion.seams.coincident_faces)
-            rest = rebase(ch)
             ratios = [pair_scale(a.op, positioned[a.target], a.target_joint, rest, a.source_joint, plans=plans)
                       for a in moved]
             s = float(np.exp(np.mean(np.log([r for r, _ in ratios]))))
@@ -788,7 +847,8 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
         else:
             s, method, ratios = 1.0, "body", []
         rot = rotations.get(cid, {})
-        placement = _placement_matrix(cc.placement)
+        turn = _facing(rest, moved, positioned, config, cc, plans)
+        placement = _placement_matrix(cc.placement, turn)
         posed = position_character(ch, scale=s, placement=placement, rotations=rot)
         t = np.zeros((sk.num_joints, 3))
         if pairs and config.positioning.translate:
@@ -799,9 +859,7 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
                 for j in np.flatnonzero(part[cid] == -1):
                     fixed.append(int(j))
                     values.append(np.zeros(3))
-            for a in pairs:
-                tgt = positioned[a.target] if a.target != cid else posed
-                goal = tgt.skeleton.rest_worlds()[a.target_joint, :3, 3]
+            for a, goal in zip(pairs, _group_goals(pairs, here, positioned, posed, cid)):
                 fixed.append(a.source_joint)
                 values.append(goal - here[a.source_joint])
             t = smooth_translations(sk.parents, fixed, np.asarray(values))
@@ -814,6 +872,8 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
             "scale_method": method,
             "scale_ratios": [float(r) for r, _ in ratios],
             "role": "body" if body[cid] else "source",
+            "facing_turn_degrees": (0.0 if turn is None
+                                    else float(np.degrees(np.arctan2(turn[0, 2], turn[0, 0])))),
             "moved": bool(np.any(t)) or s != 1.0 or bool(rot) or placement is not None,
         }
         if method != "override" and s != 1.0:
