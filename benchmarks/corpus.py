@@ -316,14 +316,19 @@ def failure_message(row: dict, failed: list[dict]) -> str:
 
 
 def select(cases, *, only=None, kind=None, ci=False) -> list[Case]:
-    """The cases matching ``only`` (a shell pattern, or a substring), ``kind`` and the CI slice."""
+    """The cases matching ``only`` (shell patterns or substrings, separated by commas: a case
+    matching any of them), ``kind`` and the CI slice."""
     if ci:
         cases = ci_slice(cases)
     if kind:
         cases = [c for c in cases if c.kind == kind]
     if only:
-        wild = any(ch in only for ch in "*?[")
-        cases = [c for c in cases if (fnmatch.fnmatchcase(c.name, only) if wild else only in c.name)]
+        patterns = [p for p in only.split(",") if p]
+
+        def matches(name, p):
+            return fnmatch.fnmatchcase(name, p) if any(ch in p for ch in "*?[") else p in name
+
+        cases = [c for c in cases if any(matches(c.name, p) for p in patterns)]
     return list(cases)
 
 
@@ -528,7 +533,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.corpus", description=__doc__.split("\n\n")[0])
     ap.add_argument("--fresh", action="store_true", help="run every selected case again")
     ap.add_argument("--rerun-failed", action="store_true", help="run again the selected cases that did not pass")
-    ap.add_argument("--only", metavar="PATTERN", help="case names matching a shell pattern (or containing it)")
+    ap.add_argument("--only", metavar="PATTERN",
+                    help="case names matching a shell pattern (or containing it); several separated by commas")
     ap.add_argument("--kind", choices=KINDS, help="one kind of composition")
     ap.add_argument("--ci", action="store_true", help="the fixed CI slice only")
     ap.add_argument("--limit", type=int, metavar="N", help="run at most N cases")

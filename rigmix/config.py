@@ -307,8 +307,8 @@ class PositioningOptions(BaseModel):
     face: StrictBool = Field(
         True, description="Turn each source character moved onto another about the vertical (+Y) axis so that it "
                           "faces the way its target faces (both found by rigmix.limbs.classify_limbs: a wasp "
-                          "modelled facing +X gives its wings to a humanoid facing +Z), unless its placement "
-                          "sets a rotation.")
+                          "modelled facing +X gives its wings to a humanoid facing +Z); only where their mirror planes "
+                          "are perpendicular, and not where its placement sets a rotation.")
     pose: Literal["bind", "rest"] = Field(
         "bind", description="Pose each file is composed in (and the output's rest pose), where a file's rest "
                             "pose differs per joint from the pose its mesh is bound in (every Quaternius rig): "

@@ -286,3 +286,12 @@ def test_compositions_run_at_once_share_the_cores_out(monkeypatch):
     assert all(name not in runner._env() for name in THREAD_VARIABLES)
     assert all(runner._env(1)[name] == "1" for name in THREAD_VARIABLES)
     assert runner._env(3)["OMP_NUM_THREADS"] == "3"
+
+
+def test_only_takes_several_patterns_separated_by_commas(matrix):
+    names = {c.name for c in runner.select(matrix, only="wings__*Bee,identity__Wasp__Head")}
+    bee = {c.name for c in matrix if c.kind == "wings" and c.name.endswith("__Bee")}
+    assert bee and names == bee | {"identity__Wasp__Head"}
+    # one pattern as before: a shell pattern, or a substring
+    assert {c.name for c in runner.select(matrix, only="Wasp__Head")} >= {"identity__Wasp__Head"}
+    assert runner.select(matrix, only="wings__*", kind="tail") == []

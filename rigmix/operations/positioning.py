@@ -748,30 +748,19 @@ def facing_turn(source_forward, target_forward):
 
 def _facing(rest, moved, positioned, config, cc, plans):
     """The turn of a moved character onto the facing of the target of its first moved pair (see
-    ``positioning.face``), or None."""
+    ``positioning.face``), or None.
+
+    Only where the two mirror planes are perpendicular (a character modelled facing +X moved onto
+    one facing +Z): the plane comes from the whole rig, the facing's sign only from a vote of the
+    head and the feet, which a pose can tip (the Cyberpunk character votes +Z in its file's rest
+    pose and -Z in its bind pose), and a wrong half turn puts a swapped arm on backwards."""
     if not moved or not config.positioning.face or (cc.placement is not None and cc.placement.rotation is not None):
         return None
-    target = positioned[moved[0].target]
-    R = facing_turn(body_plan(rest, plans).forward, body_plan(target, plans).forward)
+    source, target = body_plan(rest, plans), body_plan(positioned[moved[0].target], plans)
+    if source.symmetry_axis == target.symmetry_axis:
+        return None
+    R = facing_turn(source.forward, target.forward)
     return None if np.allclose(R, np.eye(3)) else R
-
-
-def _group_goals(pairs, here, positioned, posed, cid):
-    """Where each fused joint of ``pairs`` goes: its target joint's rest position. Joints of one
-    source fused to the same target joint (a pair of wings attached at one chest joint) keep their
-    offsets from their mean: the group's mean lands on the target."""
-    goals = []
-    groups = {}
-    for a in pairs:
-        groups.setdefault((a.target, a.target_joint), []).append(a.source_joint)
-    for a in pairs:
-        tgt = positioned[a.target] if a.target != cid else posed
-        goal = tgt.skeleton.rest_worlds()[a.target_joint, :3, 3]
-        members = sorted(set(groups[(a.target, a.target_joint)]))
-        if len(members) > 1:
-            goal = goal + here[a.source_joint] - here[members].mean(axis=0)
-        goals.append(goal)
-    return goals
 
 
 def positioning_order(actions, config):
@@ -859,7 +848,9 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
                 for j in np.flatnonzero(part[cid] == -1):
                     fixed.append(int(j))
                     values.append(np.zeros(3))
-            for a, goal in zip(pairs, _group_goals(pairs, here, positioned, posed, cid)):
+            for a in pairs:
+                tgt = positioned[a.target] if a.target != cid else posed
+                goal = tgt.skeleton.rest_worlds()[a.target_joint, :3, 3]
                 fixed.append(a.source_joint)
                 values.append(goal - here[a.source_joint])
             t = smooth_translations(sk.parents, fixed, np.asarray(values))
