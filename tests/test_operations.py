@@ -617,3 +617,24 @@ def test_no_half_turn_between_rigs_mirrored_on_the_same_plane(tmp_path):
     # the positioned arm is the file's arm scaled and moved, not turned: its bones point the same way
     d0, d = P0[sk.subtree(arm)] - P0[arm], P[sk.subtree(arm)] - P[arm]
     assert np.allclose(d, plan.scales["donor"] * d0, atol=1e-6 * np.abs(d).max())
+
+
+def test_parts_fused_to_one_joint_are_warned_of(tmp_path, caplog):
+    """Both Wasp wings attached at CesiumMan's one spine joint become that joint (fused pairs
+    become one joint): the output has no wing bone, and the user is told so, with the fix."""
+    import logging
+
+    cfg = load_config(corpus_case("wings__CesiumMan__Wasp", tmp_path))
+    inputs = load_characters(cfg)
+    with caplog.at_level(logging.WARNING, logger="rigmix.operations.plan"):
+        plan = plan_operations(inputs, cfg)
+    (msg,) = [r.getMessage() for r in caplog.records if "become that one joint" in r.getMessage()]
+    assert "'Wing.L'" in msg and "'Wing.R'" in msg and cfg.actions[0].target_joint in msg
+    assert "attach each at a joint of its own" in msg
+    assert not any("Wing" in n for n in plan.skeleton.names)  # what the warning is about
+
+    caplog.clear()
+    cfg = load_config(corpus_case("arm_swap__CesiumMan__CyberpunkCharacter", tmp_path))
+    with caplog.at_level(logging.WARNING, logger="rigmix.operations.plan"):
+        plan_operations(load_characters(cfg), cfg)
+    assert not [r for r in caplog.records if "become that one joint" in r.getMessage()]

@@ -37,7 +37,8 @@ from ..rig import topological_order, unique_names
 from ..transforms import matrix_to_trs, unit_scale
 from .positioning import position_inputs
 
-__all__ = ["FusedPair", "Plan", "ResolvedAction", "plan_operations", "resolve_actions", "resolve_rotations"]
+__all__ = ["FusedPair", "Plan", "ResolvedAction", "merged_sources", "plan_operations", "resolve_actions",
+           "resolve_rotations"]
 
 logger = logging.getLogger(__name__)
 
@@ -666,6 +667,32 @@ def _build_skeleton(structure, positioned, config):
 # --------------------------------------------------------------------------------------------
 
 
+def merged_sources(actions) -> dict:
+    """Joints of one source fused to the same target joint by several actions (two wings attached
+    at one chest joint): fused pairs become one output joint, so those joints become one and move
+    as one (each part's own bone, and its motion in its clips, is lost).
+
+    Returns
+    -------
+    dict of (source, target, target_joint) -> list of (action index, source joint)
+        Only the groups of two or more.
+    """
+    groups: dict = {}
+    for a in actions:
+        if a.grafts and a.source != a.target:
+            groups.setdefault((a.source, a.target, a.target_joint), []).append((a.index, a.source_joint))
+    return {k: v for k, v in groups.items() if len({j for _, j in v}) > 1}
+
+
+def _warn_merged_sources(actions, inputs, config) -> None:
+    for (src, tgt, tj), members in merged_sources(actions).items():
+        names = ", ".join(f"actions[{i}] '{inputs[src].skeleton.names[j]}'" for i, j in members)
+        logger.warning("operations: config %s: %s of character %r are all fused to '%s' of %r, so they become that "
+                       "one joint and move with it as one (their own bones and motion are lost); attach each at a "
+                       "joint of its own, or attach the joint they hang from", config.source, names, src,
+                       inputs[tgt].skeleton.names[tj], tgt)
+
+
 def plan_operations(inputs, config: Config) -> Plan:
     """Apply the config's actions: output skeleton, provenance, preliminary positioning.
 
@@ -697,6 +724,7 @@ def plan_operations(inputs, config: Config) -> Plan:
             raise InputError(f"config {config.source}: actions[{a.index}] removes '{sk.names[a.target_joint]}', "
                              f"the root of every joint of character '{a.target}': nothing of it is left; remove "
                              f"a subtree below its root, or leave '{a.target}' out of [characters]")
+    _warn_merged_sources(actions, inputs, config)
     rotations = resolve_rotations(inputs, config)
     structure = _structure(inputs, actions, config)
     if len(structure.order) == 0:
