@@ -21,6 +21,7 @@ from rigmix.operations.positioning import (
     thickness,
 )
 from rigmix.pipeline import compose
+from rigmix.sparse_weights import dense_rows
 
 
 def _config(tmp_path, name, body, donor, action):
@@ -215,7 +216,7 @@ def test_wings_attached_at_one_chest_joint_show_on_the_bodys_sides(tmp_path):
     assert not failed_mesh_gates(mesh)
     wasp = comp.plan.positioned["donor"]
     V, W = rest_world_mesh(wasp)
-    W = np.asarray(W.todense()) if hasattr(W, "todense") else np.asarray(W)
+    W = dense_rows(W)
     sk = wasp.skeleton
     x0 = sk.rest_worlds()[sk.index("Wing.L"), 0, 3]
     # the Witch faces +Z: her left is +X

@@ -716,14 +716,13 @@ def _check_scale(s, cid, method, config):
 def _placement_matrix(placement, facing=None):
     """The placement's ``(4, 4)`` matrix; ``facing`` (a ``(3, 3)`` turn from :func:`facing_turn`)
     comes first where the placement sets no rotation. None when neither moves anything."""
-    turn = None if facing is None or np.allclose(facing, np.eye(3)) else facing
-    if placement is None and turn is None:
+    if placement is None and facing is None:
         return None
     M = np.eye(4)
     if placement is not None and placement.rotation is not None:
         M[:3, :3] = quat_to_matrix(np.asarray(placement.rotation.as_quaternion(), dtype=np.float64))
-    elif turn is not None:
-        M[:3, :3] = turn
+    elif facing is not None:
+        M[:3, :3] = facing
     if placement is not None:
         M[:3, 3] = placement.translation
     return M
@@ -756,10 +755,14 @@ def _facing(rest, moved, positioned, config, cc, plans):
     pose and -Z in its bind pose), and a wrong half turn puts a swapped arm on backwards."""
     if not moved or not config.positioning.face or (cc.placement is not None and cc.placement.rotation is not None):
         return None
-    source, target = body_plan(rest, plans), body_plan(positioned[moved[0].target], plans)
-    if source.symmetry_axis == target.symmetry_axis:
+    from .mirror import mirror_plane
+
+    target = positioned[moved[0].target]
+    # the classifier's own plane (BodyPlan.symmetry_axis), at a fraction of a classification's cost:
+    # the rigs are classified only where the planes differ
+    if mirror_plane(rest).axis == mirror_plane(target).axis:
         return None
-    R = facing_turn(source.forward, target.forward)
+    R = facing_turn(body_plan(rest, plans).forward, body_plan(target, plans).forward)
     return None if np.allclose(R, np.eye(3)) else R
 
 
