@@ -41,8 +41,9 @@ ring over every character with a head and at least one other limb. ``torso``: a 
 body (waist up) replacing the head of every quadruped and tailed character (humanoids in turn).
 ``tail``: every tail attached at the pelvis of a humanoid (in turn). ``wings``: both wings of a
 winged character attached at the shoulder of every humanoid and wingless quadruped (donors in
-turn). ``three``: for each humanoid, the head of a quadruped (in turn) and the left arm of the next
-humanoid. Cross-character donors have ``scale = "auto"``.
+turn), each wing root kept as a joint of its own (``keep_joint``: the two wings keep their
+spacing and flap by their own joints). ``three``: for each humanoid, the head of a quadruped (in
+turn) and the left arm of the next humanoid. Cross-character donors have ``scale = "auto"``.
 
 A limb is replaced with its detached parts (:func:`limb_actions`: the IK feet that carry a foot's
 skin from the armature root are replaced by the donor's, or removed).
@@ -341,9 +342,10 @@ def limb_actions(body: Subject, limb: Limb, donor_id: str, donor: Subject, donor
     return out
 
 
-def _attach(source, source_joint, target, target_joint) -> dict:
-    return {"op": "attach", "source": source, "source_joint": source_joint, "target": target,
-            "target_joint": target_joint}
+def _attach(source, source_joint, target, target_joint, *, keep_joint=False) -> dict:
+    out = {"op": "attach", "source": source, "source_joint": source_joint, "target": target,
+           "target_joint": target_joint}
+    return out | {"keep_joint": True} if keep_joint else out
 
 
 AUTO = {"scale": "auto"}
@@ -446,7 +448,7 @@ def wings_cases(subjects) -> list[Case]:
         wings = (d.limbs("wing", "L")[0], d.limbs("wing", "R")[0])
         out.append(_case("wings", d.name, f"{d.name}'s wings attached at {a.name}'s shoulders",
                          {"body": (a, {}), "donor": (d, AUTO)},
-                         [_attach("donor", w.root, "body", a.shoulder) for w in wings]))
+                         [_attach("donor", w.root, "body", a.shoulder, keep_joint=True) for w in wings]))
     return out
 
 

@@ -26,6 +26,7 @@ error naming the key), or a :class:`Config` built in code. ``rigmix schema`` pri
     target = "horse"
     target_joint = "Neck1"
     mode = "blend"                        # replace only: blend | union
+    keep_joint = false                    # attach only: source_joint stays its own joint, a child of target_joint
 
     [positioning]
     pose = "bind"                         # bind (animations exact) | rest (the files' stored rest pose)
@@ -254,12 +255,18 @@ class AttachAction(_ActionBase):
     """Graft the subtree at `source_joint` of `source` onto `target_joint` of `target`.
 
     The two joints are fused into one joint of the output; the target keeps its whole subtree
-    (field operator: union).
+    (field operator: union). With ``keep_joint``, `source_joint` stays a joint of its own, a child
+    of `target_joint`.
     """
 
     op: Literal["attach"]
     source: str = Field(description="Character id that gives the subtree.")
     source_joint: str = Field(description="Root of the grafted subtree, fused with `target_joint`.")
+    keep_joint: StrictBool = Field(
+        False, description="Keep `source_joint` as a joint of its own, a child of `target_joint`, with its bone and "
+                           "its motion in its clips (a wing that is one joint flaps by that joint), instead of fusing "
+                           "the two. Several kept joints of one source attached at one target joint keep their "
+                           "spacing: the source moves so that their mean lands on the target joint.")
 
 
 class ReplaceAction(_ActionBase):

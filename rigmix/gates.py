@@ -300,7 +300,7 @@ def stretch_gate(composition, *, max_ratio: float = MAX_STRETCH_RATIO) -> Gate:
         return _not_applicable(name, "<=", max_ratio, "no input has a clip")
     if character is not None and not character.clips:
         return _not_applicable(name, "<=", max_ratio, "no clip completed")
-    if not composition.plan.fused_pairs:
+    if not composition.plan.junction_pairs:
         return _not_applicable(name, "<=", max_ratio, "no joint fused")
     return Gate(name, None, "<=", max_ratio, False, "not measured: no junction band with a clip")
 

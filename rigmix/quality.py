@@ -370,7 +370,7 @@ def junction_stretch_ratio(composition, *, fps=30.0, max_frames=30, percentile=9
     V = np.asarray(surface.V)
     out = {"junction_stretch_ratio": None, "output_p95": None, "source_p95": None, "band_radius": None,
            "output_band_vertices": 0, "source_band_vertices": 0, "source_p95_by_input": {}}
-    pairs = plan.fused_pairs
+    pairs = plan.junction_pairs
     if not pairs or ch is None or not ch.clips:
         return out
     Jpos = plan.skeleton.rest_worlds()[:, :3, 3]
@@ -694,7 +694,7 @@ def junction_dihedral(composition, *, percentile=95.0) -> dict:
     rebuilt = np.asarray(surface.junction_faces, bool) & ~np.asarray(surface.copied_faces, bool)
     angles = dihedral_angles(surface.V, surface.F, rebuilt) if rebuilt.any() else np.zeros(0)
     junction = float(np.percentile(angles, percentile)) if len(angles) else None
-    pairs = [p for p in plan.fused_pairs if p.target in ids and p.source in ids]
+    pairs = [p for p in plan.junction_pairs if p.target in ids and p.source in ids]
     source = None
     if pairs:
         centres = plan.skeleton.rest_worlds()[[p.output for p in pairs], :3, 3]

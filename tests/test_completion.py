@@ -775,3 +775,32 @@ def test_a_detached_part_follows_its_tip_at_the_offset_it_is_given():
         np.testing.assert_allclose(W[:, 3], W[:, 2] @ want_rel, atol=1e-12)
         for a, b in ((T2, T), (R2, R), (S2, S)):
             np.testing.assert_array_equal(a[:, :3], b[:, :3])
+
+
+def test_a_kept_wing_joint_flaps_as_in_its_own_clip(tmp_path):
+    """The Wasp's wings attached at the Rat's body with ``keep_joint`` (the corpus matrix's wings
+    case): each wing is one joint, so fused with the Rat's joint it could never move. Kept, it
+    turns in the Wasp's own clips as it turns there (the same rotation away from rest, at every
+    frame), and the Rat's clips move it too (completed from the Wasp's frames)."""
+    from conftest import corpus_case
+
+    from rigmix.pipeline import compose
+
+    comp = compose(corpus_case("wings__Rat__Wasp", tmp_path), until="completion")
+    wasp = comp.inputs["donor"]
+    sk, src = comp.skeleton, wasp.skeleton
+    for name in ("Wing.L", "Wing.R"):
+        o, j = sk.index(name), src.index(name)
+        swings = []
+        for clip in comp.clips:
+            times = clip_times(clip, fps=30.0)
+            R = sample_clip(sk, clip, times)[1][:, o]
+            delta_out = quat_angle(np.broadcast_to(sk.rotations[o], R.shape), R)
+            swings.append(float(delta_out.max()))
+            theirs = [c for c in wasp.clips if c.name == clip.name]
+            if theirs:
+                R0 = sample_clip(src, theirs[0], times)[1][:, j]
+                delta_in = quat_angle(np.broadcast_to(src.rotations[j], R0.shape), R0)
+                assert np.allclose(delta_out, delta_in, atol=1e-5), (name, clip.name)
+        assert len(swings) == len(comp.clips) > len(wasp.clips)
+        assert min(swings) > np.radians(10.0), (name, swings)  # it flaps in every clip, the Rat's too

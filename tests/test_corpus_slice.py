@@ -49,12 +49,7 @@ def kill_after(config) -> float:
 
 
 #: case -> {gate: why it fails}; see the module docstring
-KNOWN_FAILURES: dict[str, dict[str, str]] = {
-    "wings__Deer__Wasp": {"grafted_visible": "both wings are fused to the one joint inside the Deer's torso (fused "
-                                             "pairs become one joint): their roots meet there, half buried (0.65)",
-                          "junction_stretch_ratio": "the wings' root junction on the Deer's back stretches as the "
-                                                    "back bends (2.6, over the surface)"},
-}
+KNOWN_FAILURES: dict[str, dict[str, str]] = {}
 
 
 @pytest.fixture(scope="module")

@@ -621,18 +621,27 @@ def test_no_half_turn_between_rigs_mirrored_on_the_same_plane(tmp_path):
     assert np.allclose(d, plan.scales["donor"] * d0, atol=1e-6 * np.abs(d).max())
 
 
+def fused_wings(path):
+    """The matrix's wings case written as the paper's attach: each wing root fused with the target
+    joint (no ``keep_joint``)."""
+    text = path.read_text()
+    assert "keep_joint = true" in text
+    path.write_text(text.replace("keep_joint = true\n", ""))
+    return path
+
+
 def test_parts_fused_to_one_joint_are_warned_of(tmp_path, caplog):
     """Both Wasp wings attached at CesiumMan's one spine joint become that joint (fused pairs
     become one joint): the output has no wing bone, and the user is told so, with the fix."""
     import logging
 
-    cfg = load_config(corpus_case("wings__CesiumMan__Wasp", tmp_path))
+    cfg = load_config(fused_wings(corpus_case("wings__CesiumMan__Wasp", tmp_path)))
     inputs = load_characters(cfg)
     with caplog.at_level(logging.WARNING, logger="rigmix.operations.plan"):
         plan = plan_operations(inputs, cfg)
     (msg,) = [r.getMessage() for r in caplog.records if "become that one joint" in r.getMessage()]
     assert "'Wing.L'" in msg and "'Wing.R'" in msg and cfg.actions[0].target_joint in msg
-    assert "attach each at a joint of its own" in msg
+    assert "attach each at a joint of its own" in msg and "keep_joint" in msg
     assert not any("Wing" in n for n in plan.skeleton.names)  # what the warning is about
 
     caplog.clear()
@@ -640,3 +649,65 @@ def test_parts_fused_to_one_joint_are_warned_of(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="rigmix.operations.plan"):
         plan_operations(load_characters(cfg), cfg)
     assert not [r for r in caplog.records if "become that one joint" in r.getMessage()]
+
+
+def test_kept_joints_hang_from_their_target_with_their_spacing(wasp_wings_on_cesiumman, caplog):
+    """``keep_joint``: each Wasp wing root stays a joint of its own, a child of CesiumMan's spine
+    joint, and the two keep their spacing (the Wasp moves so that their mean lands on it)."""
+    cfg, inputs, plan = wasp_wings_on_cesiumman
+    sk = plan.skeleton
+    target = cfg.actions[0].target_joint
+    assert all(a.keep_joint for a in cfg.actions)
+    assert plan.fused_pairs == () and len(plan.attached_pairs) == 2
+    assert plan.junction_pairs == plan.attached_pairs
+    donor = inputs["donor"].skeleton
+    for pair, name in zip(plan.attached_pairs, ("Wing.L", "Wing.R")):
+        assert sk.names[pair.output] == name and sk.names[sk.parents[pair.output]] == target
+        assert plan.provenance[pair.output] == (("donor", donor.index(name)),)
+    assert [e["parent"] for e in plan.report["attached_joints"]] == [target, target]
+    assert_valid_skeleton(sk)
+    P = sk.rest_worlds()[:, :3, 3]
+    wl, wr, t = sk.index("Wing.L"), sk.index("Wing.R"), sk.index(target)
+    assert np.allclose(P[[wl, wr]].mean(axis=0), P[t], atol=1e-9 * np.ptp(P, axis=0).max())
+    P0 = rebase(inputs["donor"]).skeleton.rest_worlds()[:, :3, 3]
+    spacing = np.linalg.norm(P0[donor.index("Wing.L")] - P0[donor.index("Wing.R")])
+    assert np.linalg.norm(P[wl] - P[wr]) == pytest.approx(plan.scales["donor"] * spacing, rel=1e-9)
+    # one rigid translation for the whole Wasp (both kept joints move alike)
+    tr = plan.translations["donor"]
+    assert np.allclose(tr, tr[0])
+
+
+def test_a_kept_joint_is_not_warned_of(tmp_path, caplog):
+    import logging
+
+    cfg = load_config(corpus_case("wings__CesiumMan__Wasp", tmp_path))
+    with caplog.at_level(logging.WARNING, logger="rigmix.operations.plan"):
+        plan_operations(load_characters(cfg), cfg)
+    assert not [r for r in caplog.records if "become that one joint" in r.getMessage()]
+
+
+def test_keep_joint_is_an_attach_option_only(tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text('[characters.x]\npath = "x.glb"\n[characters.y]\npath = "y.glb"\n'
+                    '[[actions]]\nop = "replace"\nsource = "y"\nsource_joint = "arm.L"\ntarget = "x"\n'
+                    'target_joint = "arm.L"\nkeep_joint = true\n')
+    with pytest.raises(InputError, match=r"bad\.toml: actions.*keep_joint"):
+        load_config(path)
+
+
+def test_a_kept_joint_attached_onto_a_body_keeps_its_local_bone():
+    """A toy arm attached at the hips with ``keep_joint``: the arm root is a new child of the hips
+    at the same rest world transform, and its own children still hang from it."""
+    x, y = biped("x"), biped("y")
+    plan = plan_for({"x": x, "y": y}, [
+        {"op": "attach", "source": "y", "source_joint": "arm.L", "target": "x", "target_joint": "hips",
+         "keep_joint": True}], y={"scale": 1.0})
+    sk = plan.skeleton
+    assert_valid_skeleton(sk)
+    assert sk.num_joints == 15 + 3
+    arm = plan.output_index("y", 5)
+    assert sk.parents[arm] == plan.output_index("x", 0)
+    assert sk.parents[plan.output_index("y", 6)] == arm
+    W = sk.rest_worlds()
+    assert np.allclose(W[arm, :3, 3], W[plan.output_index("x", 0), :3, 3])  # one kept joint: lands on it
+    assert np.allclose(W[plan.output_index("y", 6)], plan.positioned["y"].skeleton.rest_worlds()[6])

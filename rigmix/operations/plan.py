@@ -4,7 +4,9 @@ characters moved into place (PIPELINE.md section 1; SkinMixer sec. 4).
 Semantics, once:
 
 * ``attach`` (X.a onto Y.b): joint ``a`` of X and joint ``b`` of Y are *fused* into one output
-  joint; X contributes the subtree at ``a``, Y keeps everything.
+  joint; X contributes the subtree at ``a``, Y keeps everything. With ``keep_joint``, ``a`` is not
+  fused: it stays a joint of its own, a child of ``b`` (an *attached* pair), with its bone and its
+  motion.
 * ``replace`` (X.a replaces Y.b): the same fusion, and Y's descendants of ``b`` are dropped.
   Replacing a joint by itself (same character, same joint) is the identity.
 * ``remove`` (Y.b): Y's subtree at ``b``, ``b`` included, is dropped.
@@ -61,6 +63,9 @@ class ResolvedAction:
         ``-1`` for ``remove``.
     mode : {"blend", "union"} or None
         Surface operator of a ``replace`` (``"union"`` for ``attach``, ``None`` for ``remove``).
+    fuse : bool
+        Whether the two joints become one (False for an ``attach`` with ``keep_joint``: the source
+        joint becomes a child of the target joint).
     """
 
     index: int
@@ -70,11 +75,17 @@ class ResolvedAction:
     source: str | None = None
     source_joint: int = -1
     mode: str | None = None
+    fuse: bool = True
 
     @property
     def grafts(self) -> bool:
-        """True for attach and replace (actions that fuse two joints)."""
+        """True for attach and replace (actions that graft a subtree)."""
         return self.op in ("attach", "replace")
+
+    @property
+    def fuses(self) -> bool:
+        """True for the grafts that fuse their two joints into one."""
+        return self.grafts and self.fuse
 
     @property
     def identity(self) -> bool:
@@ -84,12 +95,13 @@ class ResolvedAction:
 
 @dataclass(frozen=True)
 class FusedPair:
-    """Two input joints that become one output joint.
+    """Two input joints where two parts meet: fused into one output joint, or attached (the
+    source joint a child of the target joint, :attr:`ResolvedAction.fuse` False).
 
     Attributes
     ----------
     output : int
-        The output joint.
+        The output joint (the fused one; the source joint's for an attached pair).
     target, source : str
         Character ids (the target stays in place, the source is moved onto it).
     target_joint, source_joint : int
@@ -123,6 +135,7 @@ class Plan:
     image : dict of str -> (J_in,) int64 array
         The output joint of each surviving input joint, ``-1`` for the others.
     fused_pairs : tuple of FusedPair
+        Joints fused into one.
     actions : tuple of ResolvedAction
     positioned : dict of str -> Character
         Each input after scale, placement, rest-pose rotations and preliminary translation,
@@ -134,7 +147,11 @@ class Plan:
     translations : dict of str -> (J_in, 3) float64 array
         The preliminary per-joint translations (world space, after scaling).
     report : dict
-        JSON-ready summary: scales and how they were chosen, fused pairs, renamed joints.
+        JSON-ready summary: scales and how they were chosen, fused and attached pairs, renamed
+        joints.
+    attached_pairs : tuple of FusedPair
+        Source joints of ``keep_joint`` attaches, each a child of its target joint (``output``:
+        the source joint's output joint).
     """
 
     skeleton: Skeleton
@@ -148,6 +165,13 @@ class Plan:
     transforms: dict
     translations: dict
     report: dict = field(default_factory=dict)
+    attached_pairs: tuple = ()
+
+    @property
+    def junction_pairs(self) -> tuple:
+        """Every pair of joints where two parts meet: :attr:`fused_pairs`, then
+        :attr:`attached_pairs` (a source joint kept as a child of its target joint)."""
+        return self.fused_pairs + self.attached_pairs
 
     def output_index(self, cid: str, joint: int) -> int:
         """Output joint of input joint ``joint`` of character ``cid`` (``-1`` if dropped)."""
@@ -201,7 +225,7 @@ def resolve_actions(inputs, config: Config) -> tuple[ResolvedAction, ...]:
             continue
         sj = _joint(inputs, config, a.source, a.source_joint, f"actions[{i}].source_joint")
         mode = a.mode if a.op == "replace" else "union"
-        r = ResolvedAction(i, a.op, a.target, tj, a.source, sj, mode)
+        r = ResolvedAction(i, a.op, a.target, tj, a.source, sj, mode, fuse=not getattr(a, "keep_joint", False))
         if a.source == a.target and not r.identity:
             sub = inputs[a.source].skeleton.subtree(sj)
             if sub[tj]:
@@ -424,12 +448,13 @@ def _nodes(ids, sk, grafts, used, config):
         return x
 
     for a in grafts:
-        ra, rb = find(node_of[(a.source, a.source_joint)]), find(node_of[(a.target, a.target_joint)])
-        uf[ra] = rb
+        if a.fuse:
+            ra, rb = find(node_of[(a.source, a.source_joint)]), find(node_of[(a.target, a.target_joint)])
+            uf[ra] = rb
     groups: dict[int, list] = {}
     for i, m in enumerate(keys):
         groups.setdefault(find(i), []).append(m)
-    cut = {(a.source, a.source_joint) for a in grafts}
+    cut = {(a.source, a.source_joint) for a in grafts if a.fuse}
     members, node_id = [], {}
     for root in sorted(groups):
         ms = groups[root]
@@ -453,6 +478,9 @@ def _nodes(ids, sk, grafts, used, config):
         p = sk[cid].parents[j]
         if p >= 0 and used[cid][p]:
             parent[n] = node_id[(cid, int(p))]
+    for a in grafts:  # a kept joint hangs from its target joint
+        if not a.fuse:
+            parent[node_id[(a.source, a.source_joint)]] = node_id[(a.target, a.target_joint)]
     return members, node_id, parent
 
 
@@ -488,8 +516,9 @@ def _order(ids, actions, members, node_id, parent, part):
     place grafts where they are fused.
 
     A body joint's key is ``(character rank, joint index, 0)``; a grafted joint takes the key of
-    the joint its subtree's root is fused with, offset by its index from that root, and one
-    level more (:func:`rigmix.rig.topological_order` picks the smallest ready key).
+    the joint its subtree's root is fused with (or, for a kept joint, hangs from), offset by its
+    index from that root, and one level more (:func:`rigmix.rig.topological_order` picks the
+    smallest ready key).
 
     Returns
     -------
@@ -510,7 +539,7 @@ def _order(ids, actions, members, node_id, parent, part):
             out = (rank[cid], float(j), 0)
         else:
             a = actions[k]
-            kb = key(node_id[(a.source, a.source_joint)])
+            kb = key(node_id[(a.source, a.source_joint)] if a.fuse else node_id[(a.target, a.target_joint)])
             out = (kb[0], kb[1] + (j - a.source_joint), kb[2] + 1)
         key_cache[n] = out
         return out
@@ -679,7 +708,7 @@ def merged_sources(actions) -> dict:
     """
     groups: dict = {}
     for a in actions:
-        if a.grafts and a.source != a.target:
+        if a.fuses and a.source != a.target:
             groups.setdefault((a.source, a.target, a.target_joint), []).append((a.index, a.source_joint))
     return {k: v for k, v in groups.items() if len({j for _, j in v}) > 1}
 
@@ -689,7 +718,8 @@ def _warn_merged_sources(actions, inputs, config) -> None:
         names = ", ".join(f"actions[{i}] '{inputs[src].skeleton.names[j]}'" for i, j in members)
         logger.warning("operations: config %s: %s of character %r are all fused to '%s' of %r, so they become that "
                        "one joint and move with it as one (their own bones and motion are lost); attach each at a "
-                       "joint of its own, or attach the joint they hang from", config.source, names, src,
+                       "joint of its own, attach the joint they hang from, or set keep_joint = true on the "
+                       "attaches", config.source, names, src,
                        inputs[tgt].skeleton.names[tj], tgt)
 
 
@@ -747,7 +777,11 @@ def plan_operations(inputs, config: Config) -> Plan:
         arr.setflags(write=False)
     fused = tuple(
         FusedPair(int(image[a.target][a.target_joint]), a.target, a.target_joint, a.source, a.source_joint, a.index)
-        for a in actions if a.grafts
+        for a in actions if a.fuses
+    )
+    attached = tuple(
+        FusedPair(int(image[a.source][a.source_joint]), a.target, a.target_joint, a.source, a.source_joint, a.index)
+        for a in actions if a.grafts and not a.fuse
     )
 
     def jname(cid, j):
@@ -760,10 +794,15 @@ def plan_operations(inputs, config: Config) -> Plan:
              "source": jname(f.source, f.source_joint), "action": f.action}
             for f in fused
         ],
+        "attached_joints": [
+            {"output": skeleton.names[f.output], "parent": skeleton.names[skeleton.parents[f.output]],
+             "target": jname(f.target, f.target_joint), "source": jname(f.source, f.source_joint), "action": f.action}
+            for f in attached
+        ],
         "output_joints": skeleton.num_joints,
         "renamed": {new: jname(*provenance[skeleton.names.index(new)][0]) for new in renamed},
     }
     logger.debug("operations: %d output joints, %d fused pairs", skeleton.num_joints, len(fused))
     return Plan(skeleton=skeleton, provenance=provenance, used=used, image=image, fused_pairs=fused,
                 actions=actions, positioned=positioned, scales=scales, transforms=transforms,
-                translations=translations, report=report)
+                translations=translations, report=report, attached_pairs=attached)

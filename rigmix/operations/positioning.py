@@ -766,6 +766,19 @@ def _facing(rest, moved, positioned, config, cc, plans):
     return None if np.allclose(R, np.eye(3)) else R
 
 
+def _attach_point(a, pairs, here):
+    """``(3,)``: the point of the source that action ``a`` brings onto its target joint.
+
+    A fused joint lands on its target. Joints kept as children (``keep_joint``) are brought as a
+    group: the kept joints of the same source attached at the same target joint move by one
+    translation, which brings their mean onto it (two wings keep their spacing about a chest
+    joint)."""
+    if a.fuse:
+        return here[a.source_joint]
+    group = [b.source_joint for b in pairs if not b.fuse and (b.target, b.target_joint) == (a.target, a.target_joint)]
+    return here[group].mean(axis=0)
+
+
 def positioning_order(actions, config):
     """Character ids ordered so that every target is positioned before what is moved onto it.
 
@@ -855,7 +868,7 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
                 tgt = positioned[a.target] if a.target != cid else posed
                 goal = tgt.skeleton.rest_worlds()[a.target_joint, :3, 3]
                 fixed.append(a.source_joint)
-                values.append(goal - here[a.source_joint])
+                values.append(goal - _attach_point(a, pairs, here))
             t = smooth_translations(sk.parents, fixed, np.asarray(values))
         positioned[cid] = position_character(ch, scale=s, placement=placement, rotations=rot, translations=t)
         scales[cid] = s
