@@ -804,3 +804,23 @@ def test_a_kept_wing_joint_flaps_as_in_its_own_clip(tmp_path):
                 assert np.allclose(delta_out, delta_in, atol=1e-5), (name, clip.name)
         assert len(swings) == len(comp.clips) > len(wasp.clips)
         assert min(swings) > np.radians(10.0), (name, swings)  # it flaps in every clip, the Rat's too
+
+
+def test_a_detached_foot_stays_at_the_end_of_its_leg_in_every_clip(tmp_path):
+    """Leela's leg and IK foot on EnemyLarge: the foot rests at her heel and follows it in every
+    clip, EnemyLarge's (completed) and Leela's own (within 1% of the output's size); fused at
+    EnemyLarge's foot it hung a tenth of the size away from the leg."""
+    from conftest import corpus_case
+
+    from rigmix.animation.keyframes import forward_kinematics
+    from rigmix.pipeline import compose
+
+    comp = compose(corpus_case("leg_swap__EnemyLarge__Leela", tmp_path), until="completion")
+    sk = comp.skeleton
+    size = float(np.linalg.norm(np.ptp(comp.surface.V, axis=0)))
+    foot, heel = sk.index("Foot.L"), sk.index("FootBack.L")
+    assert len(comp.clips) > len(comp.inputs["donor"].clips)
+    for clip in comp.clips:
+        T, R, S = sample_clip(sk, clip, clip_times(clip, fps=30.0))
+        P = forward_kinematics(sk, T, R, S)[1]
+        assert np.linalg.norm(P[:, foot] - P[:, heel], axis=1).max() < 0.01 * size, clip.name

@@ -711,3 +711,38 @@ def test_a_kept_joint_attached_onto_a_body_keeps_its_local_bone():
     W = sk.rest_worlds()
     assert np.allclose(W[arm, :3, 3], W[plan.output_index("x", 0), :3, 3])  # one kept joint: lands on it
     assert np.allclose(W[plan.output_index("y", 6)], plan.positioned["y"].skeleton.rest_worlds()[6])
+
+
+def test_a_detached_foot_moves_with_its_leg(tmp_path):
+    """Leela's left leg on EnemyLarge (the corpus matrix's leg swap): her IK foot (``Foot.L``, a
+    root joint carrying the foot's skin, fused with EnemyLarge's ``Foot.L``) moves as her leg's
+    root does, and the fused joint rests where her foot is: at the end of her leg, not at
+    EnemyLarge's foot, a tenth of the output's size away."""
+    cfg = load_config(corpus_case("leg_swap__EnemyLarge__Leela", tmp_path))
+    inputs = load_characters(cfg)
+    plan = plan_operations(inputs, cfg)
+    assert plan.report["characters"]["donor"]["moved_with_limb"] == ["Foot.L"]
+    donor = inputs["donor"].skeleton
+    t = plan.translations["donor"]
+    assert np.allclose(t[donor.index("Foot.L")], t[donor.index("UpperLeg.L")])
+    sk = plan.skeleton
+    P = sk.rest_worlds()[:, :3, 3]
+    size = np.linalg.norm(np.ptp(P, axis=0))
+    foot, heel = sk.index("Foot.L"), sk.index("FootBack.L")
+    assert np.linalg.norm(P[foot] - P[heel]) < 1e-6 * size  # in Leela's file the foot sits at the heel
+    Pd = plan.positioned["donor"].skeleton.rest_worlds()[:, :3, 3]
+    assert np.allclose(P[foot], Pd[donor.index("Foot.L")])
+    Pb = plan.positioned["body"].skeleton.rest_worlds()[:, :3, 3]
+    assert np.linalg.norm(P[foot] - Pb[inputs["body"].skeleton.index("Foot.L")]) > 0.05 * size
+    assert sk.names[sk.parents[foot]] == inputs["body"].skeleton.names[inputs["body"].skeleton.parents[
+        inputs["body"].skeleton.index("Foot.L")]]  # the target's parent, as every fused joint
+
+
+def test_a_detached_part_of_a_limb_replaced_by_itself_stays_put(tmp_path):
+    cfg = load_config(corpus_case("identity__Leela__UpperLeg.L", tmp_path))
+    inputs = load_characters(cfg)
+    plan = plan_operations(inputs, cfg)
+    assert not plan.translations["donor"].any()
+    body = inputs["body"].skeleton
+    assert np.array_equal(plan.skeleton.translations[plan.output_index("body", body.index("Foot.L"))],
+                          rebase(inputs["body"]).skeleton.translations[body.index("Foot.L")])

@@ -619,10 +619,13 @@ def _unit_anchors(anchors):
     return tuple(out), U, changed
 
 
-def _build_skeleton(structure, positioned, config):
+def _build_skeleton(structure, positioned, config, at_source=frozenset()):
     """S_R from the positioned inputs: names made unique, rest locals, unit-scale frames.
 
-    Every joint keeps its input's rest world position and orientation; a world matrix with a
+    Every joint keeps its input's rest world position and orientation (a fused joint its
+    primary member's, the target's; one fused with a member of ``at_source``, a set of
+    ``(cid, joint)``, that member's: a detached part moved with its limb,
+    :func:`rigmix.operations.positioning.limb_followers`); a world matrix with a
     scale (an armature scale, a composed ``scale``, a graft under a differently scaled parent)
     becomes rigid (:func:`rigmix.transforms.unit_scale`), and the locals of the joints concerned
     are recomputed, with scale exactly 1. The scale is then in the joints' rest translations
@@ -648,6 +651,10 @@ def _build_skeleton(structure, positioned, config):
         sk = positioned[cid].skeleton
         names.append(sk.names[j])
         worlds[o] = worlds_in[cid][j]
+        for m in structure.members[n][1:]:
+            if m in at_source and not np.array_equal(worlds_in[m[0]][m[1]], worlds[o]):
+                worlds[o] = worlds_in[m[0]][m[1]]  # where the part's skin is, with its limb
+                computed[o] = True
         T[o], R[o], S[o] = sk.translations[j], sk.rotations[j], sk.scales[j]
         if parents[o] < 0:
             if sk.parents[j] >= 0:
@@ -763,7 +770,9 @@ def plan_operations(inputs, config: Config) -> Plan:
                          "is left to compose; remove a subtree below the root instead")
     positioned, scales, transforms, translations, info = position_inputs(
         inputs, actions, config, body=structure.body, part=structure.part, rotations=rotations)
-    skeleton, out_of_node, renamed = _build_skeleton(structure, positioned, config)
+    at_source = frozenset((cid, positioned[cid].skeleton.index(name))
+                          for cid, entry in info.items() for name in entry["moved_with_limb"])
+    skeleton, out_of_node, renamed = _build_skeleton(structure, positioned, config, at_source)
 
     provenance = tuple(structure.members[n] for n in structure.order)
     image = {cid: np.full(inputs[cid].skeleton.num_joints, -1, dtype=np.int64) for cid in config.characters}

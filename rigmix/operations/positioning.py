@@ -779,6 +779,42 @@ def _attach_point(a, pairs, here):
     return here[group].mean(axis=0)
 
 
+def limb_followers(moved, rest, plans=None) -> dict:
+    """Pairs whose source joint is a detached part of a limb (:attr:`rigmix.limbs.Limb.detached`:
+    an IK foot that carries the foot's skin from the armature root) whose root another pair moves.
+
+    Such a part moves with its limb: by the limb root's translation, so that the foot stays at
+    the end of its leg (brought onto the target's foot it hung apart from the leg, by a fifth of
+    the output's size where the two legs differ in length).
+
+    Parameters
+    ----------
+    moved : sequence of ResolvedAction
+        The fused pairs of one source moved onto other characters.
+    rest : Character
+        That source at rest in world space (what is classified).
+    plans : dict, optional
+        Body plans kept by character (:func:`body_plan`).
+
+    Returns
+    -------
+    dict of int -> ResolvedAction
+        Action index of the part's pair -> the pair of its limb's root (same target character).
+    """
+    fused = [a for a in moved if a.fuses]
+    if len(fused) < 2:
+        return {}
+    names = rest.skeleton.names
+    by_joint = {(a.target, names[a.source_joint]): a for a in fused}
+    out = {}
+    for limb in body_plan(rest, plans).limbs:
+        for a in fused:
+            root = by_joint.get((a.target, limb.root))
+            if root is not None and root is not a and names[a.source_joint] in limb.detached:
+                out[a.index] = root
+    return out
+
+
 def positioning_order(actions, config):
     """Character ids ordered so that every target is positioned before what is moved onto it.
 
@@ -853,6 +889,7 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
             s, method, ratios = 1.0, "body", []
         rot = rotations.get(cid, {})
         turn = _facing(rest, moved, positioned, config, cc, plans)
+        followers = limb_followers(moved, rest, plans) if config.positioning.translate else {}
         placement = _placement_matrix(cc.placement, turn)
         posed = position_character(ch, scale=s, placement=placement, rotations=rot)
         t = np.zeros((sk.num_joints, 3))
@@ -865,10 +902,11 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
                     fixed.append(int(j))
                     values.append(np.zeros(3))
             for a in pairs:
-                tgt = positioned[a.target] if a.target != cid else posed
-                goal = tgt.skeleton.rest_worlds()[a.target_joint, :3, 3]
+                b = followers.get(a.index, a)  # a detached part moves as its limb's root does
+                tgt = positioned[b.target] if b.target != cid else posed
+                goal = tgt.skeleton.rest_worlds()[b.target_joint, :3, 3]
                 fixed.append(a.source_joint)
-                values.append(goal - _attach_point(a, pairs, here))
+                values.append(goal - _attach_point(b, pairs, here))
             t = smooth_translations(sk.parents, fixed, np.asarray(values))
         positioned[cid] = position_character(ch, scale=s, placement=placement, rotations=rot, translations=t)
         scales[cid] = s
@@ -882,6 +920,7 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
             "facing_turn_degrees": (0.0 if turn is None
                                     else float(np.degrees(np.arctan2(turn[0, 2], turn[0, 0])))),
             "moved": bool(np.any(t)) or s != 1.0 or bool(rot) or placement is not None,
+            "moved_with_limb": [sk.names[a.source_joint] for a in pairs if a.index in followers],
         }
         if method != "override" and s != 1.0:
             logger.info("positioning: %s scaled by %.4g (%s)", cid, s, method)
