@@ -17,6 +17,7 @@ from rigmix.limbs import classify_limbs
 from rigmix.operations import plan_operations
 from rigmix.operations.positioning import (
     AGREEMENT,
+    SPREAD_STEPS,
     chain_length,
     cut_section,
     facing_turn,
@@ -29,6 +30,7 @@ from rigmix.operations.positioning import (
     rest_world_mesh,
     skeleton_adjacency,
     smooth_translations,
+    spread_to_surface,
 )
 from rigmix.pipeline import load_characters
 from rigmix.skinning import linear_blend_skinning, rest_pose, skinning_matrices
@@ -653,7 +655,11 @@ def test_parts_fused_to_one_joint_are_warned_of(tmp_path, caplog):
 
 def test_kept_joints_hang_from_their_target_with_their_spacing(wasp_wings_on_cesiumman, caplog):
     """``keep_joint``: each Wasp wing root stays a joint of its own, a child of CesiumMan's spine
-    joint, and the two keep their spacing (the Wasp moves so that their mean lands on it)."""
+    joint. The two keep their directions from it (the Wasp moves so that their mean lands on it),
+    and at least their spacing: spread out to CesiumMan's surface, where the spine is wider than
+    the Wasp's thorax."""
+    import igl
+
     cfg, inputs, plan = wasp_wings_on_cesiumman
     sk = plan.skeleton
     target = cfg.actions[0].target_joint
@@ -668,13 +674,38 @@ def test_kept_joints_hang_from_their_target_with_their_spacing(wasp_wings_on_ces
     assert_valid_skeleton(sk)
     P = sk.rest_worlds()[:, :3, 3]
     wl, wr, t = sk.index("Wing.L"), sk.index("Wing.R"), sk.index(target)
-    assert np.allclose(P[[wl, wr]].mean(axis=0), P[t], atol=1e-9 * np.ptp(P, axis=0).max())
-    P0 = rebase(inputs["donor"]).skeleton.rest_worlds()[:, :3, 3]
-    spacing = np.linalg.norm(P0[donor.index("Wing.L")] - P0[donor.index("Wing.R")])
-    assert np.linalg.norm(P[wl] - P[wr]) == pytest.approx(plan.scales["donor"] * spacing, rel=1e-9)
-    # one rigid translation for the whole Wasp (both kept joints move alike)
-    tr = plan.translations["donor"]
-    assert np.allclose(tr, tr[0])
+    # the Wasp as turned and scaled, unspread: its wing roots about their mean
+    turn = plan.transforms["donor"][:3, :3]
+    P0 = rebase(inputs["donor"]).skeleton.rest_worlds()[:, :3, 3] @ turn.T
+    roots = P0[[donor.index("Wing.L"), donor.index("Wing.R")]]
+    offsets = roots - roots.mean(axis=0)
+    for o, k in zip(offsets, (wl, wr)):
+        d = P[k] - P[t]
+        assert np.allclose(d / np.linalg.norm(d), o / np.linalg.norm(o), atol=1e-9)
+        assert np.linalg.norm(d) >= np.linalg.norm(o) * (1 - 1e-9)
+    body = plan.positioned["body"]
+    V, _ = rest_world_mesh(body)
+    w = igl.fast_winding_number(V, rest_world_faces(body), P[[wl, wr]])
+    assert np.all(w < 0.5)  # on CesiumMan's surface, not inside him
+    assert plan.scales["donor"] > 0
+
+
+def test_spread_to_surface_lengthens_only_the_offsets_that_end_inside():
+    """A unit sphere about its centre: an offset of 0.3 ends inside and is lengthened to the
+    surface (within one ray step); one of 1.5 ends outside and stays; a zero offset stays zero."""
+    from fusion_shapes import sphere
+
+    V, F = sphere(3)
+    offsets = np.array([[0.3, 0.0, 0.0], [0.0, -1.5, 0.0], [0.0, 0.0, 0.0], [0.0, 0.2, 0.2]])
+    out = spread_to_surface(V, F, np.zeros(3), offsets)
+    step = np.linalg.norm(np.ptp(V, axis=0)) / SPREAD_STEPS
+    r = np.linalg.norm(out, axis=1)
+    assert 1.0 - 0.02 <= r[0] <= 1.0 + step and 1.0 - 0.02 <= r[3] <= 1.0 + step
+    assert np.array_equal(out[1], offsets[1]) and np.array_equal(out[2], offsets[2])
+    unit = offsets[[0, 3]] / np.linalg.norm(offsets[[0, 3]], axis=1)[:, None]
+    assert np.allclose(out[[0, 3]] / r[[0, 3], None], unit)
+    # from a centre outside the body, nothing is lengthened
+    assert np.array_equal(spread_to_surface(V, F, np.array([3.0, 0, 0]), offsets), offsets)
 
 
 def test_a_kept_joint_is_not_warned_of(tmp_path, caplog):

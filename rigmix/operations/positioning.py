@@ -5,7 +5,11 @@ with, optionally posed (rest-pose rotations per joint) and placed, then translat
 fused joints land on their targets. The per-joint translations of the joints that are not fused
 come from Laplacian smoothing over the skeleton graph (a harmonic field: each free joint's
 translation is the mean of its neighbours'), so one fused pair gives a rigid translation and
-several give a smooth field. The rest mesh follows by linear blend skinning.
+several give a smooth field. The rest mesh follows by linear blend skinning. Two departures,
+where the paper's rule misplaces a part: joints kept as children (``keep_joint``) of one target
+joint are brought as a group, their mean onto it, each spread out to the target's surface
+(:func:`spread_to_surface`); a limb's detached part (an IK foot) moves as its limb's root does
+(:func:`limb_followers`), not onto the target's foot.
 
 A positioned character is *rebased*: its mesh positions are its rest-pose positions in world
 space and its inverse bind matrices are the inverses of its rest world matrices (bind pose =
@@ -80,6 +84,8 @@ __all__ = [
     "rebase",
     "position_character",
     "positioning_order",
+    "limb_followers",
+    "spread_to_surface",
     "position_inputs",
     "check_positioned",
 ]
@@ -772,11 +778,73 @@ def _attach_point(a, pairs, here):
     A fused joint lands on its target. Joints kept as children (``keep_joint``) are brought as a
     group: the kept joints of the same source attached at the same target joint move by one
     translation, which brings their mean onto it (two wings keep their spacing about a chest
-    joint)."""
+    joint), then each is spread out to the target's surface (:func:`spread_to_surface`)."""
     if a.fuse:
         return here[a.source_joint]
-    group = [b.source_joint for b in pairs if not b.fuse and (b.target, b.target_joint) == (a.target, a.target_joint)]
-    return here[group].mean(axis=0)
+    return here[_kept_group(a, pairs)].mean(axis=0)
+
+
+def _spread(a, pairs, here, target, goal):
+    """``(3,)``: how much farther than its group's translation kept joint ``a`` moves
+    (:func:`spread_to_surface` on ``target``'s rest surface about ``goal``)."""
+    group = _kept_group(a, pairs)
+    if len(group) < 2:
+        return np.zeros(3)
+    offsets = here[group] - here[group].mean(axis=0)
+    k = group.index(a.source_joint)
+    V, _ = rest_world_mesh(target)
+    return spread_to_surface(V, rest_world_faces(target), goal, offsets[k:k + 1])[0] - offsets[k]
+
+
+def _kept_group(a, pairs):
+    """Source joints of the kept (``keep_joint``) pairs attached where ``a`` is."""
+    return [b.source_joint for b in pairs if not b.fuse and (b.target, b.target_joint) == (a.target, a.target_joint)]
+
+
+#: Steps per bounding-box diagonal of the target along which :func:`spread_to_surface` looks for
+#: where a ray from the target joint leaves its body.
+SPREAD_STEPS = 256
+
+
+def spread_to_surface(V, F, centre, offsets):
+    """Offsets from a joint inside a body, lengthened where they end inside it.
+
+    Each offset keeps its direction and is lengthened to where the ray from ``centre`` along it
+    first leaves the surface ``(V, F)`` (generalized winding number below 0.5), if that is
+    farther: two wing roots whose spacing is narrower than the body they are put on sit on its
+    sides, not inside it.
+
+    Parameters
+    ----------
+    V : (n, 3) float array, F : (m, 3) int array
+        The target's rest surface, world space.
+    centre : (3,) float array
+        The target joint.
+    offsets : (k, 3) float array
+        The kept joints about it (zero rows stay zero).
+
+    Returns
+    -------
+    (k, 3) float64
+    """
+    import igl
+
+    offsets = np.asarray(offsets, np.float64)
+    r = np.linalg.norm(offsets, axis=1)
+    out = offsets.copy()
+    if not len(F) or not np.any(r > 0):
+        return out
+    V = np.ascontiguousarray(V, np.float64)
+    F = np.ascontiguousarray(F, np.int64)
+    diag = size(V, V)
+    t = np.linspace(0.0, diag, SPREAD_STEPS + 1)[1:]
+    for i in np.flatnonzero(r > 0):
+        u = offsets[i] / r[i]
+        w = igl.fast_winding_number(V, F, np.asarray(centre, np.float64) + t[:, None] * u)
+        outside = np.flatnonzero(w < 0.5)
+        if len(outside) and t[outside[0]] > r[i]:
+            out[i] = u * t[outside[0]]
+    return out
 
 
 def limb_followers(moved, rest, plans=None) -> dict:
@@ -907,6 +975,8 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
                 goal = tgt.skeleton.rest_worlds()[b.target_joint, :3, 3]
                 fixed.append(a.source_joint)
                 values.append(goal - _attach_point(b, pairs, here))
+                if not b.fuse:
+                    values[-1] = values[-1] + _spread(b, pairs, here, tgt, goal)
             t = smooth_translations(sk.parents, fixed, np.asarray(values))
         positioned[cid] = position_character(ch, scale=s, placement=placement, rotations=rot, translations=t)
         scales[cid] = s
