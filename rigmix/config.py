@@ -316,6 +316,11 @@ class PositioningOptions(BaseModel):
                           "faces the way its target faces (both found by rigmix.limbs.classify_limbs: a wasp "
                           "modelled facing +X gives its wings to a humanoid facing +Z); only where their mirror planes "
                           "are perpendicular, and not where its placement sets a rotation.")
+    detached_with_limb: StrictBool = Field(
+        True, description="Move a limb's detached part (an IK foot that carries the foot's skin from the armature "
+                          "root, replaced with its leg) as the limb's root moves, and rest the fused joint where the "
+                          "part's skin is, so the foot stays at the end of its leg; false brings it onto the target's "
+                          "joint, as every other fused pair (the foot then hangs where the target's foot was).")
     pose: Literal["bind", "rest"] = Field(
         "bind", description="Pose each file is composed in (and the output's rest pose), where a file's rest "
                             "pose differs per joint from the pose its mesh is bound in (every Quaternius rig): "

@@ -769,6 +769,19 @@ def test_a_detached_foot_moves_with_its_leg(tmp_path):
         inputs["body"].skeleton.index("Foot.L")]]  # the target's parent, as every fused joint
 
 
+def test_a_detached_foot_can_be_brought_onto_the_targets(tmp_path):
+    path = corpus_case("leg_swap__EnemyLarge__Leela", tmp_path)
+    path.write_text(path.read_text() + "\n[positioning]\ndetached_with_limb = false\n")
+    cfg = load_config(path)
+    inputs = load_characters(cfg)
+    plan = plan_operations(inputs, cfg)
+    assert plan.report["characters"]["donor"]["moved_with_limb"] == []
+    sk = plan.skeleton
+    Pb = plan.positioned["body"].skeleton.rest_worlds()[:, :3, 3]
+    body = inputs["body"].skeleton
+    assert np.allclose(sk.rest_worlds()[sk.index("Foot.L"), :3, 3], Pb[body.index("Foot.L")])
+
+
 def test_a_detached_part_of_a_limb_replaced_by_itself_stays_put(tmp_path):
     cfg = load_config(corpus_case("identity__Leela__UpperLeg.L", tmp_path))
     inputs = load_characters(cfg)

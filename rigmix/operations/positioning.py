@@ -957,7 +957,8 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
             s, method, ratios = 1.0, "body", []
         rot = rotations.get(cid, {})
         turn = _facing(rest, moved, positioned, config, cc, plans)
-        followers = limb_followers(moved, rest, plans) if config.positioning.translate else {}
+        followers = (limb_followers(moved, rest, plans)
+                     if config.positioning.translate and config.positioning.detached_with_limb else {})
         placement = _placement_matrix(cc.placement, turn)
         posed = position_character(ch, scale=s, placement=placement, rotations=rot)
         t = np.zeros((sk.num_joints, 3))
