@@ -468,7 +468,7 @@ def test_boxes_meet_finds_what_comparing_every_pair_finds():
     """The chunked broad phase of the crossing repair's near faces (each chunk of boxes compared
     only with the queries that meet its bounding box) against every box compared with every
     query: the same boxes, for boxes of very different sizes and an empty side."""
-    from rigmix.fusion.crossings import _boxes_meet, _boxes_meet_dense
+    from rigmix.fusion.meshutil import boxes_meet, boxes_meet_dense
 
     rng = np.random.default_rng(3)
     for n, q, margin in ((4000, 1500, 0.05), (700, 9000, 0.0), (1, 3, 0.2), (5, 0, 0.1), (0, 5, 0.1)):
@@ -476,6 +476,7 @@ def test_boxes_meet_finds_what_comparing_every_pair_finds():
         hi = lo + rng.random((n, 3)) * rng.choice([0.01, 0.5, 4.0], (n, 1))
         qlo = rng.random((q, 3)) * 10
         qhi = qlo + rng.random((q, 3)) * 0.3
-        got = _boxes_meet(lo, hi, qlo, qhi, margin)
-        assert np.array_equal(got, _boxes_meet_dense(lo, hi, qlo, qhi, margin))
+        got = boxes_meet(lo, hi, qlo, qhi, margin)
+        assert np.array_equal(got, boxes_meet_dense(lo, hi, qlo, qhi, margin))
         assert n < 100 or 0 < got.sum() < n  # neither all nor none: the test can tell
+

@@ -55,6 +55,7 @@ from scipy.sparse.csgraph import connected_components
 
 from .meshutil import (
     boundary_halfedges,
+    boxes_meet,
     cross3,
     edge_counts,
     edges_to_loops,
@@ -221,47 +222,7 @@ def _box_cells(lo, hi, cell):
     return box, ijk
 
 
-def _boxes_meet(lo, hi, qlo, qhi, margin, *, chunk=256):
-    """``(len(lo),) bool``: boxes within ``margin`` of one of the boxes ``qlo``, ``qhi`` (for the
-    few boxes much larger than the grid's cells).
-
-    Box ``i`` meets query ``q`` where, on every axis, ``lo[i] <= qhi[q] + margin`` and
-    ``qlo[q] <= hi[i] + margin``. The boxes are taken in chunks along x; a chunk is compared only
-    with the queries that meet the chunk's own bounding box (a query that misses it misses every
-    box in it), so the work follows the pairs that are near, not all pairs.
-    """
-    out = np.zeros(len(lo), bool)
-    if len(lo) == 0 or len(qlo) == 0:
-        return out
-    qhi_m = qhi + margin
-    hi_m = hi + margin
-    order = np.argsort(lo[:, 0] + hi[:, 0], kind="stable")
-    for s in range(0, len(order), chunk):
-        c = order[s:s + chunk]
-        clo, chi = lo[c].min(axis=0), hi_m[c].max(axis=0)
-        qs = np.flatnonzero(np.all((clo <= qhi_m) & (qlo <= chi), axis=1))
-        if not len(qs):
-            continue
-        meet = lo[c, 0, None] <= qhi_m[None, qs, 0]
-        for a in range(3):
-            if a:
-                meet &= lo[c, a, None] <= qhi_m[None, qs, a]
-            meet &= qlo[None, qs, a] <= hi_m[c, a, None]
-        out[c] = meet.any(axis=1)
-    return out
-
-
-def _boxes_meet_dense(lo, hi, qlo, qhi, margin):
-    """:func:`_boxes_meet` by comparing every box with every query (the reference it is tested
-    against)."""
-    out = np.zeros(len(lo), bool)
-    if len(lo) == 0 or len(qlo) == 0:
-        return out
-    meet = (lo[:, None] <= qhi[None] + margin) & (qlo[None] <= hi[:, None] + margin)
-    return meet.all(axis=2).any(axis=1)
-
-
-#: Boxes wider than this many grid cells are met densely (:func:`_boxes_meet`), not by cells.
+#: Boxes wider than this many grid cells are met box by box (:func:`.meshutil.boxes_meet`), not by cells.
 BIG_CELLS = 4
 
 
@@ -294,8 +255,8 @@ def _near_faces(V, F, query, margin):
         near[small[box[np.isin(key(ijk), marked)]]] = True
     qi = np.flatnonzero(query)
     bigs = np.flatnonzero(big)
-    near[bigs] |= _boxes_meet(lo[bigs], hi[bigs], lo[qi], hi[qi], margin)
-    near[small] |= _boxes_meet(lo[small], hi[small], lo[q_big], hi[q_big], margin)
+    near[bigs] |= boxes_meet(lo[bigs], hi[bigs], lo[qi], hi[qi], margin)
+    near[small] |= boxes_meet(lo[small], hi[small], lo[q_big], hi[q_big], margin)
     return near
 
 

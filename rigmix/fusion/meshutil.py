@@ -299,6 +299,46 @@ def average_edge_length(V, F):
     return float(np.linalg.norm(V[uE[:, 0]] - V[uE[:, 1]], axis=1).mean())
 
 
+def boxes_meet(lo, hi, qlo, qhi, margin, *, chunk=256):
+    """``(len(lo),) bool``: boxes within ``margin`` of one of the boxes ``qlo``, ``qhi`` (the crossing
+    repair's boxes much larger than its grid's cells).
+
+    Box ``i`` meets query ``q`` where, on every axis, ``lo[i] <= qhi[q] + margin`` and
+    ``qlo[q] <= hi[i] + margin``. The boxes are taken in chunks along x; a chunk is compared only
+    with the queries that meet the chunk's own bounding box (a query that misses it misses every
+    box in it), so the work follows the pairs that are near, not all pairs.
+    """
+    out = np.zeros(len(lo), bool)
+    if len(lo) == 0 or len(qlo) == 0:
+        return out
+    qhi_m = qhi + margin
+    hi_m = hi + margin
+    order = np.argsort(lo[:, 0] + hi[:, 0], kind="stable")
+    for s in range(0, len(order), chunk):
+        c = order[s:s + chunk]
+        clo, chi = lo[c].min(axis=0), hi_m[c].max(axis=0)
+        qs = np.flatnonzero(np.all((clo <= qhi_m) & (qlo <= chi), axis=1))
+        if not len(qs):
+            continue
+        meet = lo[c, 0, None] <= qhi_m[None, qs, 0]
+        for a in range(3):
+            if a:
+                meet &= lo[c, a, None] <= qhi_m[None, qs, a]
+            meet &= qlo[None, qs, a] <= hi_m[c, a, None]
+        out[c] = meet.any(axis=1)
+    return out
+
+
+def boxes_meet_dense(lo, hi, qlo, qhi, margin):
+    """:func:`boxes_meet` by comparing every box with every query (the reference it is tested
+    against)."""
+    out = np.zeros(len(lo), bool)
+    if len(lo) == 0 or len(qlo) == 0:
+        return out
+    meet = (lo[:, None] <= qhi[None] + margin) & (qlo[None] <= hi[:, None] + margin)
+    return meet.all(axis=2).any(axis=1)
+
+
 class TooManyCandidates(RuntimeError):
     """The broad phase of :func:`intersecting_face_pairs` found more candidate pairs than its
     budget: the surface is folded onto itself far beyond what a local repair can undo."""
