@@ -852,8 +852,8 @@ def limb_followers(moved, rest, plans=None) -> dict:
     an IK foot that carries the foot's skin from the armature root) whose root another pair moves.
 
     Such a part moves with its limb: by the limb root's translation, so that the foot stays at
-    the end of its leg (brought onto the target's foot it hung apart from the leg, by a fifth of
-    the output's size where the two legs differ in length).
+    the end of its leg (brought onto the target's foot it hung apart from the leg, by a tenth to
+    a fifth of the output's size where the two legs differ in length).
 
     Parameters
     ----------
