@@ -653,7 +653,7 @@ def test_parts_fused_to_one_joint_are_warned_of(tmp_path, caplog):
     assert not [r for r in caplog.records if "become that one joint" in r.getMessage()]
 
 
-def test_kept_joints_hang_from_their_target_with_their_spacing(wasp_wings_on_cesiumman, caplog):
+def test_kept_joints_hang_from_their_target_with_their_spacing(wasp_wings_on_cesiumman):
     """``keep_joint``: each Wasp wing root stays a joint of its own, a child of CesiumMan's spine
     joint. The two keep their directions from it (the Wasp moves so that their mean lands on it),
     and at least their spacing: spread out to CesiumMan's surface, where the spine is wider than

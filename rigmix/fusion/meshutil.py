@@ -329,16 +329,6 @@ def boxes_meet(lo, hi, qlo, qhi, margin, *, chunk=256):
     return out
 
 
-def boxes_meet_dense(lo, hi, qlo, qhi, margin):
-    """:func:`boxes_meet` by comparing every box with every query (the reference it is tested
-    against)."""
-    out = np.zeros(len(lo), bool)
-    if len(lo) == 0 or len(qlo) == 0:
-        return out
-    meet = (lo[:, None] <= qhi[None] + margin) & (qlo[None] <= hi[:, None] + margin)
-    return meet.all(axis=2).any(axis=1)
-
-
 class TooManyCandidates(RuntimeError):
     """The broad phase of :func:`intersecting_face_pairs` found more candidate pairs than its
     budget: the surface is folded onto itself far beyond what a local repair can undo."""

@@ -772,33 +772,47 @@ def _facing(rest, moved, positioned, config, cc, plans):
     return None if np.allclose(R, np.eye(3)) else R
 
 
-def _attach_point(a, pairs, here):
-    """``(3,)``: the point of the source that action ``a`` brings onto its target joint.
+def _kept_shifts(pairs, here, target_of):
+    """Where the joints kept as children (``keep_joint``) go.
 
-    A fused joint lands on its target. Joints kept as children (``keep_joint``) are brought as a
-    group: the kept joints of the same source attached at the same target joint move by one
-    translation, which brings their mean onto it (two wings keep their spacing about a chest
-    joint), then each is spread out to the target's surface (:func:`spread_to_surface`)."""
-    if a.fuse:
-        return here[a.source_joint]
-    return here[_kept_group(a, pairs)].mean(axis=0)
+    The kept joints of the same source attached at the same target joint are brought as a group:
+    one translation brings their mean onto the target joint (two wings keep their spacing about a
+    chest joint), then each is spread out to the target's surface (:func:`spread_to_surface`, the
+    target's rest surface skinned once per group).
 
+    Parameters
+    ----------
+    pairs : sequence of ResolvedAction
+        The source's grafting actions.
+    here : (J, 3) float array
+        The source's joints, posed and placed (world space).
+    target_of : callable
+        ``target_of(cid)``: the character a target id names, positioned.
 
-def _spread(a, pairs, here, target, goal):
-    """``(3,)``: how much farther than its group's translation kept joint ``a`` moves
-    (:func:`spread_to_surface` on ``target``'s rest surface about ``goal``)."""
-    group = _kept_group(a, pairs)
-    if len(group) < 2:
-        return np.zeros(3)
-    offsets = here[group] - here[group].mean(axis=0)
-    k = group.index(a.source_joint)
-    V, _ = rest_world_mesh(target)
-    return spread_to_surface(V, rest_world_faces(target), goal, offsets[k:k + 1])[0] - offsets[k]
-
-
-def _kept_group(a, pairs):
-    """Source joints of the kept (``keep_joint``) pairs attached where ``a`` is."""
-    return [b.source_joint for b in pairs if not b.fuse and (b.target, b.target_joint) == (a.target, a.target_joint)]
+    Returns
+    -------
+    dict of int -> ((3,) float64, (3,) float64)
+        Per kept pair (action index): its group's mean, and how much farther than the group's
+        translation the joint moves (zero for a joint alone at its target).
+    """
+    groups: dict = {}
+    for a in pairs:
+        if not a.fuse:
+            groups.setdefault((a.target, a.target_joint), []).append(a)
+    out = {}
+    for (tid, tj), group in groups.items():
+        joints = [a.source_joint for a in group]
+        mean = here[joints].mean(axis=0)
+        if len(group) < 2:
+            out[group[0].index] = (mean, np.zeros(3))
+            continue
+        target = target_of(tid)
+        V, _ = rest_world_mesh(target)
+        offsets = here[joints] - mean
+        spread = spread_to_surface(V, rest_world_faces(target), target.skeleton.rest_worlds()[tj, :3, 3], offsets)
+        for k, a in enumerate(group):
+            out[a.index] = (mean, spread[k] - offsets[k])
+    return out
 
 
 #: Steps per bounding-box diagonal of the target along which :func:`spread_to_surface` looks for
@@ -970,14 +984,19 @@ def position_inputs(inputs, actions, config, *, body, part, rotations):
                 for j in np.flatnonzero(part[cid] == -1):
                     fixed.append(int(j))
                     values.append(np.zeros(3))
+            def target_of(tid):
+                return positioned[tid] if tid != cid else posed
+
+            kept = _kept_shifts(pairs, here, target_of)
             for a in pairs:
                 b = followers.get(a.index, a)  # a detached part moves as its limb's root does
-                tgt = positioned[b.target] if b.target != cid else posed
-                goal = tgt.skeleton.rest_worlds()[b.target_joint, :3, 3]
+                goal = target_of(b.target).skeleton.rest_worlds()[b.target_joint, :3, 3]
                 fixed.append(a.source_joint)
-                values.append(goal - _attach_point(b, pairs, here))
-                if not b.fuse:
-                    values[-1] = values[-1] + _spread(b, pairs, here, tgt, goal)
+                if a.index in kept:
+                    mean, shift = kept[a.index]
+                    values.append(goal - mean + shift)
+                else:
+                    values.append(goal - here[b.source_joint])
             t = smooth_translations(sk.parents, fixed, np.asarray(values))
         positioned[cid] = position_character(ch, scale=s, placement=placement, rotations=rot, translations=t)
         scales[cid] = s
