@@ -408,38 +408,33 @@ def test_spread_keeps_points_apart_and_greedy():
         assert len(near) and prio[near].max() >= prio[k]
 
 
-def test_relocation_matches_one_candidate_at_a_time():
-    """``relocate_poor_vertices`` on a real character's arm with free vertices jittered into
-    poor triangles gives what trying each candidate position in turn gives (the candidates of
-    a vertex are evaluated together), and never lowers the worst angle."""
-    from rigmix.fusion.remesh import relocate_poor_vertices
+def _relocated_one_at_a_time(U, F, nfixed, surface):
+    """One pass of :func:`rigmix.fusion.remesh.relocate_poor_vertices` written plainly: each poor
+    vertex in turn tries its candidates one by one, seeing the moves before it."""
+    import igl
 
-    V, F = _cesium_arm()
-    rng = np.random.default_rng(2)
-    edge = float(np.linalg.norm(V[F[:, 0]] - V[F[:, 1]], axis=1).mean())
-    nfixed = len(V) // 3
-    U = V.copy()
-    U[nfixed:] += rng.normal(scale=0.3 * edge, size=(len(V) - nfixed, 3))
-    out = relocate_poor_vertices(U, F, nfixed, surface=(V, F), iterations=1)
-    assert np.array_equal(out[:nfixed], U[:nfixed]) and not np.array_equal(out, U)
-    assert triangle_min_angles(out, F).min() >= triangle_min_angles(U, F).min() - 1e-9
-    # no fixed vertex: every candidate is a ring centroid or halfway there; one vertex at a time
-    out = relocate_poor_vertices(U, F, 0, surface=(V, F), iterations=1)
     VF = [[] for _ in range(len(U))]
     for f, t in enumerate(F):
         for v in t:
             VF[v].append(f)
-    import igl
-
     W = U.copy()
     bad = np.flatnonzero(triangle_min_angles(U, F) < 25.0)
     verts = np.unique(F[bad].ravel())
+    verts = verts[verts >= nfixed]
     cands = []
     for v in verts:
         nbr = np.unique(F[VF[v]].ravel())
-        c = W[nbr[nbr != v]].mean(axis=0)[None]
+        c = [W[nbr[nbr != v]].mean(axis=0)]
+        for t in F[VF[v]]:
+            a, b = [u for u in t if u != v]
+            if a < nfixed and b < nfixed:  # the apex of the equilateral triangle on a fixed edge
+                e = W[b] - W[a]
+                off = W[v] - 0.5 * (W[a] + W[b])
+                off -= (off @ e) / (e @ e) * e
+                c.append(0.5 * (W[a] + W[b]) + off / np.linalg.norm(off) * np.sqrt(3) / 2 * np.linalg.norm(e))
+        c = np.asarray(c)
         cands.append(np.concatenate([c, 0.5 * (c + W[v])]))
-    allC = np.asarray(igl.point_mesh_squared_distance(np.concatenate(cands), V, F)[2])
+    allC = np.asarray(igl.point_mesh_squared_distance(np.concatenate(cands), *surface)[2])
     for v, C in zip(verts, np.split(allC, np.cumsum([len(c) for c in cands])[:-1])):
         ring = F[VF[v]]
         n0 = np.cross(W[ring[:, 1]] - W[ring[:, 0]], W[ring[:, 2]] - W[ring[:, 0]])
@@ -457,7 +452,28 @@ def test_relocation_matches_one_candidate_at_a_time():
                 best, pos = a, c.copy()
         if pos is not None:
             W[v] = pos
-    assert np.allclose(out, W, rtol=0, atol=1e-12 * edge)
+    return W
+
+
+def test_relocation_matches_one_candidate_at_a_time():
+    """``relocate_poor_vertices`` on a real character's arm with free vertices jittered into
+    poor triangles gives what trying each candidate position in turn, one vertex after another,
+    gives (the rings are evaluated in batches and again where a neighbour moved), with and
+    without fixed vertices (their edges add equilateral apexes), and never lowers the worst
+    angle."""
+    from rigmix.fusion.remesh import relocate_poor_vertices
+
+    V, F = _cesium_arm()
+    rng = np.random.default_rng(2)
+    edge = float(np.linalg.norm(V[F[:, 0]] - V[F[:, 1]], axis=1).mean())
+    for nfixed in (len(V) // 3, 0):
+        U = V.copy()
+        U[nfixed:] += rng.normal(scale=0.3 * edge, size=(len(V) - nfixed, 3))
+        out = relocate_poor_vertices(U, F, nfixed, surface=(V, F), iterations=1)
+        assert np.array_equal(out[:nfixed], U[:nfixed])
+        assert np.count_nonzero(np.any(out != U, axis=1)) > 20
+        assert triangle_min_angles(out, F).min() >= triangle_min_angles(U, F).min() - 1e-9
+        assert np.allclose(out, _relocated_one_at_a_time(U, F, nfixed, (V, F)), rtol=0, atol=1e-12 * edge)
 
 
 def test_an_edge_two_fans_share_is_flipped_apart():

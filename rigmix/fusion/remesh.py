@@ -13,6 +13,7 @@ from .meshutil import (
     edge_counts,
     intersecting_face_pairs,
     nondegenerate,
+    stable_argsort,
     triangle_corner_angles,
     triangle_min_angles,
     undirected_edges,
@@ -424,38 +425,138 @@ def _ring_min_angle(V, tris):
     return float(np.degrees(corner_angles(V, tris).min(initial=np.inf)))
 
 
-def _ring_candidates(P, at_v, C, n0, min_normal_dot):
-    """A vertex's ring with the vertex at each of the candidate positions, all at once.
+def _vertex_rings(F, n):
+    """The faces around each vertex, in increasing face order: vertex ``v``'s are
+    ``faces[ptr[v]:ptr[v + 1]]`` (``ptr`` ``(n + 1,)``, ``faces`` ``(3m,)`` int64)."""
+    flat = F.ravel()
+    faces = stable_argsort(flat) // 3
+    ptr = np.zeros(n + 1, np.int64)
+    np.cumsum(np.bincount(flat, minlength=n), out=ptr[1:])
+    return ptr, faces
 
-    Parameters
-    ----------
-    P : (r, 3, 3) float array
-        The ring's triangles' corners.
-    at_v : (r, 3) bool
-        Corners that are the vertex.
-    C : (k, 3) float array
-        Candidate positions.
-    n0 : (r, 3) float array
-        The ring's unit normals before the move.
-    min_normal_dot : float
+
+def _ring_entries(ptr, faces, verts):
+    """The ring faces of ``verts`` ``(k,)`` stacked, ``(R,)``, with each one's owner (an index
+    into ``verts``) and the start of each vertex's run ``(k,)``."""
+    r = ptr[verts + 1] - ptr[verts]
+    start = np.cumsum(r) - r
+    owner = np.repeat(np.arange(len(verts)), r)
+    return faces[ptr[verts][owner] + np.arange(len(owner)) - start[owner]], owner, start
+
+
+def _ring_centroids(V, F, ring, owner, verts):
+    """Mean of each vertex's distinct ring neighbours ``(k, 3)``, the floats of
+    ``V[nbr].mean(axis=0)``: the neighbours added one row at a time in increasing index order,
+    then divided by their count."""
+    nb = F[ring].ravel()
+    own = np.repeat(owner, 3)
+    keep = nb != verts[own]
+    n = len(V) + 1
+    key = unique_ints(own[keep] * n + nb[keep])
+    own, nb = key // n, key % n
+    deg = np.bincount(own, minlength=len(verts))
+    col = np.arange(len(nb)) - (np.cumsum(deg) - deg)[own]
+    X = np.zeros((len(verts), int(deg.max(initial=1)), 3))
+    X[own, col] = V[nb]
+    acc = X[:, 0].copy()
+    for j in range(1, X.shape[1]):
+        m = deg > j
+        acc[m] = acc[m] + X[m, j]
+    return acc / deg[:, None]
+
+
+def _border_apex(V, v, a, b):
+    """Apex of the equilateral triangle on the fixed edge ``(a, b)`` on ``v``'s side, or None."""
+    a, b = V[a], V[b]
+    mid = 0.5 * (a + b)
+    e = b - a
+    L = np.linalg.norm(e)
+    off = V[v] - mid
+    if L == 0:
+        return None
+    off -= (off @ e) / (L * L) * e
+    lo = np.linalg.norm(off)
+    if lo == 0:
+        return None
+    return mid + off / lo * (np.sqrt(3) / 2) * L
+
+
+def _relocation_candidates(V, F, ring, owner, verts, nfixed):
+    """Candidate positions of ``verts``: per vertex its ring centroid, then the apex of each
+    ring triangle standing on a fixed edge, then each of those halfway from the vertex.
 
     Returns
     -------
-    ok : (k,) bool
-        No triangle degenerates and none turns past ``min_normal_dot``.
-    angle : (k,) float64
-        Smallest angle of the moved ring, degrees.
+    C : (c, 3) float64
+        Vertex ``i``'s candidates are ``C[cptr[i]:cptr[i + 1]]``.
+    cptr : (k + 1,) int64
     """
-    k, r = len(C), len(P)
-    T = np.broadcast_to(P, (k, r, 3, 3)).copy()
-    T[:, at_v] = C[:, None, :]
-    T = T.reshape(k * r, 3, 3)
+    tris = F[ring]
+    is_v = tris == verts[owner][:, None]
+    border = (np.count_nonzero(is_v, axis=1) == 1) & np.all(is_v | (tris < nfixed), axis=1)
+    apex_owner, apexes = [], []
+    for e in np.flatnonzero(border):
+        v = verts[owner[e]]
+        a, b = tris[e][~is_v[e]]
+        p = _border_apex(V, v, a, b)
+        if p is not None:
+            apex_owner.append(owner[e])
+            apexes.append(p)
+    apex_owner = np.asarray(apex_owner, np.int64)
+    m = np.bincount(apex_owner, minlength=len(verts))
+    base = np.concatenate([_ring_centroids(V, F, ring, owner, verts), np.reshape(apexes, (-1, 3))])
+    base_owner = np.concatenate([np.arange(len(verts)), apex_owner])
+    base = base[stable_argsort(base_owner)]
+    base_owner = np.sort(base_owner)
+    k = 1 + m
+    cptr = np.zeros(len(verts) + 1, np.int64)
+    np.cumsum(2 * k, out=cptr[1:])
+    pos = np.arange(len(base)) - (np.cumsum(k) - k)[base_owner]
+    C = np.empty((cptr[-1], 3))
+    C[cptr[base_owner] + pos] = base
+    C[cptr[base_owner] + k[base_owner] + pos] = 0.5 * (base + V[verts][base_owner])
+    return C, cptr
+
+
+def _ring_moves(V, F, ring, owner, start, verts, C, cptr, min_normal_dot):
+    """Each vertex's ring with the vertex at each of its candidate positions, all at once.
+
+    Returns
+    -------
+    ok : (c,) bool
+        Per candidate: no ring triangle degenerates and none turns past ``min_normal_dot``.
+    angle : (c,) float64
+        Per candidate: the smallest angle of the moved ring, degrees.
+    current : (k,) float64
+        Per vertex: the smallest angle of its ring as it is, degrees.
+    """
+    tris = F[ring]
+    P = V[tris]
+    n0 = cross3(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+    n0 /= np.maximum(np.linalg.norm(n0, axis=1, keepdims=True), 1e-300)
+    current = np.minimum.reduceat(np.degrees(triangle_corner_angles(P).min(axis=1)), start)
+    is_v = tris == verts[owner][:, None]
+    # one row per (vertex, candidate, ring triangle), in that order
+    r = np.diff(np.r_[start, len(ring)])
+    cand_vert = np.repeat(np.arange(len(verts)), np.diff(cptr))
+    rows = r[cand_vert]
+    first = np.cumsum(rows) - rows
+    cand = np.repeat(np.arange(len(C)), rows)
+    tri = start[cand_vert[cand]] + np.arange(len(cand)) - first[cand]
+    T = P[tri]
+    at = is_v[tri]
+    T[at] = np.repeat(C[cand], np.count_nonzero(at, axis=1), axis=0)
     n1 = cross3(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0])
     ln = np.linalg.norm(n1, axis=1)
-    dots = np.einsum("ij,ij->i", n1 / np.where(ln == 0, 1.0, ln)[:, None], np.tile(n0, (k, 1)))
-    ok = ((ln > 0) & (dots >= min_normal_dot)).reshape(k, r).all(axis=1)
-    angle = np.degrees(triangle_corner_angles(T).min(axis=1)).reshape(k, r).min(axis=1)
-    return ok, angle
+    dots = np.einsum("ij,ij->i", n1 / np.where(ln == 0, 1.0, ln)[:, None], n0[tri])
+    ok = np.logical_and.reduceat((ln > 0) & (dots >= min_normal_dot), first)
+    angle = np.minimum.reduceat(np.degrees(triangle_corner_angles(T).min(axis=1)), first)
+    return ok, angle, current
+
+
+#: :func:`relocate_poor_vertices` re-evaluates this many vertices at once where a neighbour's move
+#: made a vertex's evaluation stale
+RELOCATE_CHUNK = 8
 
 
 def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterations=4, min_normal_dot=0.5):
@@ -463,9 +564,14 @@ def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterat
 
     For each free vertex of a triangle whose minimum angle is below ``threshold`` degrees, try
     its 1-ring centroid and, for each incident triangle standing on a fixed (border) edge, the
-    apex of the equilateral triangle on that edge; keep the candidate (projected back onto
-    ``surface``) with the best minimum angle over the ring, if it beats the current position
-    and folds nothing.
+    apex of the equilateral triangle on that edge, and each of those halfway from the vertex;
+    keep the candidate (projected back onto ``surface``) with the best minimum angle over the
+    ring, if it beats the current position and folds nothing.
+
+    The vertices move one after another, in increasing index order, each seeing the moves
+    before it (Gauss-Seidel). Their rings are evaluated in batches; a vertex whose ring a
+    neighbour's move changed since its batch is evaluated again, so the result is that of the
+    one-at-a-time order.
 
     Parameters
     ----------
@@ -482,16 +588,11 @@ def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterat
     """
     import igl
 
-    from .meshutil import triangle_min_angles
-
     V = np.asarray(V, dtype=np.float64).copy()
     F = np.asarray(F, dtype=np.int64)
     if len(F) == 0:
         return V
-    VF = [[] for _ in range(len(V))]
-    for f, tri in enumerate(F):
-        for v in tri:
-            VF[v].append(f)
+    ptr, faces = _vertex_rings(F, len(V))
     tree = None
     if surface is not None:
         tree = igl.AABB()
@@ -505,52 +606,49 @@ def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterat
         verts = verts[verts >= nfixed]
         if len(verts) == 0:
             break
-        # candidates of every vertex first, projected in one call
-        cand_lists = []
-        for v in verts:
-            ring = F[VF[v]]
-            nbr = np.unique(ring.ravel())
-            nbr = nbr[nbr != v]
-            cands = [V[nbr].mean(axis=0)]
-            for tri in ring:
-                others = [u for u in tri if u != v]
-                if len(others) == 2 and others[0] < nfixed and others[1] < nfixed:
-                    a, b = V[others[0]], V[others[1]]
-                    mid = 0.5 * (a + b)
-                    e = b - a
-                    L = np.linalg.norm(e)
-                    off = V[v] - mid
-                    if L == 0:
-                        continue
-                    off -= (off @ e) / (L * L) * e
-                    lo = np.linalg.norm(off)
-                    if lo == 0:
-                        continue
-                    cands.append(mid + off / lo * (np.sqrt(3) / 2) * L)
-            C = np.asarray(cands)
-            cand_lists.append(np.concatenate([C, 0.5 * (C + V[v])]))
-        allC = np.concatenate(cand_lists)
+        ring, owner, start = _ring_entries(ptr, faces, verts)
+        C, cptr = _relocation_candidates(V, F, ring, owner, verts, nfixed)
         if tree is not None:
-            allC = np.asarray(tree.squared_distance(SV, SF, allC)[2])
-        splits = np.cumsum([len(c) for c in cand_lists])[:-1]
-        moved = False
-        for v, C in zip(verts, np.split(allC, splits)):
-            ring = F[VF[v]]
-            P = V[ring]
-            n0 = cross3(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
-            n0 /= np.maximum(np.linalg.norm(n0, axis=1, keepdims=True), 1e-300)
-            cur = _ring_min_angle(V, ring)
-            ok, a = _ring_candidates(P, ring == v, C, n0, min_normal_dot)
-            best, best_pos = cur, None
-            for c in np.flatnonzero(ok):  # in order: a candidate must beat the best before it
-                if a[c] > best + 1e-6:
-                    best, best_pos = a[c], C[c].copy()
-            if best_pos is not None:
-                V[v] = best_pos
-            moved |= best_pos is not None
-        if not moved:
+            C = np.asarray(tree.squared_distance(SV, SF, C)[2])
+        if not _relocate_in_order(V, F, ptr, faces, verts, C, cptr, min_normal_dot):
             break
     return V
+
+
+def _relocate_in_order(V, F, ptr, faces, verts, C, cptr, min_normal_dot):
+    """Move ``verts`` (in place in ``V``) to their best candidates, one after another.
+
+    Returns True where a vertex moved.
+    """
+    ok = np.zeros(len(C), bool)
+    angle = np.zeros(len(C))
+    current = np.zeros(len(verts))
+    seen = np.full(len(verts), -1)  # the step of each vertex's evaluation
+    moved_at = np.full(len(V), -1)  # the step at which each vertex moved
+    moved = False
+
+    def evaluate(i, j):
+        sub = verts[i:j]
+        ring, owner, start = _ring_entries(ptr, faces, sub)
+        lo, hi = cptr[i], cptr[j]
+        ok[lo:hi], angle[lo:hi], current[i:j] = _ring_moves(V, F, ring, owner, start, sub, C[lo:hi],
+                                                           cptr[i:j + 1] - lo, min_normal_dot)
+        seen[i:j] = i
+
+    evaluate(0, len(verts))
+    for i, v in enumerate(verts):
+        around = F[faces[ptr[v]:ptr[v + 1]]]
+        if moved_at[around].max() >= seen[i]:
+            evaluate(i, min(i + RELOCATE_CHUNK, len(verts)))
+        best, best_pos = current[i], None
+        for c in np.flatnonzero(ok[cptr[i]:cptr[i + 1]]) + cptr[i]:  # a candidate must beat the best before it
+            if angle[c] > best + 1e-6:
+                best, best_pos = angle[c], C[c]
+        if best_pos is not None:
+            V[v] = best_pos
+            moved_at[v] = i
+            moved = True
+    return moved
 
 
 def snap_to_points(V, F, nfixed, P, *, max_dist, min_angle=15.0, min_normal_dot=0.5):
