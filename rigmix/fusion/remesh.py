@@ -554,11 +554,6 @@ def _ring_moves(V, F, ring, owner, start, verts, C, cptr, min_normal_dot):
     return ok, angle, current
 
 
-#: :func:`relocate_poor_vertices` re-evaluates this many vertices at once where a neighbour's move
-#: made a vertex's evaluation stale
-RELOCATE_CHUNK = 8
-
-
 def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterations=4, min_normal_dot=0.5):
     """Move free vertices of poor triangles where it raises the worst angle around them.
 
@@ -569,9 +564,9 @@ def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterat
     ring, if it beats the current position and folds nothing.
 
     The vertices move one after another, in increasing index order, each seeing the moves
-    before it (Gauss-Seidel). Their rings are evaluated in batches; a vertex whose ring a
-    neighbour's move changed since its batch is evaluated again, so the result is that of the
-    one-at-a-time order.
+    before it (Gauss-Seidel). A vertex's move depends only on its ring, so the vertices are
+    moved in waves (:func:`_relocation_waves`), each wave's rings evaluated at once: the
+    result is that of the one-at-a-time order.
 
     Parameters
     ----------
@@ -615,39 +610,53 @@ def relocate_poor_vertices(V, F, nfixed, *, surface=None, threshold=25.0, iterat
     return V
 
 
+def _relocation_waves(F, verts, n):
+    """``(k,) int``: the wave of each of ``verts`` (sorted), the longest chain of earlier
+    ``verts`` sharing a face with it, one after another.
+
+    Moved in increasing index order, a vertex sees the moves of the earlier ones of its ring and
+    none of the later ones; moved wave by wave, it sees the same (the earlier ones are in earlier
+    waves, the later ones in later waves), and no two vertices of a wave share a face.
+    """
+    member = np.zeros(n, bool)
+    member[verts] = True
+    E = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    E = E[member[E[:, 0]] & member[E[:, 1]] & (E[:, 0] != E[:, 1])]
+    wave = np.zeros(n, np.int64)
+    while True:
+        later = wave.copy()
+        np.maximum.at(later, E[:, 1], wave[E[:, 0]] + 1)
+        if np.array_equal(later, wave):
+            return wave[verts]
+        wave = later
+
+
 def _relocate_in_order(V, F, ptr, faces, verts, C, cptr, min_normal_dot):
-    """Move ``verts`` (in place in ``V``) to their best candidates, one after another.
+    """Move ``verts`` (in place in ``V``) to their best candidates, as one after another in
+    increasing index order would.
 
     Returns True where a vertex moved.
     """
-    ok = np.zeros(len(C), bool)
-    angle = np.zeros(len(C))
-    current = np.zeros(len(verts))
-    seen = np.full(len(verts), -1)  # the step of each vertex's evaluation
-    moved_at = np.full(len(V), -1)  # the step at which each vertex moved
     moved = False
-
-    def evaluate(i, j):
-        sub = verts[i:j]
+    wave = _relocation_waves(F, verts, len(V))
+    for w in range(int(wave.max(initial=-1)) + 1):
+        idx = np.flatnonzero(wave == w)
+        sub = verts[idx]
+        kc = cptr[idx + 1] - cptr[idx]
+        sub_ptr = np.zeros(len(idx) + 1, np.int64)
+        np.cumsum(kc, out=sub_ptr[1:])
+        rows = np.repeat(cptr[idx] - sub_ptr[:-1], kc) + np.arange(sub_ptr[-1])
+        Cs = C[rows]
         ring, owner, start = _ring_entries(ptr, faces, sub)
-        lo, hi = cptr[i], cptr[j]
-        ok[lo:hi], angle[lo:hi], current[i:j] = _ring_moves(V, F, ring, owner, start, sub, C[lo:hi],
-                                                           cptr[i:j + 1] - lo, min_normal_dot)
-        seen[i:j] = i
-
-    evaluate(0, len(verts))
-    for i, v in enumerate(verts):
-        around = F[faces[ptr[v]:ptr[v + 1]]]
-        if moved_at[around].max() >= seen[i]:
-            evaluate(i, min(i + RELOCATE_CHUNK, len(verts)))
-        best, best_pos = current[i], None
-        for c in np.flatnonzero(ok[cptr[i]:cptr[i + 1]]) + cptr[i]:  # a candidate must beat the best before it
-            if angle[c] > best + 1e-6:
-                best, best_pos = angle[c], C[c]
-        if best_pos is not None:
-            V[v] = best_pos
-            moved_at[v] = i
-            moved = True
+        ok, angle, current = _ring_moves(V, F, ring, owner, start, sub, Cs, sub_ptr, min_normal_dot)
+        for i, v in enumerate(sub):
+            best, best_pos = current[i], None
+            for c in np.flatnonzero(ok[sub_ptr[i]:sub_ptr[i + 1]]) + sub_ptr[i]:  # must beat the best before it
+                if angle[c] > best + 1e-6:
+                    best, best_pos = angle[c], Cs[c]
+            if best_pos is not None:
+                V[v] = best_pos
+                moved = True
     return moved
 
 
