@@ -620,7 +620,7 @@ def _relocation_waves(F, verts, n):
     """
     member = np.zeros(n, bool)
     member[verts] = True
-    E = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    E = undirected_edges(F)[1]
     E = E[member[E[:, 0]] & member[E[:, 1]] & (E[:, 0] != E[:, 1])]
     wave = np.zeros(n, np.int64)
     while True:
