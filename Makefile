@@ -39,7 +39,10 @@ $(VDB_VENV)/.installed: pyproject.toml $(SYSDEPS)
 	$(VDB_VENV)/bin/python -c "import pyopenvdb, numpy; assert numpy.__version__ < '2'"
 	touch $@
 
-env: $(STAMP) $(SYSDEPS) $(VDB_VENV)/.installed
+# The two environments are built side by side (each pip install is mostly one process unpacking
+# and compiling): on a fresh machine that is the main install's time instead of both.
+env:
+	@$(MAKE) --no-print-directory -j2 $(STAMP) $(SYSDEPS) $(VDB_VENV)/.installed
 
 demo: env
 	$(BIN)/python -m rigmix.demo --out $(OUT)
