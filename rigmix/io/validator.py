@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -74,6 +75,14 @@ def validate_gltf(path, *, timeout: float = 120.0) -> dict:
     except subprocess.TimeoutExpired:
         raise RigmixError(f"validate_gltf: {path.name}: the validator took longer than {timeout} s") from None
     if res.returncode != 0:
-        tail = (res.stderr.strip().splitlines() or ["(no output)"])[-1]
-        raise RigmixError(f"validate_gltf: {path.name}: the validator failed: {tail}")
+        raise RigmixError(f"validate_gltf: {path.name}: the validator failed: {_failure_line(res.stderr)}")
     return json.loads(res.stdout)
+
+
+def _failure_line(stderr: str) -> str:
+    """The line of Node's stderr that says what failed: its first ``...Error: ...`` line (Node
+    ends with a stack and its own version, e.g. ``RangeError: Maximum call stack size exceeded``
+    on a node hierarchy about 7,000 deep), else the last line."""
+    lines = [ln.strip() for ln in stderr.strip().splitlines() if ln.strip()]
+    errors = [ln for ln in lines if re.match(r"^[A-Za-z]*Error\b", ln)]
+    return (errors or lines or ["(no output)"])[0 if errors else -1]
