@@ -481,3 +481,54 @@ def test_boxes_meet_finds_what_comparing_every_pair_finds():
         assert np.array_equal(got, every.all(axis=2).any(axis=1))
         assert n < 100 or 0 < got.sum() < n  # neither all nor none: the test can tell
 
+
+
+def _triangle_soup(rng, n):
+    """``n`` random triangles in a 10 m box, of very different sizes, many crossing."""
+    centre = rng.random((n, 1, 3)) * 10
+    size = rng.choice([0.05, 0.5, 3.0], (n, 1, 1))
+    V = (centre + rng.normal(size=(n, 3, 3)) * size).reshape(-1, 3)
+    return V, np.arange(3 * n).reshape(n, 3)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_crossing_pairs_of_some_faces_are_those_of_all_faces_that_have_one(seed):
+    """``intersecting_face_pairs`` with ``faces`` (the broad phase on the faces whose boxes meet
+    their joint box) gives exactly the pairs of the whole search that hold one of them, in the
+    same order, one of them first; for scattered and for clustered query faces."""
+    rng = np.random.default_rng(seed)
+    V, F = _triangle_soup(rng, 3000)
+    every = intersecting_face_pairs(V, F)
+    assert len(every) > 100
+    lo = V[F].min(axis=1)
+    most = np.argsort(-np.bincount(every.ravel(), minlength=len(F)), kind="stable")[:20]  # each alone
+    for faces in (rng.choice(len(F), 40, replace=False), np.flatnonzero(np.all(lo < 2.5, axis=1)),
+                  np.array([7]), np.zeros(0, np.int64), *most[:, None]):
+        got = intersecting_face_pairs(V, F, faces)
+        mask = np.isin(every, faces)
+        want = every[mask.any(axis=1)]
+        want = np.where(mask[mask.any(axis=1)][:, :1], want, want[:, ::-1])  # the query face first
+        assert np.array_equal(np.sort(got, axis=1), np.sort(want, axis=1))
+        assert np.isin(got[:, 0], faces).all()
+    assert 0 < len(intersecting_face_pairs(V, F, np.flatnonzero(np.all(lo < 2.5, axis=1)))) < len(every)
+
+
+def test_near_faces_of_several_queries_are_the_union_of_each_ones():
+    """The crossing repair's near faces (cells of the query faces and their neighbours; only the
+    boxes inside the queries' window split into cells) are, for queries far apart, the union of
+    the near faces of each query alone: the window drops nothing any query reaches."""
+    from rigmix.fusion.crossings import _near_faces
+
+    rng = np.random.default_rng(4)
+    V, F = _triangle_soup(rng, 4000)
+    for margin in (0.1, 0.6):
+        query = np.zeros(len(F), bool)
+        query[rng.choice(len(F), 12, replace=False)] = True
+        got = _near_faces(V, F, query, margin)
+        union = np.zeros(len(F), bool)
+        for q in np.flatnonzero(query):
+            one = np.zeros(len(F), bool)
+            one[q] = True
+            union |= _near_faces(V, F, one, margin)
+        assert np.array_equal(got, union)
+        assert query.sum() < got.sum() < len(F)

@@ -240,9 +240,14 @@ def _near_faces(V, F, query, margin):
     small = np.flatnonzero(~big)
     if len(q_small):
         _, qc = _box_cells(lo[q_small], hi[q_small], margin)
-        box, ijk = _box_cells(lo[small], hi[small], margin)
         base = qc.min(axis=0) - 1  # integer keys of the cells around the query's, all non-negative
         dims = qc.max(axis=0) - base + 2
+        # only a box with a cell in that window can touch a marked cell: the others are never
+        # split into cells (the cells are those _box_cells gives, floor(corner / margin))
+        window = np.all((np.floor(hi[small] / margin).astype(np.int64) >= base)
+                        & (np.floor(lo[small] / margin).astype(np.int64) < base + dims), axis=1)
+        cand = small[window]
+        box, ijk = _box_cells(lo[cand], hi[cand], margin)
         inside = np.all((ijk >= base) & (ijk < base + dims), axis=1)
         box, ijk = box[inside], ijk[inside]
         off = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
@@ -252,7 +257,7 @@ def _near_faces(V, F, query, margin):
             return (c[..., 0] * dims[1] + c[..., 1]) * dims[2] + c[..., 2]
 
         marked = np.unique(key(qc[:, None, :] + off[None]))
-        near[small[box[np.isin(key(ijk), marked)]]] = True
+        near[cand[box[np.isin(key(ijk), marked)]]] = True
     qi = np.flatnonzero(query)
     bigs = np.flatnonzero(big)
     near[bigs] |= boxes_meet(lo[bigs], hi[bigs], lo[qi], hi[qi], margin)

@@ -430,6 +430,15 @@ def intersecting_face_pairs(V, F, faces=None, *, tol=1e-9, max_candidates=None):
     if len(faces) == 0:
         return np.zeros((0, 2), np.int64)
     eps = tol * float(np.ptp(V, axis=0).max() or 1.0)
+    sub = None
+    if max_candidates is None and len(faces) < len(F):
+        # a face whose box misses the joint box of ``faces`` pairs with none of them: the rest
+        # runs on those that meet it (the broad phase's candidates are fewer, the pairs whose
+        # boxes meet the same, in the same order, since ``sub`` is increasing)
+        qlo, qhi = lo[faces].min(axis=0), hi[faces].max(axis=0)
+        sub = np.flatnonzero(np.all((lo <= qhi + eps) & (qlo <= hi + eps), axis=1))
+        F, T, lo, hi = F[sub], T[sub], lo[sub], hi[sub]
+        faces = np.searchsorted(sub, faces)
     in_set = np.zeros(len(F), bool)
     in_set[faces] = True
     a, b = _grid_pairs(lo - eps, hi + eps, in_set, max_pairs=max_candidates)
@@ -445,7 +454,8 @@ def intersecting_face_pairs(V, F, faces=None, *, tol=1e-9, max_candidates=None):
     a, b = a[keep], b[keep]
     if len(a) == 0:
         return np.zeros((0, 2), np.int64)
-    return _crossing(T[a], T[b], a, b, eps)
+    pairs = _crossing(T[a], T[b], a, b, eps)
+    return pairs if sub is None else sub[pairs]
 
 
 def _crossing(A, B, a, b, eps):
