@@ -517,18 +517,18 @@ def test_near_faces_of_several_queries_are_the_union_of_each_ones():
     """The crossing repair's near faces (cells of the query faces and their neighbours; only the
     boxes inside the queries' window split into cells) are, for queries far apart, the union of
     the near faces of each query alone: the window drops nothing any query reaches."""
-    from rigmix.fusion.crossings import _near_faces
+    from rigmix.fusion.crossings import near_faces
 
     rng = np.random.default_rng(4)
     V, F = _triangle_soup(rng, 4000)
     for margin in (0.1, 0.6):
         query = np.zeros(len(F), bool)
         query[rng.choice(len(F), 12, replace=False)] = True
-        got = _near_faces(V, F, query, margin)
+        got = near_faces(V, F, query, margin)
         union = np.zeros(len(F), bool)
         for q in np.flatnonzero(query):
             one = np.zeros(len(F), bool)
             one[q] = True
-            union |= _near_faces(V, F, one, margin)
+            union |= near_faces(V, F, one, margin)
         assert np.array_equal(got, union)
         assert query.sum() < got.sum() < len(F)

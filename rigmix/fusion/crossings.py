@@ -70,7 +70,7 @@ from .meshutil import (
 log = logging.getLogger(__name__)
 
 __all__ = ["CrossingRepair", "JunctionRepair", "fan_fill", "flip_apart", "flip_for_angles", "kept_parts",
-           "knot_regions", "layer_faces", "repair_crossings", "repair_junction"]
+           "knot_regions", "layer_faces", "near_faces", "repair_crossings", "repair_junction"]
 
 #: Faces within this many target edges of the junction are looked at (the broad phase's reach:
 #: a repair moves vertices by about an edge).
@@ -156,7 +156,7 @@ class _State:
     def look(self):
         """The faces looked at: those within ``span`` of a ``check`` face, at the current
         positions (every face that crosses a ``check`` face is among them)."""
-        self.near = _near_faces(self.V, self.F, self.check, self.span)
+        self.near = near_faces(self.V, self.F, self.check, self.span)
 
     def snapshot(self):
         return self.V, self.movable, self.check, self.near
@@ -177,7 +177,7 @@ class _State:
             return _canonical(sub[p])
         touched = moved[self.F].any(axis=1)
         keep = old[~(touched[old[:, 0]] | touched[old[:, 1]])]
-        sub = sub[_near_faces(V, self.F[sub], touched[sub], self.reach)]  # what the moved faces may reach
+        sub = sub[near_faces(V, self.F[sub], touched[sub], self.reach)]  # what the moved faces may reach
         fresh = sub[intersecting_face_pairs(V, self.F[sub], np.flatnonzero(touched[sub]))]
         fresh = fresh[self.check[fresh[:, 0]] | self.check[fresh[:, 1]]]
         return _canonical(np.concatenate([keep, fresh]))
@@ -226,10 +226,15 @@ def _box_cells(lo, hi, cell):
 BIG_CELLS = 4
 
 
-def _near_faces(V, F, query, margin):
+def near_faces(V, F, query, margin):
     """``(m,)`` bool: the ``query`` faces and the faces within about ``margin`` of one (their
     boxes touch a cell of a ``margin`` grid next to one a ``query`` face touches; a box much
-    larger than a cell is compared with the query boxes directly)."""
+    larger than a cell is compared with the query boxes directly).
+
+    ``V`` ``(n, 3)``, ``F`` ``(m, 3)``, ``query`` ``(m,)`` bool; ``margin`` in the units of ``V``.
+    The crossing repair's neighbourhood of the faces it moves: a superset of the faces within
+    ``margin`` of a query face, never missing one.
+    """
     T = V[F]
     lo, hi = T.min(axis=1), T.max(axis=1)
     near = query.copy()
@@ -846,7 +851,7 @@ def _window_crossings(V, W, skip, reach, faces, extra=None):
     X = W if extra is None else np.concatenate([W, extra])
     q = np.zeros(len(X), bool)
     q[faces] = True
-    sub = np.flatnonzero(_near_faces(V, X, q, reach))
+    sub = np.flatnonzero(near_faces(V, X, q, reach))
     p = sub[intersecting_face_pairs(V, X[sub], np.flatnonzero(q[sub]))]
     out = np.concatenate([skip, np.zeros(len(X) - len(W), bool)])
     p = p[~(out[p[:, 0]] | out[p[:, 1]])]
@@ -962,7 +967,7 @@ def flip_apart(V, F, flippable, made, *, ignored=None, reach, floor, passes=FLIP
     for _ in range(rings):
         ring = np.maximum(ring, (A @ ring > 0).astype(np.float64))
     core = (ring[F] > 0).any(axis=1)
-    window = np.flatnonzero(_near_faces(V, F, core, reach))
+    window = np.flatnonzero(near_faces(V, F, core, reach))
     W = F[window]
     can = flippable[window] & core[window]
     skip = ignored[window]
@@ -1081,7 +1086,7 @@ def flip_for_angles(V, F, flippable, *, floor, reach, ignored=None, passes=ANGLE
     at = np.zeros(len(V))
     at[F[bad].ravel()] = 1.0
     core = ((A @ at > 0) | (at > 0))[F].any(axis=1)
-    window = np.flatnonzero(_near_faces(V, F, core, reach))
+    window = np.flatnonzero(near_faces(V, F, core, reach))
     W = F[window]
     can = flippable[window]
     skip = np.zeros(len(W), bool) if ignored is None else np.asarray(ignored, bool)[window]
