@@ -482,7 +482,6 @@ def test_boxes_meet_finds_what_comparing_every_pair_finds():
         assert n < 100 or 0 < got.sum() < n  # neither all nor none: the test can tell
 
 
-
 def _triangle_soup(rng, n):
     """``n`` random triangles in a 10 m box, of very different sizes, many crossing."""
     centre = rng.random((n, 1, 3)) * 10

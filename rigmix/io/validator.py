@@ -83,6 +83,8 @@ def _failure_line(stderr: str) -> str:
     """The line of Node's stderr that says what failed: its first ``...Error: ...`` line (Node
     ends with a stack and its own version, e.g. ``RangeError: Maximum call stack size exceeded``
     on a node hierarchy about 7,000 deep), else the last line."""
-    lines = [ln.strip() for ln in stderr.strip().splitlines() if ln.strip()]
-    errors = [ln for ln in lines if re.match(r"^[A-Za-z]*Error\b", ln)]
-    return (errors or lines or ["(no output)"])[0 if errors else -1]
+    lines = [ln.strip() for ln in stderr.splitlines() if ln.strip()]
+    errors = [ln for ln in lines if re.match(r"[A-Za-z]*Error\b", ln)]
+    if errors:
+        return errors[0]
+    return lines[-1] if lines else "(no output)"
