@@ -29,14 +29,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
 from .character import Character, Clip, Skeleton
-from .config import BUILTIN_PREFIX, Config, check_files, load_config
 from .errors import InputError
 from .geometry import check_coordinates
-from .mapping import map_bones
-from .operations import Plan, plan_operations
 
 if TYPE_CHECKING:  # the annotations of Composition; the stages import their packages on use
+    from .config import Config
     from .fusion import FusedSurface, FusionInput
+    from .operations import Plan
     from .weights import SkinWeights
 
 __all__ = ["Composition", "Progress", "Step", "STAGE_NAMES", "check_input", "load_characters", "compose",
@@ -320,6 +319,8 @@ def load_characters(config: Config) -> dict:
         A missing file, an unknown ``builtin:`` name, a file the reader rejects or that cannot be
         composed (:func:`check_input`, at the config's ``[animation] fps``).
     """
+    from .config import BUILTIN_PREFIX, check_files
+
     check_files(config)
     out = {}
     for cid in config.characters:
@@ -365,6 +366,10 @@ def compose(config, *, progress: Progress | None = None, until: str | None = Non
         InputError for a bad config or input file, UnsupportedError for an input without a
         skin, NumericalError from a numerical stage.
     """
+    from .config import Config, load_config
+    from .mapping import map_bones
+    from .operations import plan_operations
+
     if not isinstance(config, Config):
         config = load_config(Path(config))
     if until is not None and until not in STAGE_NAMES[2:]:  # a Composition starts with the mapping

@@ -138,3 +138,39 @@ def test_each_stage_package_imports_first(module):
 
     r = subprocess.run([sys.executable, "-c", f"import {module}"], capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 0, r.stderr[-2000:]
+
+
+#: Libraries that reading and checking a config, or starting the CLI, must not load: they cost
+#: seconds, and a refused config or file is answered before any of them is needed.
+KERNELS = ("igl", "gpytoolbox", "torch", "scipy", "skimage", "pxr")
+
+
+def test_a_config_and_the_cli_load_no_numerical_kernel():
+    """``rigmix.pipeline``, ``rigmix.config`` and ``rigmix.cli`` import none of :data:`KERNELS`
+    (the fusion, weights and operations packages load their modules on first use,
+    :mod:`rigmix.lazy`): a refused config exits in a fraction of a second."""
+    import subprocess
+    import sys
+
+    code = ("import sys, rigmix.pipeline, rigmix.config, rigmix.cli; "
+            f"print(sorted({{m.split('.')[0] for m in sys.modules}} & set({KERNELS!r})))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip() == "[]", r.stdout
+
+
+@pytest.mark.parametrize("package", ["rigmix.fusion", "rigmix.weights", "rigmix.operations"])
+def test_lazy_package_names_are_their_modules_objects(package):
+    """Every public name of a lazily loaded package resolves to the object its module defines,
+    is listed by ``dir``, and an unknown name raises AttributeError."""
+    import importlib
+
+    pkg = importlib.import_module(package)
+    for name in pkg.__all__:
+        value = getattr(pkg, name)  # constants (dicts, tuples) resolve; classes and functions name their module
+        owner = getattr(value, "__module__", None)
+        if isinstance(owner, str) and owner.startswith(package + "."):
+            assert getattr(importlib.import_module(owner), name) is value, name
+        assert name in dir(pkg)
+    with pytest.raises(AttributeError, match="no_such_name"):
+        getattr(pkg, "no_such_name")

@@ -14,27 +14,32 @@ Public entry: :func:`blend_weights` (the weights stage of :func:`rigmix.pipeline
 ``params``    :class:`WeightParams`, the ``[weights]`` options
 """
 
-from .blend import (
-    BLEND_FACTORS,
-    FIELD_DISTILL,
-    JUNCTION_SMOOTHING,
-    ON_SURFACE,
-    WEIGHT_METHODS,
-    JunctionBlend,
-    SkinWeights,
-    blend_junction,
-    blend_weights,
-    copy_preserved_rows,
-    junction_fill_options,
-    match_junction_rows,
-    smooth_seam,
-    weights_report,
-)
-from .fill import FILL_METHODS, fill_weights
-from .mesh import sparsify
-from .mirror import Plane, feature_field, mirror_joints, symmetry_plane
+from typing import TYPE_CHECKING
+
+from ..lazy import lazy_exports
 from .params import WeightParams
-from .retarget import blend_parts, closest_point_weights, retarget_inputs, retarget_weights, to_influences
+
+if TYPE_CHECKING:
+    from .blend import (
+        BLEND_FACTORS,
+        FIELD_DISTILL,
+        JUNCTION_SMOOTHING,
+        ON_SURFACE,
+        WEIGHT_METHODS,
+        JunctionBlend,
+        SkinWeights,
+        blend_junction,
+        blend_weights,
+        copy_preserved_rows,
+        junction_fill_options,
+        match_junction_rows,
+        smooth_seam,
+        weights_report,
+    )
+    from .fill import FILL_METHODS, fill_weights
+    from .mesh import sparsify
+    from .mirror import Plane, feature_field, mirror_joints, symmetry_plane
+    from .retarget import blend_parts, closest_point_weights, retarget_inputs, retarget_weights, to_influences
 
 __all__ = [
     "blend_weights", "WeightParams", "SkinWeights", "WEIGHT_METHODS", "BLEND_FACTORS", "ON_SURFACE",
@@ -43,3 +48,15 @@ __all__ = [
     "blend_junction", "match_junction_rows", "smooth_seam", "weights_report", "fill_weights", "FILL_METHODS",
     "sparsify", "feature_field", "mirror_joints", "symmetry_plane", "Plane",
 ]
+
+# the solvers and the feature field load on first use: a config needs only WeightParams
+__getattr__, __dir__ = lazy_exports(__name__, {
+    **dict.fromkeys(("BLEND_FACTORS", "FIELD_DISTILL", "JUNCTION_SMOOTHING", "ON_SURFACE", "WEIGHT_METHODS",
+                     "JunctionBlend", "SkinWeights", "blend_junction", "blend_weights", "copy_preserved_rows",
+                     "junction_fill_options", "match_junction_rows", "smooth_seam", "weights_report"), "blend"),
+    **dict.fromkeys(("FILL_METHODS", "fill_weights"), "fill"),
+    "sparsify": "mesh",
+    **dict.fromkeys(("Plane", "feature_field", "mirror_joints", "symmetry_plane"), "mirror"),
+    **dict.fromkeys(("blend_parts", "closest_point_weights", "retarget_inputs", "retarget_weights", "to_influences"),
+                    "retarget"),
+})
