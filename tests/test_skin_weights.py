@@ -592,7 +592,10 @@ def test_hidden_junction_is_filled_best_by_dfd(name, joint, dfd_bound):
     vertices alone, against a known truth. Measured mean junction weight error (nearest /
     inpaint / dfd): CesiumMan's left leg 0.78 / 0.20 / 0.05, the Fox's left front leg (its upper
     arm joint hidden all over the band: only the mirror prior witnesses it, which the geodesic
-    locality must keep) 1.18 / 1.04 / 0.18."""
+    locality must keep) 1.18 / 1.04 / 0.18. The dfd measured is the default one, without a
+    feature field (``benchmarks/results/self_composition.md``: 0.018 and 0.182 without it, 0.018
+    and 0.184 with it); the field's own case is
+    :func:`test_hidden_junction_with_a_field_that_tells_the_sides_apart`."""
     from benchmarks.self_composition import METHODS, REBUILT, hidden_weights, self_config
     from rigmix.pipeline import compose
     from rigmix.quality import self_composition_errors
@@ -600,17 +603,17 @@ def test_hidden_junction_is_filled_best_by_dfd(name, joint, dfd_bound):
     comp = compose(self_config(asset(name), joint, fusion=REBUILT), until="fusion")
     figs = {}
     for label, options in METHODS:
-        if label == "dfd_no_field":
+        if options.get("feature_field"):
             continue
         skin, _ = hidden_weights(comp, options)
         assert skin.report["matched_vertices"] == 0 and not skin.matched.any()
         _check_invariants(replace(comp, weights=skin))
         figs[label] = self_composition_errors(comp, skin, max_frames=30)
-    assert figs["dfd"]["junction_vertices"] > 100
+    assert figs["dfd_no_field"]["junction_vertices"] > 100
     err = {k: f["junction_weight_error_mean"] for k, f in figs.items()}
     skinned = {k: f["skinned_error_max"] for k, f in figs.items()}
-    assert err["dfd"] < dfd_bound < err["inpaint"] < err["nearest"], err
-    assert skinned["dfd"] < skinned["inpaint"] < skinned["nearest"], skinned
+    assert err["dfd_no_field"] < dfd_bound < err["inpaint"] < err["nearest"], err
+    assert skinned["dfd_no_field"] < skinned["inpaint"] < skinned["nearest"], skinned
 
 
 @pytest.mark.parametrize("joint", ["BackUpLeg.L", "BackUpLeg.R"])
