@@ -211,13 +211,13 @@ FIELD = """
 import hashlib
 import numpy as np
 from dfd.distill import distill
-from rigmix.examples import humanoid
-mesh = humanoid().meshes[0]
-field = distill(mesh.positions, mesh.faces, n_views=6, resolution=48, steps=40, batch_size=1024)
+from dfd.shapes import ellipsoids
+V, F = ellipsoids([((0, 0, 0), (1, 0.4, 0.3)), ((0.8, 0.5, 0), (0.2, 0.6, 0.2))])
+field = distill(V, F, n_views=6, resolution=48, steps=40, batch_size=1024)
 h = hashlib.sha256()
 for p in field.parameters():
     h.update(p.detach().numpy().tobytes())
-h.update(np.ascontiguousarray(field.evaluate(mesh.positions)).tobytes())
+h.update(np.ascontiguousarray(field.evaluate(V)).tobytes())
 print(h.hexdigest())
 """
 
@@ -226,7 +226,8 @@ print(h.hexdigest())
 def test_feature_field_does_not_depend_on_the_thread_count():
     """The DFD field (it judges the mirror prior of junction weights) trains to the same
     weights with 1 and 2 torch threads (before the fix, the batch reductions of the backward
-    pass rounded differently)."""
+    pass rounded differently: on these two ellipsoids, two distinct fields with
+    :func:`dfd.distill._one_thread` made a no-op)."""
     out = {n: subprocess.run([sys.executable, "-c", FIELD], capture_output=True, text=True, cwd=ROOT,
                              env=_threads_env(n), timeout=500) for n in (1, 2)}
     for n, r in out.items():
