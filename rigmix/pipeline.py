@@ -114,7 +114,9 @@ def fusion_stage(composition: Composition, step: Step | None = None) -> Composit
 
     Where a fusion gate fails (:func:`rigmix.gates.mesh_gates`), the surface may be fused a second
     time with the replaced regions taken whole (``FusionParams.retry_whole_region``), and that one
-    kept when it fails less (:func:`rigmix.gates.fails_less`); the stage's time then holds both.
+    kept when it fails less (:func:`rigmix.gates.fails_less`); the stage's time then holds both,
+    and ``report["mesh"]["rejected_attempt"]`` holds the fusion not kept: its ``mesh`` and
+    ``fields`` figures and its ``failed_gates`` (names).
     """
     from .fusion import fuse_surfaces
     from .fusion.inputs import fusion_inputs_from_plan
@@ -144,8 +146,13 @@ def fusion_stage(composition: Composition, step: Step | None = None) -> Composit
         alt_failed = failed_mesh_gates(alt_mesh)
         logger.info("fusion: failing %s; with the replaced regions taken whole, failing %s", sorted(failed),
                     sorted(alt_failed) or "no gate")
+        alt_mesh = {**alt_mesh, "replaced_whole_region": True}
+        attempts = [(fused, mesh, failed), (alt, alt_mesh, alt_failed)]
         if fails_less(alt_failed, failed):
-            fused, mesh = alt, {**alt_mesh, "replaced_whole_region": True}
+            attempts.reverse()
+        (fused, mesh, _), (rejected, rejected_mesh, rejected_failed) = attempts
+        mesh = {**mesh, "rejected_attempt": {"mesh": rejected_mesh, "fields": rejected.surface.report["fields"],
+                                             "failed_gates": sorted(rejected_failed)}}
     return replace(fused, report={**composition.report, "mesh": mesh, "fields": fused.surface.report["fields"]})
 
 

@@ -170,6 +170,10 @@ def test_a_leg_whose_junction_creases_is_fused_again_with_the_replaced_region_wh
     first = compose(with_fusion(path, retry_whole_region=False), until="fusion").report["mesh"]
     assert first["replaced_whole_region"] is False
     assert "junction_dihedral_ratio" in failed_mesh_gates(first)
+    # the report keeps the fusion not kept, as made without the retry
+    rejected = mesh["rejected_attempt"]
+    assert rejected["mesh"] == first and "junction_dihedral_ratio" in rejected["failed_gates"]
+    assert rejected["fields"]["grids"]
     # the retry's budget: inputs of more faces than retry_max_faces are fused once
     once = compose(with_fusion(path, retry_max_faces=1000), until="fusion").report["mesh"]
     assert once["replaced_whole_region"] is False
@@ -190,7 +194,7 @@ def test_a_fusion_that_passes_is_not_retried_and_a_retry_is_kept_only_when_it_fa
     mesh = compose(path, until="fusion").report["mesh"]
     assert 0 < mesh["junction_self_intersections"] == mesh["junction_crossings_inherited"]  # the case's point
     assert not failed_mesh_gates(mesh)
-    assert mesh["replaced_whole_region"] is False
+    assert mesh["replaced_whole_region"] is False and "rejected_attempt" not in mesh  # not retried
 
     def gate(name, value, op="<="):
         return Gate.measure(name, value, op, 0.0 if op == "<=" else 20.0)

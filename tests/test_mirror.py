@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import asset, corpus, with_fusion
+from conftest import asset, corpus
 
 from rigmix.animation import clip_times, sample_clip
 from rigmix.config import parse_config
@@ -251,7 +251,8 @@ def test_a_seam_closed_along_a_hole_the_isosurface_misses_stays_open_and_counted
     loop matches it, and the whole cluster would be picked from the inputs (104 crossing pairs,
     triangles down to 3 degrees). The junction is made without it: the seam stays open, counted
     in open_seam_edges, and the rest of the junction is clean. That gate failed, the fusion runs
-    again with the Stegosaurus' neck taken whole (``retry_whole_region``), and closes."""
+    again with the Stegosaurus' neck taken whole (``retry_whole_region``), and closes; the first
+    fusion is the report's ``rejected_attempt``."""
     from benchmarks.corpus_matrix import head_swap_cases, load_subjects, write_configs
     from rigmix.gates import failed_mesh_gates
     from rigmix.pipeline import compose
@@ -266,12 +267,15 @@ def test_a_seam_closed_along_a_hole_the_isosurface_misses_stays_open_and_counted
     text = path.read_text()
     assert 'scale = "auto"' in text
     path.write_text(text.replace('scale = "auto"', "scale = 1.012", 1))
-    comp = compose(with_fusion(path, retry_whole_region=False), until="fusion")
-    m = comp.report["mesh"]
-    assert not any(g.get("fallback") for g in comp.report["fields"]["grids"])
-    assert any(g.get("seams_left_open") for g in comp.report["fields"]["grids"])
-    assert m["open_seam_edges"] == m["junction_boundary_edges"] > 0  # the gap is reported, not hidden
-    assert m["junction_self_intersections"] == 0 and m["junction_min_angle_p05"] >= 20.0
     m = compose(path, until="fusion").report["mesh"]
     assert m["replaced_whole_region"] is True and m["open_seam_edges"] == m["junction_boundary_edges"] == 0
     assert not failed_mesh_gates(m)
+    # the first fusion, not kept (the report's rejected_attempt)
+    first = m["rejected_attempt"]
+    grids = first["fields"]["grids"]
+    assert not any(g.get("fallback") for g in grids) and any(g.get("seams_left_open") for g in grids)
+    assert first["mesh"]["replaced_whole_region"] is False and "rejected_attempt" not in first["mesh"]
+    f = first["mesh"]
+    assert f["open_seam_edges"] == f["junction_boundary_edges"] > 0  # the gap is reported, not hidden
+    assert f["junction_self_intersections"] == 0 and f["junction_min_angle_p05"] >= 20.0
+    assert set(first["failed_gates"]) == set(failed_mesh_gates(f)) >= {"open_seam_edges", "junction_boundary_edges"}
