@@ -2,10 +2,10 @@
 name does not load its heavy modules.
 
 ``rigmix.config`` needs only the option dataclasses of :mod:`rigmix.fusion` and
-:mod:`rigmix.weights`; importing those packages eagerly loaded libigl, gpytoolbox and scipy's
-sparse and spatial modules (about 1.3 s of the 1.7 s a ``rigmix inspect`` or a refused
-``rigmix compose`` took). The packages list their public names, each with its module, and
-resolve one the first time it is asked for."""
+:mod:`rigmix.weights`; the other modules of those packages load libigl, gpytoolbox and scipy's
+sparse and spatial modules, over a second, which a ``rigmix inspect`` or a refused ``rigmix
+compose`` never needs. The packages list their public names, each with its module, and resolve
+one the first time it is asked for."""
 
 from __future__ import annotations
 
