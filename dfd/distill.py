@@ -13,6 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -33,6 +34,58 @@ log = logging.getLogger(__name__)
 #: at 224 px, within the 60 s budget of a 50k-face mesh on 2 CPU cores (benchmarks/dfd_bench.py).
 DEFAULT_STEPS = 300
 DEFAULT_BATCH_SIZE = 4096
+
+
+class _Adam:
+    """Adam as ``torch.optim.Adam(params, lr)`` computes it on CPU tensors (its single-tensor
+    update: betas 0.9 and 0.999, eps 1e-8, no weight decay), the same operations in the same
+    order, so the fields are bit for bit those torch's optimizer trains.
+
+    Written out because every ``torch.optim`` optimizer imports the compiler stack
+    (``torch._dynamo``, about 2 s) on its first ``add_param_group``, in each process that
+    distills a field, before any training step."""
+
+    def __init__(self, params, lr, betas=(0.9, 0.999), eps=1e-8):
+        self.params = list(params)
+        self.lr = float(lr)
+        self.beta1, self.beta2 = betas
+        self.eps = eps
+        self.exp_avg = [torch.zeros_like(p, memory_format=torch.preserve_format) for p in self.params]
+        self.exp_avg_sq = [torch.zeros_like(p, memory_format=torch.preserve_format) for p in self.params]
+        # torch counts steps in a float32 tensor and reads it back as a Python float
+        self.steps = [torch.tensor(0.0, dtype=torch.float32) for _ in self.params]
+
+    def zero_grad(self):
+        for p in self.params:
+            p.grad = None
+
+    @torch.no_grad()
+    def step(self):
+        for p, m, v, t in zip(self.params, self.exp_avg, self.exp_avg_sq, self.steps):
+            if p.grad is None:
+                continue
+            g = p.grad
+            t += 1
+            m.lerp_(g, 1 - self.beta1)
+            v.mul_(self.beta2).addcmul_(g, g, value=1 - self.beta2)
+            step = t.item()
+            bias_correction1 = 1 - self.beta1**step
+            bias_correction2 = 1 - self.beta2**step
+            step_size = self.lr / bias_correction1
+            denom = (v.sqrt() / bias_correction2**0.5).add_(self.eps)
+            p.addcdiv_(m, denom, value=-step_size)
+
+
+def _cosine_rates(lr, steps):
+    """The learning rate of each of ``steps`` steps under ``torch.optim.lr_scheduler.
+    CosineAnnealingLR(T_max=max(steps, 1), eta_min=0)``, by the recursive form torch uses
+    (each rate from the last), so that the rounding is torch's too."""
+    period = max(steps, 1)
+    rate = float(lr)
+    for step in range(steps):
+        yield rate
+        e = step + 1
+        rate = (1 + math.cos(math.pi * e / period)) / (1 + math.cos(math.pi * (e - 1) / period)) * (rate - 0) + 0
 
 
 def decimate(V, F, face_budget, *, vertex_colors=None, uvs=None):
@@ -260,17 +313,16 @@ def distill(
         Y.shape[1], n_frequencies=n_frequencies, normalization=norm, mesh_hash=digest, settings=settings
     )
     field.train()
-    optimizer = torch.optim.Adam(field.parameters(), lr=lr)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max(steps, 1)) if lr_decay else None
+    optimizer = _Adam(field.parameters(), lr=lr)
+    rates = _cosine_rates(lr, steps) if lr_decay else (float(lr) for _ in range(steps))
     with _one_thread():
-        for step in range(steps):
+        for step, rate in enumerate(rates):
             idx = torch.randint(len(X), (min(batch_size, len(X)),), generator=generator)
             loss = (field(X[idx]) - Y[idx]).square().sum(dim=1).mean()
-            optimizer.zero_grad(set_to_none=True)
+            optimizer.zero_grad()
             loss.backward()
+            optimizer.lr = rate
             optimizer.step()
-            if schedule is not None:
-                schedule.step()
             if progress is not None:
                 progress(step + 1, steps)
     log.debug("distill: final loss %.4f", float(loss.detach()) if steps else float("nan"))

@@ -110,3 +110,56 @@ def test_distill_decimates_above_budget(figure):
     assert small.settings["face_budget"] == 500
     X = small.evaluate(V)
     np.testing.assert_allclose(np.linalg.norm(X, axis=1), 1.0, atol=1e-5)
+
+
+@pytest.mark.parametrize("lr_decay", [True, False])
+def test_written_out_adam_is_torchs_bit_for_bit(lr_decay):
+    """distill's optimizer and schedule (dfd.distill._Adam, _cosine_rates) train exactly the
+    weights that torch.optim.Adam with CosineAnnealingLR trains (the stored fields and every
+    figure measured with them stay valid)."""
+    from dfd.distill import _Adam, _cosine_rates
+
+    def train(ours):
+        torch.manual_seed(0)
+        net = torch.nn.Sequential(torch.nn.Linear(3, 32), torch.nn.ReLU(), torch.nn.LayerNorm(32),
+                                  torch.nn.Linear(32, 5))
+        X = torch.randn(256, 3, generator=torch.Generator().manual_seed(1))
+        Y = torch.randn(256, 5, generator=torch.Generator().manual_seed(2))
+        steps, lr = 40, 1e-2
+        if ours:
+            opt = _Adam(net.parameters(), lr=lr)
+            rates = list(_cosine_rates(lr, steps)) if lr_decay else [lr] * steps
+        else:
+            opt = torch.optim.Adam(net.parameters(), lr=lr)
+            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=steps) if lr_decay else None
+        for step in range(steps):
+            idx = torch.randint(256, (64,), generator=torch.Generator().manual_seed(step))
+            loss = (net(X[idx]) - Y[idx]).square().sum(dim=1).mean()
+            opt.zero_grad()
+            loss.backward()
+            if ours:
+                opt.lr = rates[step]
+            opt.step()
+            if not ours and sched is not None:
+                sched.step()
+        return net.state_dict()
+
+    mine, torchs = train(True), train(False)
+    assert all(torch.equal(mine[k], torchs[k]) for k in torchs)
+    torch.manual_seed(0)  # the same initial weights: training moved them
+    start = torch.nn.Sequential(torch.nn.Linear(3, 32), torch.nn.ReLU(), torch.nn.LayerNorm(32),
+                                torch.nn.Linear(32, 5)).state_dict()
+    assert not torch.equal(mine["0.weight"], start["0.weight"])
+
+
+def test_distilling_does_not_import_the_compiler_stack():
+    """A field trains without torch._dynamo (seconds of import, which torch.optim pays)."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from dfd.distill import distill; from dfd.shapes import ellipsoids; "
+            "V, F = ellipsoids([((0, 0, 0), (1, 0.6, 0.5))], 1); "
+            "distill(V, F, n_views=3, resolution=32, steps=3, batch_size=64); "
+            "print('torch._dynamo' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.strip() == "False"
