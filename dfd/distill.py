@@ -26,7 +26,7 @@ from dfd.field import FeatureField, load_field
 from dfd.mesh import check_mesh, mesh_hash, normalization, weld
 from dfd.render import render_views, surface_points
 
-__all__ = ["distill", "decimate", "training_samples", "DEFAULT_STEPS", "DEFAULT_BATCH_SIZE"]
+__all__ = ["distill", "decimate", "training_samples", "Adam", "cosine_rates", "DEFAULT_STEPS", "DEFAULT_BATCH_SIZE"]
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +36,7 @@ DEFAULT_STEPS = 300
 DEFAULT_BATCH_SIZE = 4096
 
 
-class _Adam:
+class Adam:
     """Adam as ``torch.optim.Adam(params, lr)`` computes it on CPU tensors (its single-tensor
     update: betas 0.9 and 0.999, eps 1e-8, no weight decay), the same operations in the same
     order, so the fields are bit for bit those torch's optimizer trains.
@@ -76,7 +76,7 @@ class _Adam:
             p.addcdiv_(m, denom, value=-step_size)
 
 
-def _cosine_rates(lr, steps):
+def cosine_rates(lr, steps):
     """The learning rate of each of ``steps`` steps under ``torch.optim.lr_scheduler.
     CosineAnnealingLR(T_max=max(steps, 1), eta_min=0)``, by the recursive form torch uses
     (each rate from the last), so that the rounding is torch's too."""
@@ -313,8 +313,8 @@ def distill(
         Y.shape[1], n_frequencies=n_frequencies, normalization=norm, mesh_hash=digest, settings=settings
     )
     field.train()
-    optimizer = _Adam(field.parameters(), lr=lr)
-    rates = _cosine_rates(lr, steps) if lr_decay else (float(lr) for _ in range(steps))
+    optimizer = Adam(field.parameters(), lr=lr)
+    rates = cosine_rates(lr, steps) if lr_decay else (float(lr) for _ in range(steps))
     with _one_thread():
         for step, rate in enumerate(rates):
             idx = torch.randint(len(X), (min(batch_size, len(X)),), generator=generator)

@@ -114,10 +114,10 @@ def test_distill_decimates_above_budget(figure):
 
 @pytest.mark.parametrize("lr_decay", [True, False])
 def test_written_out_adam_is_torchs_bit_for_bit(lr_decay):
-    """distill's optimizer and schedule (dfd.distill._Adam, _cosine_rates) train exactly the
+    """distill's optimizer and schedule (dfd.distill.Adam, cosine_rates) train exactly the
     weights that torch.optim.Adam with CosineAnnealingLR trains (the stored fields and every
     figure measured with them stay valid)."""
-    from dfd.distill import _Adam, _cosine_rates
+    from dfd.distill import Adam, cosine_rates
 
     def train(ours):
         torch.manual_seed(0)
@@ -127,8 +127,8 @@ def test_written_out_adam_is_torchs_bit_for_bit(lr_decay):
         Y = torch.randn(256, 5, generator=torch.Generator().manual_seed(2))
         steps, lr = 40, 1e-2
         if ours:
-            opt = _Adam(net.parameters(), lr=lr)
-            rates = list(_cosine_rates(lr, steps)) if lr_decay else [lr] * steps
+            opt = Adam(net.parameters(), lr=lr)
+            rates = list(cosine_rates(lr, steps)) if lr_decay else [lr] * steps
         else:
             opt = torch.optim.Adam(net.parameters(), lr=lr)
             sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=steps) if lr_decay else None

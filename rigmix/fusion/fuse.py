@@ -233,6 +233,10 @@ class _Partition:
         Coarsest voxel, ``voxel_factor`` times the smallest average edge length.
     diagonal : float
         Smallest input's bounding-box diagonal (0 without vertices).
+    surfaces : list of (g_i, 3) int64 arrays
+        Per input, its non-secondary welded faces prepared for signed distances
+        (:func:`.fields.prepare_surface`): secondary components are kept whole or dropped, never
+        blended, so they are in no field.
     """
 
     pres: list
@@ -242,6 +246,7 @@ class _Partition:
     junction: list
     h0: float
     diagonal: float
+    surfaces: list
 
 
 def _partition(inputs, actions, params) -> _Partition:
@@ -260,7 +265,8 @@ def _partition(inputs, actions, params) -> _Partition:
     edge_lengths = [average_edge_length(P.welded.V, P.welded.F) for P in pres]
     h0 = params.voxel_factor * min([e for e in edge_lengths if e > 0] or [1.0])
     diagonal = min([bounding_box_diagonal(P.welded.V) for P in pres if len(P.welded.V)] or [0.0])
-    preserved = attach_conflicts(pres, actions, h0 * params.attach_conflict_voxels / 2.0)
+    surfaces = [prepare_surface(P.welded.V, P.welded.F[~P.secondary]) for P in pres]
+    preserved = attach_conflicts(pres, actions, h0 * params.attach_conflict_voxels / 2.0, surfaces)
     if params.min_seam_wedge > 0:
         preserved = [open_notches(P, preserved[i], min_wedge=params.min_seam_wedge) for i, P in enumerate(pres)]
     junction = [~preserved[i] & ~(P.absent & ~P.preserved) for i, P in enumerate(pres)]
@@ -284,7 +290,7 @@ def _partition(inputs, actions, params) -> _Partition:
         junction = [junction[i] & ~copied[i] & ~dropped[i] for i in range(len(pres))]
     kept = [preserved[i] | copied[i] for i in range(len(pres))]
     return _Partition(pres=pres, preserved=preserved, copied=copied, kept=kept, junction=junction, h0=h0,
-                      diagonal=diagonal)
+                      diagonal=diagonal, surfaces=surfaces)
 
 
 def _seam_loops(part: _Partition):
@@ -941,8 +947,7 @@ def fuse_surfaces(inputs: Sequence[FusionInput], actions: Sequence[FusionAction]
     seamless = _seamless(part, loops_all, open_chain_edges)
     boxes = junction_clusters(part.pres, part.junction, params.margin_voxels * part.h0)
     backend = get_backend(params.backend)
-    # secondary components are kept whole or dropped, never blended: not in the fields
-    surfaces = [prepare_surface(P.welded.V, P.welded.F[~P.secondary]) for P in part.pres]
+    surfaces = part.surfaces
     timings["setup"] = time.perf_counter() - t0
 
     shells = None
