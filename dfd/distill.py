@@ -37,43 +37,41 @@ DEFAULT_BATCH_SIZE = 4096
 
 
 class Adam:
-    """Adam as ``torch.optim.Adam(params, lr)`` computes it on CPU tensors (its single-tensor
-    update: betas 0.9 and 0.999, eps 1e-8, no weight decay), the same operations in the same
-    order, so the fields are bit for bit those torch's optimizer trains.
+    """Adam as ``torch.optim.Adam`` computes it on CPU tensors (its single-tensor update: betas
+    0.9 and 0.999, eps 1e-8, no weight decay), the same operations in the same order, so the
+    fields are bit for bit those torch's optimizer trains.
 
     Written out because every ``torch.optim`` optimizer imports the compiler stack
     (``torch._dynamo``, about 2 s) on its first ``add_param_group``, in each process that
     distills a field, before any training step."""
 
-    def __init__(self, params, lr, betas=(0.9, 0.999), eps=1e-8):
+    def __init__(self, params, betas=(0.9, 0.999), eps=1e-8):
         self.params = list(params)
-        self.lr = float(lr)
         self.beta1, self.beta2 = betas
         self.eps = eps
-        self.exp_avg = [torch.zeros_like(p, memory_format=torch.preserve_format) for p in self.params]
-        self.exp_avg_sq = [torch.zeros_like(p, memory_format=torch.preserve_format) for p in self.params]
-        # torch counts steps in a float32 tensor and reads it back as a Python float
-        self.steps = [torch.tensor(0.0, dtype=torch.float32) for _ in self.params]
+        self.exp_avg = [torch.zeros_like(p) for p in self.params]
+        self.exp_avg_sq = [torch.zeros_like(p) for p in self.params]
+        # per parameter, as torch counts them (its float32 count is exact below 2**24 steps)
+        self.steps = [0] * len(self.params)
 
     def zero_grad(self):
         for p in self.params:
             p.grad = None
 
     @torch.no_grad()
-    def step(self):
-        for p, m, v, t in zip(self.params, self.exp_avg, self.exp_avg_sq, self.steps):
+    def step(self, lr):
+        """One update at learning rate ``lr`` of every parameter that has a gradient."""
+        for i, (p, m, v) in enumerate(zip(self.params, self.exp_avg, self.exp_avg_sq)):
             if p.grad is None:
                 continue
             g = p.grad
-            t += 1
+            self.steps[i] += 1
             m.lerp_(g, 1 - self.beta1)
             v.mul_(self.beta2).addcmul_(g, g, value=1 - self.beta2)
-            step = t.item()
-            bias_correction1 = 1 - self.beta1**step
-            bias_correction2 = 1 - self.beta2**step
-            step_size = self.lr / bias_correction1
+            bias_correction1 = 1 - self.beta1 ** self.steps[i]
+            bias_correction2 = 1 - self.beta2 ** self.steps[i]
             denom = (v.sqrt() / bias_correction2**0.5).add_(self.eps)
-            p.addcdiv_(m, denom, value=-step_size)
+            p.addcdiv_(m, denom, value=-(lr / bias_correction1))
 
 
 def cosine_rates(lr, steps):
@@ -84,8 +82,7 @@ def cosine_rates(lr, steps):
     rate = float(lr)
     for step in range(steps):
         yield rate
-        e = step + 1
-        rate = (1 + math.cos(math.pi * e / period)) / (1 + math.cos(math.pi * (e - 1) / period)) * (rate - 0) + 0
+        rate = (1 + math.cos(math.pi * (step + 1) / period)) / (1 + math.cos(math.pi * step / period)) * rate
 
 
 def decimate(V, F, face_budget, *, vertex_colors=None, uvs=None):
@@ -313,7 +310,7 @@ def distill(
         Y.shape[1], n_frequencies=n_frequencies, normalization=norm, mesh_hash=digest, settings=settings
     )
     field.train()
-    optimizer = Adam(field.parameters(), lr=lr)
+    optimizer = Adam(field.parameters())
     rates = cosine_rates(lr, steps) if lr_decay else (float(lr) for _ in range(steps))
     with _one_thread():
         for step, rate in enumerate(rates):
@@ -321,8 +318,7 @@ def distill(
             loss = (field(X[idx]) - Y[idx]).square().sum(dim=1).mean()
             optimizer.zero_grad()
             loss.backward()
-            optimizer.lr = rate
-            optimizer.step()
+            optimizer.step(rate)
             if progress is not None:
                 progress(step + 1, steps)
     log.debug("distill: final loss %.4f", float(loss.detach()) if steps else float("nan"))

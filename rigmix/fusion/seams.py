@@ -12,7 +12,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..geometry import check_grid_voxels
-from .fields import Grid, prepare_surface
+from .fields import Grid
 from .junction import boundary_loops
 from .meshutil import (
     boundary_halfedges,
@@ -43,7 +43,7 @@ __all__ = [
 ]
 
 
-def attach_conflicts(pres: list[Presence], actions, h, surfaces=None):
+def attach_conflicts(pres: list[Presence], actions, h, surfaces):
     """Preserved faces the fused surface must cut through or that it buries.
 
     attach: faces of either input near or inside the other's present part. replace: faces of
@@ -59,9 +59,9 @@ def attach_conflicts(pres: list[Presence], actions, h, surfaces=None):
     h : float
         Distance unit (same units as the meshes): attach conflicts lie within ``2 h`` of the
         other's present part, buried faces farther than ``h / 2`` from the other's surface.
-    surfaces : list of (g_i, 3) int arrays, optional
+    surfaces : list of (g_i, 3) int arrays
         Per input, its non-secondary welded faces prepared by :func:`.fields.prepare_surface`
-        (prepared here where not given; the fusion prepares them once for its fields too).
+        (the same the fusion's fields use).
 
     Returns
     -------
@@ -90,7 +90,7 @@ def attach_conflicts(pres: list[Presence], actions, h, surfaces=None):
             else:
                 # inside the other's whole surface, nearest to a present part of it, not on it; the
                 # distances only for the centres inside (each query is answered on its own)
-                Fall = prepare_surface(Vy, Py.welded.F[~Py.secondary]) if surfaces is None else surfaces[y]
+                Fall = surfaces[y]
                 hit = igl.fast_winding_number(Vy, Fall, C) > 0.5
                 inside = np.flatnonzero(hit)
                 if len(inside):
